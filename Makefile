@@ -1,0 +1,32 @@
+# worldbake: two commands from a fresh machine: `make bake`, then `make test`.
+PYTHON ?= python3
+VENV   ?= .venv
+PY      = $(VENV)/bin/python
+CONFIG ?= configs/default.toml
+
+.PHONY: setup bake plan test bench clean
+.DELETE_ON_ERROR:
+
+# The virtual environment, rebuilt when pyproject.toml changes.
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test,bench]'
+	touch $@
+
+setup: $(VENV)/.installed
+
+bake: setup
+	$(VENV)/bin/worldbake bake $(CONFIG)
+
+plan: setup
+	$(VENV)/bin/worldbake plan $(CONFIG)
+
+test: setup
+	$(PY) -m pytest -q
+
+bench: setup
+	$(PY) -m bench.heightmap
+
+clean:
+	rm -rf build

@@ -1,0 +1,1 @@
+"""worldbake's engine: stage contract, graph, store, config, OpenCL, EXR/USD I/O, CLI."""

@@ -1,0 +1,274 @@
+"""Keys, planning and running: what `worldbake plan` and `worldbake bake` do.
+
+The cache key of a stage run hashes its name and version, the bytes of its
+own source files, its canonical params, the bytes of the files its params
+name, the keys of its inputs, the seed when it uses one, and the versions of
+the libraries (and the OpenCL device) that change its numbers. Never mtimes.
+"""
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from . import exr, usdio
+from .config import WorldConfig, canonical_params
+from .contract import Artifact, RunContext, Stage
+from .errors import StageError
+from .graph import Graph, Step, plan
+from .grid import Grid
+from .store import MANIFEST, Store, sha256_file, write_json
+
+# Bump when the engine changes how artifacts are written (file formats,
+# provenance layout), so that old keys stop matching.
+ENGINE_FORMAT = 1
+KEY_LENGTH = 20  # hex digits of sha256 kept in folder names (80 bits)
+
+
+@functools.lru_cache(maxsize=None)
+def source_hash(source_dir: Path) -> str:
+    """sha256 over the relative paths and bytes of a stage's .py and .cl files."""
+    h = hashlib.sha256()
+    for path in sorted(p for p in Path(source_dir).rglob("*") if p.suffix in (".py", ".cl") and "__pycache__" not in p.parts):
+        h.update(path.relative_to(source_dir).as_posix().encode() + b"\0")
+        h.update(path.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=None)
+def library_versions(uses_opencl: bool) -> dict[str, str]:
+    import OpenImageIO
+    from pxr import Usd
+
+    versions = {"numpy": np.__version__, "OpenImageIO": OpenImageIO.VERSION_STRING,
+                "usd": ".".join(map(str, Usd.GetVersion())), "engine_format": str(ENGINE_FORMAT)}
+    if uses_opencl:
+        import pyopencl
+
+        from .opencl import get_cl
+
+        versions["pyopencl"] = pyopencl.VERSION_TEXT
+        versions["opencl_device"] = get_cl().fingerprint
+    return versions
+
+
+@dataclass(frozen=True)
+class PlannedStep:
+    stage: Stage
+    key: str
+    inputs: dict[str, tuple[str, str, str]]  # role -> (artifact name, producer stage, producer key)
+    params_json: str
+    key_material: dict[str, Any]
+
+
+def stage_key(step: Step, config: WorldConfig, keys: dict[str, str]) -> PlannedStep:
+    stage = step.stage
+    params_json = canonical_params(config.params[stage.name])
+    inputs = {}
+    for role, art in sorted(step.inputs.items()):
+        producer = art.split(".", 1)[0]
+        inputs[role] = (art, producer, keys[producer])
+    material = {
+        "stage": stage.name,
+        "version": stage.version,
+        "source": source_hash(stage.source_dir),
+        "params": json.loads(params_json),
+        "files": {k: v for k, v in sorted(config.file_hashes.items()) if k.startswith(stage.name + ".")},
+        "inputs": {role: list(v) for role, v in inputs.items()},
+        "seed": config.seed if stage.uses_seed else None,
+        "libraries": library_versions(stage.uses_opencl),
+    }
+    digest = hashlib.sha256(json.dumps(material, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+    return PlannedStep(stage, digest[:KEY_LENGTH], inputs, params_json, material)
+
+
+def plan_bake(graph: Graph, config: WorldConfig) -> list[PlannedStep]:
+    enabled = {name: p.enabled for name, p in config.params.items()}
+    steps = plan(graph, enabled, config.outputs, str(config.path))
+    keys: dict[str, str] = {}
+    planned = []
+    for step in steps:
+        ps = stage_key(step, config, keys)
+        keys[step.stage.name] = ps.key
+        planned.append(ps)
+    return planned
+
+
+# --------------------------------------------------------------------------- running
+
+
+def _load_input(store: Store, artifact: Artifact, producer: str, key: str) -> Any:
+    path = store.folder(producer, key) / artifact.file
+    if artifact.kind == "grid":
+        return exr.read_grid(path)
+    if artifact.kind == "json":
+        return json.loads(path.read_text())
+    return path
+
+
+def _check_grid(stage: Stage, art: Artifact, value: Any, terrain_shape: tuple[int, int] | None) -> Grid:
+    if not isinstance(value, Grid):
+        raise StageError(f"stage {stage.name}: output {art.name} must be a Grid, got {type(value).__name__}")
+    if tuple(value.channels) != tuple(art.channels):
+        raise StageError(f"stage {stage.name}: output {art.name} has channels {value.channels}, declared {art.channels}")
+    if value.data.dtype != np.dtype(art.dtype):
+        raise StageError(f"stage {stage.name}: output {art.name} is {value.data.dtype}, declared {art.dtype}")
+    if art.shape == "terrain" and terrain_shape is not None and value.shape != terrain_shape:
+        raise StageError(f"stage {stage.name}: output {art.name} has shape {value.shape}, the terrain is {terrain_shape}")
+    bad = ~np.isfinite(value.data)
+    if bad.any():
+        r, c = np.argwhere(bad)[0][:2]
+        raise StageError(f"stage {stage.name}: output {art.name} has {int(bad.sum())} non-finite values "
+                         f"(first at row {r}, col {c}); not written")
+    return value
+
+
+def _finite_metrics(metrics: dict) -> dict:
+    """JSON cannot hold NaN; a diagnostic that is not finite is shown as text."""
+    def fix(v):
+        if isinstance(v, dict):
+            return {k: fix(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [fix(x) for x in v]
+        if isinstance(v, (np.floating, float)):
+            return float(v) if math.isfinite(v) else str(v)
+        if isinstance(v, np.integer):
+            return int(v)
+        return v
+    return fix(metrics)
+
+
+def run_step(store: Store, ps: PlannedStep, config: WorldConfig, graph: Graph,
+             progress: Callable[[float, str], None]) -> dict:
+    """Run one stage into a temporary folder and rename it into place."""
+    stage = ps.stage
+    inputs = {}
+    terrain_shape = None
+    for role, (art_name, producer, key) in ps.inputs.items():
+        art = graph.producers[art_name][1]
+        inputs[role] = _load_input(store, art, producer, key)
+        if art.kind == "grid" and art.shape == "terrain":
+            terrain_shape = inputs[role].shape
+    provenance = {"stage": stage.name, "version": stage.version, "key": ps.key,
+                  "params": ps.params_json, "seed": config.seed if stage.uses_seed else "none"}
+    with store.writing(stage.name, ps.key) as work:
+        ctx = RunContext(stage=stage, key=ps.key, out_dir=work, seed=config.seed, provenance=provenance,
+                         project_root=config.project_root, progress=progress)
+        t0 = time.perf_counter()
+        try:
+            outputs = stage.run(ctx, inputs, config.params[stage.name])
+        except FloatingPointError as e:
+            raise StageError(f"stage {stage.name}: numerical failure: {e}") from e
+        t_run = time.perf_counter() - t0
+        missing = [a.name for a in stage.outputs if a.name not in outputs]
+        extra = [n for n in outputs if n not in {a.name for a in stage.outputs}]
+        if missing or extra:
+            raise StageError(f"stage {stage.name}: returned {sorted(outputs)}, declared {[a.name for a in stage.outputs]}")
+        t1 = time.perf_counter()
+        out_meta = {}
+        for art in stage.outputs:
+            value = outputs[art.name]
+            target = work / art.file
+            meta: dict[str, Any] = {"file": art.file, "kind": art.kind, "units": art.units}
+            if art.kind == "grid":
+                grid = _check_grid(stage, art, value, terrain_shape)
+                terrain_shape = terrain_shape or (grid.shape if art.shape == "terrain" else None)
+                exr.write_grid(target, grid, provenance)
+                meta.update(channels=list(grid.channels), shape=list(grid.shape), cell_size_m=grid.cell_size_m)
+            elif art.kind == "image":
+                exr.write_png(target, value)
+            elif art.kind == "json":
+                write_json(target, _finite_metrics(value))
+            elif art.kind in ("usd", "texture"):
+                if Path(value).resolve() != target.resolve() or not target.is_file():
+                    raise StageError(f"stage {stage.name}: output {art.name} must be written to ctx.path({art.name!r})")
+            out_meta[art.name] = meta
+        files = {p.relative_to(work).as_posix(): sha256_file(p) for p in sorted(work.rglob("*")) if p.is_file()}
+        manifest = {
+            "stage": stage.name, "version": stage.version, "key": ps.key,
+            "params": json.loads(ps.params_json), "seed": provenance["seed"],
+            "inputs": {role: {"artifact": a, "stage": s, "key": k} for role, (a, s, k) in ps.inputs.items()},
+            "outputs": out_meta, "files": files,
+            "timings": {"run_s": round(t_run, 4), "write_s": round(time.perf_counter() - t1, 4)},
+            "metrics": _finite_metrics(ctx.metrics),
+            "key_material": ps.key_material,
+        }
+        write_json(work / MANIFEST, manifest)  # last: its presence means the folder is whole
+    return manifest
+
+
+# --------------------------------------------------------------------------- publishing
+
+
+def publish_world(store: Store, config: WorldConfig, planned: list[PlannedStep]) -> Path:
+    """build/worlds/<name>/: manifest.json naming every artifact key used and,
+    when a planned stage publishes a root layer, world.usda composing it by a
+    relative path."""
+    with store.publishing(config.name) as work:
+        roots = [(ps, art) for ps in planned for art in ps.stage.outputs if art.publish]
+        if roots:
+            ps, art = roots[-1]
+            stage, _ = usdio.create_stage(work / "world.usda", {"world": config.name, "config": str(config.path),
+                                                                 "seed": config.seed, "key": ps.key})
+            target = store.folder(ps.stage.name, ps.key) / art.file
+            # the relative path as seen from the final folder, which sits beside work/ under build/
+            final_layer = store.worlds / config.name / "world.usda"
+            stage.GetRootLayer().subLayerPaths.append(usdio.relative_asset_path(target, final_layer))
+            stage.GetRootLayer().Save()
+        write_json(work / MANIFEST, {
+            "world": config.name, "config": str(config.path), "variant": config.variant, "seed": config.seed,
+            "outputs": list(config.outputs),
+            "artifacts": [{"stage": ps.stage.name, "key": ps.key} for ps in planned],
+        })
+    return store.worlds / config.name
+
+
+# --------------------------------------------------------------------------- the bake
+
+
+@dataclass
+class StepReport:
+    stage: str
+    key: str
+    status: str  # "ran" or "cached"
+    seconds: float
+    metrics: dict = field(default_factory=dict)
+
+
+def _progress_printer(stage: str, stream=sys.stderr) -> Callable[[float, str], None]:
+    last = [0.0]
+
+    def show(fraction: float, message: str) -> None:
+        now = time.monotonic()
+        if now - last[0] >= 1.0 or fraction >= 1.0:
+            last[0] = now
+            print(f"    {stage}: {100 * fraction:5.1f} %  {message}", file=stream, flush=True)
+    return show
+
+
+def bake(store: Store, config: WorldConfig, graph: Graph, *, log=sys.stderr) -> list[StepReport]:
+    store.clean_stale()
+    planned = plan_bake(graph, config)
+    reports = []
+    for i, ps in enumerate(planned, 1):
+        head = f"[{i}/{len(planned)}] {ps.stage.name} {ps.key}"
+        if store.has(ps.stage.name, ps.key):
+            print(f"{head} cached", file=log, flush=True)
+            reports.append(StepReport(ps.stage.name, ps.key, "cached", 0.0))
+            continue
+        print(f"{head} running", file=log, flush=True)
+        t0 = time.perf_counter()
+        manifest = run_step(store, ps, config, graph, _progress_printer(ps.stage.name, log))
+        dt = time.perf_counter() - t0
+        print(f"{head} ran in {dt:.2f} s", file=log, flush=True)
+        reports.append(StepReport(ps.stage.name, ps.key, "ran", dt, manifest["metrics"]))
+    publish_world(store, config, planned)
+    return reports

@@ -1,0 +1,138 @@
+"""The `worldbake` command.
+
+    worldbake bake CONFIG [--variant NAME | --all-variants] [--set KEY=VALUE ...] [--json]
+    worldbake plan CONFIG [--variant NAME | --all-variants] [--set KEY=VALUE ...] [--json]
+    worldbake validate WORLD_DIR_OR_USD
+    worldbake gc
+
+Exit status: 0 done, 1 a stage failed (numerical blow-up, broken invariant),
+2 bad config or input file (nothing written).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from . import usdio
+from .bake import bake, plan_bake
+from .config import list_variants, load_config
+from .errors import InputError, StageError
+from .graph import build_graph
+from .registry import all_stages
+from .store import Store
+
+
+def _configs(args) -> list:
+    stages = all_stages()
+    root = Path(args.project).resolve()
+    path = Path(args.config)
+    if args.all_variants:
+        names = [None] + list_variants(path, root)
+    else:
+        names = [args.variant]
+    return [load_config(path, stages, project_root=root, variant=v, sets=args.set) for v in names]
+
+
+def _cmd_plan(args) -> int:
+    graph = build_graph(all_stages())
+    store = Store(Path(args.project) / args.build)
+    out = []
+    for config in _configs(args):
+        rows = []
+        for ps in plan_bake(graph, config):
+            status = "cached" if store.has(ps.stage.name, ps.key) else "will run"
+            rows.append({"stage": ps.stage.name, "key": ps.key, "status": status,
+                         "inputs": {r: f"{a}@{k}" for r, (a, _, k) in ps.inputs.items()}})
+        out.append({"world": config.name, "steps": rows})
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        for world in out:
+            print(f"world {world['world']}:")
+            for r in world["steps"]:
+                inputs = ", ".join(f"{k} <- {v}" for k, v in r["inputs"].items())
+                print(f"  {r['stage']:<12} {r['key']}  {r['status']:<8}  {inputs}")
+    return 0
+
+
+def _cmd_bake(args) -> int:
+    graph = build_graph(all_stages())
+    configs = _configs(args)  # every config validated before any work
+    store = Store(Path(args.project) / args.build)
+    summary = []
+    for config in configs:
+        print(f"baking world {config.name} from {config.path}", file=sys.stderr, flush=True)
+        reports = bake(store, config, graph)
+        world_dir = store.worlds / config.name
+        summary.append({"world": config.name, "world_dir": str(world_dir),
+                        "world_usda": str(world_dir / "world.usda") if (world_dir / "world.usda").exists() else None,
+                        "steps": [{"stage": r.stage, "key": r.key, "status": r.status, "seconds": round(r.seconds, 3)}
+                                  for r in reports]})
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        for world in summary:
+            print(f"world {world['world']}: {world['world_usda'] or world['world_dir']}")
+            for s in world["steps"]:
+                print(f"  {s['stage']:<12} {s['status']:<7} {s['seconds']:8.2f} s  {s['key']}")
+    return 0
+
+
+def _cmd_validate(args) -> int:
+    path = Path(args.path)
+    if path.is_dir():
+        path = path / "world.usda"
+    if not path.is_file():
+        raise InputError(f"{path}: no such USD file")
+    errors = usdio.validate(path)
+    for e in errors:
+        print(e)
+    print(f"{path}: {len(errors)} validation errors")
+    return 1 if errors else 0
+
+
+def _cmd_gc(args) -> int:
+    store = Store(Path(args.project) / args.build)
+    removed = store.gc()
+    for p in removed:
+        print(f"removed {p}")
+    print(f"{len(removed)} unreferenced artifact folders removed")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="worldbake", description="Bake outdoor worlds from a config file.")
+    parser.add_argument("--project", default=".", help="project root: configs and paths are checked against it (default: .)")
+    parser.add_argument("--build", default="build", help="build folder, relative to the project (default: build)")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name, helptext in (("bake", "bake a world"), ("plan", "print what a bake would run and what is cached")):
+        p = sub.add_parser(name, help=helptext)
+        p.add_argument("config", help="a world config (TOML)")
+        group = p.add_mutually_exclusive_group()
+        group.add_argument("--variant", help="bake the variant [variants.NAME]")
+        group.add_argument("--all-variants", action="store_true", help="bake the base world and every variant")
+        p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                       help="override a config key, e.g. --set heightmap.octaves=8 (repeatable)")
+        p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
+    p = sub.add_parser("validate", help="run every pxr.UsdValidation validator on a world")
+    p.add_argument("path", help="a world folder or USD file")
+    sub.add_parser("gc", help="remove artifacts no world references")
+    args = parser.parse_args(argv)
+    handlers = {"bake": _cmd_bake, "plan": _cmd_plan, "validate": _cmd_validate, "gc": _cmd_gc}
+    try:
+        return handlers[args.command](args)
+    except InputError as e:
+        print(f"worldbake: error: {e}", file=sys.stderr)
+        return 2
+    except StageError as e:
+        print(f"worldbake: stage failed: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("worldbake: interrupted; nothing half-written was kept", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

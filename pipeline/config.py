@@ -1,0 +1,280 @@
+"""World configs: TOML with `extends`, `[variants.NAME]` and `--set` overrides,
+every key validated before any work.
+
+    name = "default"          # world name: build/worlds/<name>/
+    seed = 1                  # the world seed, given to stages that declare uses_seed
+    outputs = ["world"]       # stage or artifact names wanted; the planner runs only what they need
+    extends = "base.toml"     # optional, relative to this file, inside the project
+    [heightmap]               # one table per stage: its params (see README)
+    octaves = 8
+    [variants.rough]          # a variant: overrides baked as world "<name>-rough"
+    heightmap.octaves = 12
+
+Errors are InputError with one message naming the file, the key and what is
+allowed; the CLI turns them into exit status 2.
+"""
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import tomllib
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pydantic
+
+from .contract import PROJECT_PATH, Params, Stage
+from .errors import InputError
+
+TOP_LEVEL_KEYS = {
+    "name": "world name (letters, digits, - and _)",
+    "seed": "integer world seed, 0 .. 2**32-1",
+    "outputs": "list of stage or artifact names to bake",
+    "extends": "path of a config this one overrides",
+    "variants": "tables of overrides baked side by side",
+    "description": "free text",
+}
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    path: Path  # the config file given by the user
+    project_root: Path
+    name: str  # world name, with "-<variant>" for a variant
+    variant: str | None
+    seed: int
+    outputs: tuple[str, ...]
+    params: dict[str, Params]  # per stage, validated
+    file_hashes: dict[str, str]  # "stage.param" -> sha256 of the file a ProjectPath names
+
+
+def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out = {}
+    for k, v in tree.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict) and v and k != "variants":
+            out.update(_flatten(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def _merge(base: dict, override: dict, origin: dict[str, str], source: str, prefix: str = "") -> dict:
+    """Deep merge; `origin` records which file each leaf key came from."""
+    out = copy.deepcopy(base)
+    for k, v in override.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict) and isinstance(out.get(k), dict) and k != "variants":
+            out[k] = _merge(out[k], v, origin, source, key + ".")
+        else:
+            out[k] = copy.deepcopy(v)
+            for leaf in _flatten({k: v}, prefix) if isinstance(v, dict) else [key]:
+                origin[leaf] = source
+    return out
+
+
+def _inside(path: Path, root: Path) -> bool:
+    try:
+        path.resolve().relative_to(root.resolve())
+        return True
+    except ValueError:
+        return False
+
+
+def _display(path: Path, root: Path) -> str:
+    try:
+        return str(path.resolve().relative_to(root.resolve()))
+    except ValueError:
+        return str(path)
+
+
+def _read_toml(path: Path, root: Path, seen: tuple[Path, ...], origin: dict[str, str]) -> dict:
+    shown = _display(path, root)
+    if path.resolve() in seen:
+        raise InputError(f"{shown}: extends forms a cycle: {' -> '.join(_display(p, root) for p in seen + (path,))}")
+    try:
+        raw = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{shown}: config file not found") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{shown}: cannot read: {e}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(f"{shown}: not valid TOML: {e}") from None
+    parent = raw.pop("extends", None)
+    if parent is None:
+        base: dict = {}
+    else:
+        if not isinstance(parent, str):
+            raise InputError(f"{shown}: extends: must be a path string, got {parent!r}")
+        parent_path = (path.parent / parent)
+        if not _inside(parent_path, root):
+            raise InputError(f"{shown}: extends: {parent!r} leaves the project ({root})")
+        base = _read_toml(parent_path, root, seen + (path.resolve(),), origin)
+    return _merge(base, raw, origin, shown)
+
+
+def _parse_set(assignment: str) -> tuple[str, Any]:
+    """`erosion.iterations=400`: the value is read as TOML (numbers, booleans,
+    strings in quotes, lists); a bare word is taken as a string."""
+    if "=" not in assignment:
+        raise InputError(f"--set {assignment}: expected KEY=VALUE, e.g. heightmap.octaves=8")
+    key, text = (s.strip() for s in assignment.split("=", 1))
+    try:
+        value = tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = text
+    return key, value
+
+
+def _set_dotted(tree: dict, dotted: str, value: Any) -> None:
+    parts = dotted.split(".")
+    node = tree
+    for p in parts[:-1]:
+        node = node.setdefault(p, {})
+        if not isinstance(node, dict):
+            raise InputError(f"--set {dotted}: {p} is not a table")
+    node[parts[-1]] = value
+
+
+def list_variants(path: Path, project_root: Path) -> list[str]:
+    raw = _read_toml(path, project_root, (), {})
+    variants = raw.get("variants", {})
+    if not isinstance(variants, dict):
+        raise InputError(f"{_display(path, project_root)}: variants: must be a table of tables")
+    return list(variants)
+
+
+def _format_pydantic(err: pydantic.ValidationError, stage: str, origin: dict[str, str], default_file: str,
+                     model: type[Params]) -> str:
+    e = err.errors()[0]
+    loc = ".".join(str(p) for p in e["loc"])
+    key = f"{stage}.{loc}" if loc else stage
+    where = origin.get(key, default_file)
+    got = e.get("input")
+    msg = e["msg"]
+    if e["type"] == "extra_forbidden":
+        allowed = ", ".join(sorted(model.model_fields))
+        return f"{where}: {key}: unknown key (allowed in [{stage}]: {allowed})"
+    field = model.model_fields.get(str(e["loc"][0])) if e["loc"] else None
+    hint = f"; allowed: {describe_allowed(field)}" if field is not None else ""
+    return f"{where}: {key}: {msg}, got {got!r}{hint}"
+
+
+def describe_allowed(field: pydantic.fields.FieldInfo) -> str:
+    """'2 .. 64 cells, cells per side' from a field's declared bounds, units and description."""
+    bounds = {}
+    for m in field.metadata:
+        for attr, name in (("ge", "Ge"), ("gt", "Gt"), ("le", "Le"), ("lt", "Lt")):
+            if getattr(m, attr, None) is not None:
+                bounds[name] = getattr(m, attr)
+    lo = f"{bounds['Ge']}" if "Ge" in bounds else (f"> {bounds['Gt']}" if "Gt" in bounds else "")
+    hi = f"{bounds['Le']}" if "Le" in bounds else (f"< {bounds['Lt']}" if "Lt" in bounds else "")
+    units = (field.json_schema_extra or {}).get("units", "") if isinstance(field.json_schema_extra, dict) else ""
+    parts = []
+    if lo or hi:
+        parts.append(f"{lo or '-inf'} .. {hi or 'inf'}" + (f" {units}" if units else ""))
+    elif field.annotation is not None:
+        parts.append(getattr(field.annotation, "__name__", None) or str(field.annotation).replace("typing.", ""))
+    if field.description:
+        parts.append(field.description)
+    return ", ".join(parts)
+
+
+def _is_project_path(field: pydantic.fields.FieldInfo) -> bool:
+    """A ProjectPath field, also inside Optional[...] (where pydantic keeps
+    the marker on the inner Annotated type rather than in field.metadata)."""
+    if any(m is PROJECT_PATH for m in field.metadata):
+        return True
+    stack = [field.annotation]
+    while stack:
+        t = stack.pop()
+        if PROJECT_PATH in getattr(t, "__metadata__", ()):
+            return True
+        stack.extend(typing.get_args(t))
+    return False
+
+
+def _check_paths(stage: Stage, model: Params, root: Path, origin: dict[str, str], default_file: str) -> dict[str, str]:
+    hashes = {}
+    for fname, field in type(model).model_fields.items():
+        if not _is_project_path(field):
+            continue
+        value = getattr(model, fname)
+        if value is None or value == "":
+            continue
+        key = f"{stage.name}.{fname}"
+        where = origin.get(key, default_file)
+        target = root / value
+        if Path(value).is_absolute() or not _inside(target, root):
+            raise InputError(f"{where}: {key}: {value!r} leaves the project; give a path inside {root}")
+        if not target.is_file():
+            raise InputError(f"{where}: {key}: file {value!r} not found (paths are relative to the project root {root})")
+        hashes[key] = hashlib.sha256(target.read_bytes()).hexdigest()
+    return hashes
+
+
+def load_config(path: Path | str, stages: dict[str, Stage], *, project_root: Path | str | None = None,
+                variant: str | None = None, sets: list[str] = ()) -> WorldConfig:
+    """Read, merge and validate a world config; raise InputError on the first problem."""
+    path = Path(path)
+    root = Path(project_root or Path.cwd()).resolve()
+    origin: dict[str, str] = {}
+    shown = _display(path, root)
+    tree = _read_toml(path, root, (), origin)
+
+    variants = tree.pop("variants", {})
+    if not isinstance(variants, dict) or not all(isinstance(v, dict) for v in variants.values()):
+        raise InputError(f"{shown}: variants: must be a table of tables, e.g. [variants.rough]")
+    if variant is not None:
+        if variant not in variants:
+            raise InputError(f"{shown}: no variant {variant!r} (defined: {', '.join(variants) or 'none'})")
+        if "name" in variants[variant] or "variants" in variants[variant]:
+            raise InputError(f"{shown}: variants.{variant}: a variant may not set name or variants")
+        tree = _merge(tree, variants[variant], origin, f"{shown} [variants.{variant}]")
+    for assignment in sets:
+        key, value = _parse_set(assignment)
+        _set_dotted(tree, key, value)
+        origin[key] = "--set"
+
+    for key in tree:
+        if key not in TOP_LEVEL_KEYS and key not in stages:
+            allowed = ", ".join(list(TOP_LEVEL_KEYS) + sorted(stages))
+            raise InputError(f"{origin.get(key, shown)}: {key}: unknown key (allowed at the top level: {allowed})")
+
+    name = tree.get("name", path.stem)
+    if not isinstance(name, str) or not name or not all(c.isalnum() or c in "-_" for c in name):
+        raise InputError(f"{origin.get('name', shown)}: name: must be letters, digits, - and _, got {name!r}")
+    if variant is not None:
+        name = f"{name}-{variant}"
+    seed = tree.get("seed", 0)
+    if not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed < 2**32:
+        raise InputError(f"{origin.get('seed', shown)}: seed: must be an integer in 0 .. 2**32-1, got {seed!r}")
+    outputs = tree.get("outputs", ["world"])
+    if not isinstance(outputs, list) or not outputs or not all(isinstance(o, str) for o in outputs):
+        raise InputError(f"{origin.get('outputs', shown)}: outputs: must be a non-empty list of stage or artifact names, got {outputs!r}")
+
+    params: dict[str, Params] = {}
+    file_hashes: dict[str, str] = {}
+    for stage_name, stage in stages.items():
+        table = tree.get(stage_name, {})
+        if not isinstance(table, dict):
+            raise InputError(f"{origin.get(stage_name, shown)}: {stage_name}: must be a table of parameters, got {table!r}")
+        try:
+            # strict: a TOML string "8" is not an integer; ints are still floats
+            model = stage.params.model_validate(table, strict=True)
+        except pydantic.ValidationError as err:
+            raise InputError(_format_pydantic(err, stage_name, origin, shown, stage.params)) from None
+        params[stage_name] = model
+        file_hashes.update(_check_paths(stage, model, root, origin, shown))
+
+    return WorldConfig(path=path, project_root=root, name=name, variant=variant, seed=seed,
+                       outputs=tuple(outputs), params=params, file_hashes=file_hashes)
+
+
+def canonical_params(model: Params) -> str:
+    """The canonical JSON of a stage's params: sorted keys, no whitespace;
+    what the cache key and the provenance hold."""
+    return json.dumps(model.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))

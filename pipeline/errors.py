@@ -1,0 +1,16 @@
+"""The two kinds of failure a user sees.
+
+InputError: the user's config or an input file is wrong. One clear message
+naming the file and key, exit status 2, nothing written.
+StageError: a stage could not produce a valid result (a numerical blow-up,
+a broken invariant). The message names the stage, parameter and step; the
+half-made artifact is thrown away. Exit status 1.
+"""
+
+
+class InputError(Exception):
+    pass
+
+
+class StageError(Exception):
+    pass

@@ -1,0 +1,111 @@
+"""EXR and preview image I/O through OpenImageIO.
+
+Grids are written as float32 scanline EXR with zip compression (lossless) and
+named channels ("height", "flow.accumulation"); the grid geometry and the
+provenance travel in header attributes prefixed "worldbake:".
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError
+from .grid import Grid
+
+
+def _oiio():
+    import OpenImageIO as oiio
+
+    return oiio
+
+
+def write_grid(path: Path | str, grid: Grid, provenance: dict[str, Any] | None = None) -> None:
+    oiio = _oiio()
+    data = np.ascontiguousarray(grid.data, dtype=np.float32)
+    rows, cols = grid.shape
+    nchan = len(grid.channels)
+    spec = oiio.ImageSpec(cols, rows, nchan, oiio.FLOAT)
+    spec.channelnames = tuple(grid.channels)
+    spec.attribute("compression", "zip")
+    spec.attribute("worldbake:cell_size_m", float(grid.cell_size_m))
+    spec.attribute("worldbake:origin_m", json.dumps(list(grid.origin_m)))
+    # OpenImageIO stamps the current time otherwise; a fixed value keeps
+    # repeated bakes byte-identical as well as pixel-identical.
+    spec.attribute("DateTime", "")
+    for k, v in (provenance or {}).items():
+        spec.attribute(f"worldbake:{k}", v if isinstance(v, str) else json.dumps(v, sort_keys=True))
+    out = oiio.ImageOutput.create(str(path))
+    if out is None or not out.open(str(path), spec):
+        raise OSError(f"cannot write {path}: {oiio.geterror()}")
+    ok = out.write_image(data.reshape(rows, cols, nchan))
+    ok = out.close() and ok
+    if not ok:
+        raise OSError(f"cannot write {path}: {out.geterror()}")
+
+
+def read_grid(path: Path | str) -> Grid:
+    """A grid written by write_grid. A file that is missing, corrupt or not a
+    worldbake grid raises InputError naming it."""
+    oiio = _oiio()
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise InputError(f"{path}: cannot read: {oiio.geterror()}")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+        if pixels is None:
+            raise InputError(f"{path}: cannot decode pixels: {inp.geterror()}")
+        cell = spec.getattribute("worldbake:cell_size_m")
+        if cell is None:
+            raise InputError(f"{path}: no worldbake:cell_size_m attribute; not a worldbake grid")
+        origin = tuple(json.loads(spec.getattribute("worldbake:origin_m") or "[0, 0]"))
+        names = tuple(spec.channelnames)
+    finally:
+        inp.close()
+    data = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    if spec.nchannels == 1:
+        data = data[:, :, 0]
+    return Grid(np.ascontiguousarray(data), float(cell), names, origin)
+
+
+def read_attributes(path: Path | str) -> dict[str, Any]:
+    """The header attributes of an image, as a dict."""
+    oiio = _oiio()
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise InputError(f"{path}: cannot read: {oiio.geterror()}")
+    try:
+        spec = inp.spec()
+        return {a.name: a.value for a in spec.extra_attribs}
+    finally:
+        inp.close()
+
+
+def write_png(path: Path | str, rgb: np.ndarray) -> None:
+    """A uint8 RGB(A) preview picture."""
+    oiio = _oiio()
+    rgb = np.ascontiguousarray(rgb)
+    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] not in (3, 4):
+        raise ValueError(f"a preview must be uint8 (rows, cols, 3|4), got {rgb.dtype} {rgb.shape}")
+    buf = oiio.ImageBuf(rgb)
+    if not buf.write(str(path), oiio.UINT8):
+        raise OSError(f"cannot write {path}: {buf.geterror()}")
+
+
+def write_texture(path: Path | str, rgb: np.ndarray, provenance: dict[str, Any] | None = None) -> None:
+    """A colour texture for a material: half-float RGB EXR, tiled and
+    mip-mapped (ImageBufAlgo.make_texture), zip compressed."""
+    oiio = _oiio()
+    src = oiio.ImageBuf(np.ascontiguousarray(rgb, dtype=np.float32))
+    config = oiio.ImageSpec()
+    config.attribute("compression", "zip")
+    config.attribute("maketx:filtername", "lanczos3")
+    config.attribute("DateTime", "")
+    for k, v in (provenance or {}).items():
+        config.attribute(f"worldbake:{k}", v if isinstance(v, str) else json.dumps(v, sort_keys=True))
+    config.set_format(oiio.HALF)
+    if not oiio.ImageBufAlgo.make_texture(oiio.MakeTxTexture, src, str(path), config):
+        raise OSError(f"cannot write texture {path}: {oiio.geterror()}")

@@ -1,0 +1,111 @@
+"""One OpenCL context and queue per process, and a program cache.
+
+The device is PoCL on the CPU by default (installed from PyPI with pyopencl);
+`WORLDBAKE_CL_DEVICE` picks another: an index "P:D" (platform:device) or a
+case-insensitive substring of "platform name / device name".
+"""
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+
+class OpenCLError(RuntimeError):
+    pass
+
+
+@dataclass(frozen=True)
+class CL:
+    ctx: "object"  # pyopencl.Context
+    queue: "object"  # pyopencl.CommandQueue
+    device: "object"  # pyopencl.Device
+
+    @property
+    def fingerprint(self) -> str:
+        """Identifies everything about the device that may change numbers."""
+        d = self.device
+        return f"{d.platform.name} {d.platform.version} / {d.name} / driver {d.driver_version}"
+
+
+def _pick_device():
+    import pyopencl as cl
+
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error as e:  # no ICD at all
+        raise OpenCLError(f"no OpenCL platform found ({e}); install pyopencl with the PoCL wheel: pip install 'pyopencl[pocl]'") from e
+    devices = [(pi, di, p, d) for pi, p in enumerate(platforms) for di, d in enumerate(p.get_devices())]
+    if not devices:
+        raise OpenCLError("OpenCL platforms found but no device")
+    want = os.environ.get("WORLDBAKE_CL_DEVICE", "").strip()
+    if want:
+        if ":" in want and all(part.isdigit() for part in want.split(":", 1)):
+            pi, di = (int(x) for x in want.split(":", 1))
+            for cand in devices:
+                if cand[0] == pi and cand[1] == di:
+                    return cand[3]
+        else:
+            for cand in devices:
+                if want.lower() in f"{cand[2].name} / {cand[3].name}".lower():
+                    return cand[3]
+        listing = "; ".join(f"{pi}:{di} {p.name} / {d.name}" for pi, di, p, d in devices)
+        raise OpenCLError(f"WORLDBAKE_CL_DEVICE={want!r} matches no device; available: {listing}")
+    for cand in devices:  # the default: PoCL, whose numbers we test against
+        if "portable computing language" in cand[2].name.lower():
+            return cand[3]
+    return devices[0][3]
+
+
+@functools.lru_cache(maxsize=1)
+def get_cl() -> CL:
+    """The process-wide context and in-order queue (each Dask worker builds its own)."""
+    import pyopencl as cl
+
+    device = _pick_device()
+    ctx = cl.Context([device])
+    queue = cl.CommandQueue(ctx, device)
+    return CL(ctx, queue, device)
+
+
+@functools.lru_cache(maxsize=64)
+def _build(source_hash: str, source: str, options: tuple[str, ...]):
+    import pyopencl as cl
+
+    env = get_cl()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # PoCL prints build logs as warnings even on success
+        try:
+            return cl.Program(env.ctx, source).build(options=list(options))
+        except cl.RuntimeError as e:
+            raise OpenCLError(f"OpenCL build failed:\n{e}") from e
+
+
+def load_program(path: Path | str, options: tuple[str, ...] = ()) -> "object":
+    """Build the kernels in a .cl file once per process (and per options).
+
+    `-cl-fp32-correctly-rounded-divide-sqrt` keeps divisions and square roots
+    exact so kernels agree with their numpy references; fast-math options are
+    never used because they change numbers between devices."""
+    source = Path(path).read_text()
+    opts = ("-cl-fp32-correctly-rounded-divide-sqrt",) + tuple(options)
+    return _build(hashlib.sha256(source.encode()).hexdigest(), source, opts)
+
+
+def global_size(shape: tuple[int, ...], local: tuple[int, ...] | None) -> tuple[int, ...]:
+    """Round a global size up to a multiple of the local size; kernels guard
+    against the padding with explicit bounds checks."""
+    if local is None:
+        return tuple(shape)
+    return tuple(-(-s // l) * l for s, l in zip(shape, local))
+
+
+def to_device(array: np.ndarray):
+    import pyopencl.array as cla
+
+    return cla.to_device(get_cl().queue, np.ascontiguousarray(array))

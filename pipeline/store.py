@@ -1,0 +1,143 @@
+"""The content-addressed artifact store.
+
+    build/artifacts/<stage>/<key>/   the files and manifest.json (written last)
+    build/tmp/<stage>-<key>-<pid>/   a run in progress; renamed into place when whole
+    build/worlds/<world>/            world.usda and manifest.json naming every key used
+
+A folder under artifacts/ exists only once it is complete: runs write into
+build/tmp/ (same file system) and rename, so a killed run leaves nothing in
+artifacts/; `worldbake` removes leftovers of dead runs from build/tmp/.
+"""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Any, Iterator
+
+MANIFEST = "manifest.json"
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def write_json(path: Path, data: Any) -> None:
+    path.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+class Store:
+    def __init__(self, build_dir: Path | str):
+        self.build = Path(build_dir)
+        self.artifacts = self.build / "artifacts"
+        self.tmp = self.build / "tmp"
+        self.worlds = self.build / "worlds"
+
+    def folder(self, stage: str, key: str) -> Path:
+        return self.artifacts / stage / key
+
+    def has(self, stage: str, key: str) -> bool:
+        return (self.folder(stage, key) / MANIFEST).is_file()
+
+    def manifest(self, stage: str, key: str) -> dict:
+        return json.loads((self.folder(stage, key) / MANIFEST).read_text())
+
+    def clean_stale(self) -> list[Path]:
+        """Remove what killed runs left in build/tmp/ (their pid is gone)."""
+        removed = []
+        if not self.tmp.is_dir():
+            return removed
+        for entry in self.tmp.iterdir():
+            pid = entry.name.rsplit("-", 1)[-1]
+            if not pid.isdigit() or not _pid_alive(int(pid)) or int(pid) == os.getpid():
+                shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() else entry.unlink(missing_ok=True)
+                removed.append(entry)
+        return removed
+
+    @contextlib.contextmanager
+    def writing(self, stage: str, key: str) -> Iterator[Path]:
+        """A fresh temporary folder for a run; on a clean exit the caller has
+        written its manifest last and the folder is renamed into place. On an
+        exception it is deleted: nothing half-made is ever visible."""
+        self.tmp.mkdir(parents=True, exist_ok=True)
+        work = self.tmp / f"{stage}-{key}-{os.getpid()}"
+        shutil.rmtree(work, ignore_errors=True)
+        work.mkdir()
+        try:
+            yield work
+            if not (work / MANIFEST).is_file():
+                raise RuntimeError(f"internal: {stage} run finished without a manifest")
+            final = self.folder(stage, key)
+            final.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                os.rename(work, final)
+            except OSError:
+                if not self.has(stage, key):  # not a concurrent twin that won the race
+                    raise
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+
+    @contextlib.contextmanager
+    def publishing(self, world: str) -> Iterator[Path]:
+        """Like writing(), for build/worlds/<world>/: the old folder is
+        replaced only once the new one is whole."""
+        self.tmp.mkdir(parents=True, exist_ok=True)
+        work = self.tmp / f"world-{world}-{os.getpid()}"
+        old = self.tmp / f"oldworld-{world}-{os.getpid()}"
+        shutil.rmtree(work, ignore_errors=True)
+        work.mkdir()
+        try:
+            yield work
+            final = self.worlds / world
+            final.parent.mkdir(parents=True, exist_ok=True)
+            if final.exists():
+                os.rename(final, old)
+            os.rename(work, final)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+            shutil.rmtree(old, ignore_errors=True)
+
+    def referenced_keys(self) -> set[tuple[str, str]]:
+        """(stage, key) pairs named by some world manifest."""
+        refs = set()
+        if not self.worlds.is_dir():
+            return refs
+        for world in self.worlds.iterdir():
+            m = world / MANIFEST
+            if m.is_file():
+                for entry in json.loads(m.read_text()).get("artifacts", []):
+                    refs.add((entry["stage"], entry["key"]))
+        return refs
+
+    def gc(self) -> list[Path]:
+        """Remove every artifact folder that no world references."""
+        keep = self.referenced_keys()
+        removed = []
+        if not self.artifacts.is_dir():
+            return removed
+        for stage_dir in sorted(self.artifacts.iterdir()):
+            for key_dir in sorted(stage_dir.iterdir()):
+                if (stage_dir.name, key_dir.name) not in keep:
+                    shutil.rmtree(key_dir)
+                    removed.append(key_dir)
+            if not any(stage_dir.iterdir()):
+                stage_dir.rmdir()
+        self.clean_stale()
+        return removed

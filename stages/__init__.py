@@ -1,0 +1,1 @@
+"""The stages of worldbake: one subpackage per stage, each exporting STAGE."""

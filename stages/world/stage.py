@@ -1,0 +1,158 @@
+"""The world assembly: writes the layers that make `world.usda`.
+
+For now it reads the latest terrain height and writes
+- terrain.usdc: /World/Terrain (kind component) with the ground UsdGeom.Mesh
+  (subdivisionScheme none, vertex normals, primvars:st, extent) bound to a
+  UsdPreviewSurface material that reads albedo.exr;
+- albedo.exr: the ground colour from altitude and slope, tiled and mip-mapped;
+- world.usda: /World (kind assembly) composing terrain.usdc and, as later
+  stages come, their layers, all by relative paths. The engine publishes it
+  as build/worlds/<name>/world.usda.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from pipeline import exr, usdio
+from pipeline.contract import Artifact, Input, Param, Params, RunContext, Stage
+from pipeline.grid import Grid
+
+from .terrain_mesh import bilinear, build_terrain_mesh, lattice_coordinates
+
+TERRAIN_SOURCES = ("heightmap.height",)
+
+
+class WorldParams(Params):
+    mesh_max_vertices: int = Param(513, ge=2, le=8193, units="vertices",
+                                   description="largest number of terrain mesh vertices per side; the height grid is resampled down to it")
+    texture_size: int = Param(1024, ge=16, le=16384, units="texels",
+                              description="ground colour texture size per side")
+    snow_line_m: float = Param(2200.0, ge=-11000.0, le=9000.0, units="m", description="altitude above which the ground is snow")
+    tree_line_m: float = Param(1600.0, ge=-11000.0, le=9000.0, units="m", description="altitude above which grass gives way to bare ground")
+    rock_slope_deg: float = Param(35.0, ge=0.0, le=90.0, units="deg", description="slope above which the ground is bare rock")
+    roughness: float = Param(0.9, ge=0.0, le=1.0, description="UsdPreviewSurface roughness of the ground")
+
+
+# Ground colours (linear RGB): reasoned from typical albedo of the materials.
+GRASS = np.array([0.10, 0.16, 0.05])
+DRY = np.array([0.22, 0.20, 0.12])
+ROCK = np.array([0.18, 0.17, 0.16])
+SNOW = np.array([0.80, 0.82, 0.85])
+
+
+def ground_colour(height: Grid, size: int, params: WorldParams) -> np.ndarray:
+    """Ground albedo (size x size x 3) from altitude and slope, smooth blends
+    between grass, dry ground, rock and snow."""
+    h = height.channel(height.channels[0])
+    rows, cols = h.shape
+    hv = bilinear(h, np.linspace(0, rows - 1, size), np.linspace(0, cols - 1, size))
+    step = height.cell_size_m * (max(rows, cols) - 1) / max(size - 1, 1)
+    gz, gx = np.gradient(hv, step)
+    slope = np.degrees(np.arctan(np.hypot(gx, gz)))
+
+    def ramp(v, edge, width):
+        return np.clip((v - edge) / width + 0.5, 0.0, 1.0)[..., None]
+
+    dry = ramp(hv, params.tree_line_m, 200.0)
+    colour = GRASS * (1 - dry) + DRY * dry
+    rock = ramp(slope, params.rock_slope_deg, 10.0)
+    colour = colour * (1 - rock) + ROCK * rock
+    snow = ramp(hv, params.snow_line_m, 150.0) * (1 - ramp(slope, 50.0, 10.0))
+    colour = colour * (1 - snow) + SNOW * snow
+    return colour.astype(np.float32)
+
+
+def write_terrain_layer(path: Path, height: Grid, texture: str, params: WorldParams, provenance: dict) -> dict:
+    from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade, Vt
+
+    stage, world = usdio.create_stage(path, provenance)
+    terrain = UsdGeom.Xform.Define(stage, "/World/Terrain")
+    Usd.ModelAPI(terrain).SetKind(Kind.Tokens.component)
+
+    mesh_data = build_terrain_mesh(height, params.mesh_max_vertices)
+    mesh = UsdGeom.Mesh.Define(stage, "/World/Terrain/Ground")
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)  # the default catmullClark would ignore normals
+    mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(mesh_data.points))
+    nfaces = len(mesh_data.face_vertex_indices) // 3
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(nfaces, 3, dtype=np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(mesh_data.face_vertex_indices))
+    mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(mesh_data.normals))
+    mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+    ext = mesh_data.extent
+    mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, ext[0])), Gf.Vec3f(*map(float, ext[1]))]))
+    st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
+    st.Set(Vt.Vec2fArray.FromNumpy(mesh_data.st))
+
+    UsdGeom.Scope.Define(stage, "/World/Terrain/Looks")
+    material = UsdShade.Material.Define(stage, "/World/Terrain/Looks/Ground")
+    surface = UsdShade.Shader.Define(stage, "/World/Terrain/Looks/Ground/Surface")
+    surface.CreateIdAttr("UsdPreviewSurface")
+    surface.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(float(params.roughness))
+    surface.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(0.0)
+    reader = UsdShade.Shader.Define(stage, "/World/Terrain/Looks/Ground/StReader")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
+    albedo = UsdShade.Shader.Define(stage, "/World/Terrain/Looks/Ground/Albedo")
+    albedo.CreateIdAttr("UsdUVTexture")
+    albedo.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(texture)
+    albedo.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")  # linear EXR data
+    albedo.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set("clamp")
+    albedo.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set("clamp")
+    albedo.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+    albedo.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+    surface.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(albedo.ConnectableAPI(), "rgb")
+    material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+
+    world.GetPrim()  # /World stays the defaultPrim of this layer too
+    stage.GetRootLayer().Save()
+    return {"mesh_vertices": int(len(mesh_data.points)), "mesh_triangles": nfaces,
+            "mesh_lattice": list(mesh_data.lattice_shape),
+            "height_min_m": float(ext[0][1]), "height_max_m": float(ext[1][1])}
+
+
+def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
+    height: Grid = inputs["terrain"]
+    rows, cols = height.shape
+    if rows < 2 or cols < 2:
+        from pipeline.errors import InputError
+
+        raise InputError(f"world: the terrain grid is {rows}x{cols}; a terrain mesh needs at least 2x2 cells")
+
+    ctx.progress(0.0, "ground colour texture")
+    albedo_path = ctx.path("world.albedo")
+    exr.write_texture(albedo_path, ground_colour(height, params.texture_size, params), ctx.provenance)
+
+    ctx.progress(0.3, "terrain mesh")
+    terrain_path = ctx.path("world.terrain")
+    ctx.metrics.update(write_terrain_layer(terrain_path, height, "./" + albedo_path.name, params, ctx.provenance))
+
+    ctx.progress(0.9, "world layer")
+    root_path = ctx.path("world.root")
+    stage, _ = usdio.create_stage(root_path, ctx.provenance)
+    stage.GetRootLayer().subLayerPaths.append("./" + terrain_path.name)
+    stage.GetRootLayer().Save()
+    return {"world.root": root_path, "world.terrain": terrain_path, "world.albedo": albedo_path}
+
+
+STAGE = Stage(
+    name="world",
+    version=1,
+    description="Assemble world.usda: the terrain mesh and material, and every upstream USD layer.",
+    inputs=(Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height"),),
+    outputs=(
+        Artifact("world.root", kind="usd", file="world.usda", shape="any", publish=True,
+                 description="the root layer composing every layer of the world"),
+        Artifact("world.terrain", kind="usd", file="terrain.usdc", shape="any",
+                 description="the terrain mesh and its material"),
+        Artifact("world.albedo", kind="texture", file="albedo.exr", shape="any", units="linear RGB",
+                 description="ground colour texture, tiled and mip-mapped"),
+    ),
+    params=WorldParams,
+    run=run,
+    source_dir=Path(__file__).parent,
+)

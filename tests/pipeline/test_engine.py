@@ -1,0 +1,221 @@
+"""The engine on toy stages: planning, caching, atomic store, config validation."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline import exr, usdio
+from pipeline.bake import bake, plan_bake
+from pipeline.config import load_config
+from pipeline.contract import Artifact, Input, Stage
+from pipeline.errors import InputError, StageError
+from pipeline.graph import GraphError, build_graph
+from pipeline.store import Store
+
+from . import toy_stages
+from .toy_stages import TOY
+
+
+@pytest.fixture
+def project(tmp_path):
+    (tmp_path / "configs").mkdir()
+    toy_stages.CALLS.clear()
+    return tmp_path
+
+
+def write(project: Path, text: str, name: str = "w.toml") -> Path:
+    p = project / "configs" / name
+    p.write_text(text)
+    return p
+
+
+def load(project, path, **kw):
+    return load_config(path, TOY, project_root=project, **kw)
+
+
+def do_bake(project, path, **kw):
+    config = load(project, path, **kw)
+    store = Store(project / "build")
+    reports = bake(store, config, build_graph(TOY), log=open("/dev/null", "w"))
+    return {r.stage: r.status for r in reports}, store, config
+
+
+BASE = 'name = "w"\nseed = 3\noutputs = ["assemble"]\n[source]\nsize = 8\n'
+
+
+def test_plan_is_minimal_and_in_dependency_order(project):
+    cfg = load(project, write(project, 'outputs = ["source.height"]\n'))
+    assert [p.stage.name for p in plan_bake(build_graph(TOY), cfg)] == ["source"]
+    cfg = load(project, write(project, BASE))
+    assert [p.stage.name for p in plan_bake(build_graph(TOY), cfg)] == ["source", "shift", "assemble"]
+
+
+def test_disabled_stage_falls_back_to_the_next_producer(project):
+    cfg = load(project, write(project, BASE + "[shift]\nenabled = false\n"))
+    steps = plan_bake(build_graph(TOY), cfg)
+    assert [p.stage.name for p in steps] == ["source", "assemble"]
+    assert steps[-1].inputs["terrain"][0] == "source.height"
+
+
+def test_second_bake_runs_nothing_and_changes_rerun_only_downstream(project):
+    path = write(project, BASE)
+    status, store, _ = do_bake(project, path)
+    assert status == {"source": "ran", "shift": "ran", "assemble": "ran"}
+    status, _, _ = do_bake(project, path)
+    assert set(status.values()) == {"cached"}
+    status, _, _ = do_bake(project, path, sets=["assemble.label=other"])
+    assert status == {"source": "cached", "shift": "cached", "assemble": "ran"}
+    status, _, _ = do_bake(project, path, sets=["source.level_m=2.0"])
+    assert status == {"source": "ran", "shift": "ran", "assemble": "ran"}
+    status, _, _ = do_bake(project, path, sets=["seed=4"])  # only source uses the seed
+    assert status["source"] == "ran"
+
+
+def test_keys_are_stable_and_depend_on_what_matters(project):
+    path = write(project, BASE)
+    graph = build_graph(TOY)
+    k1 = [p.key for p in plan_bake(graph, load(project, path))]
+    assert k1 == [p.key for p in plan_bake(graph, load(project, path))]
+    k2 = [p.key for p in plan_bake(graph, load(project, path, sets=["shift.amount_m=1.5"]))]
+    assert k2[0] == k1[0] and k2[1] != k1[1] and k2[2] != k1[2]
+
+
+def test_artifacts_manifest_provenance_and_world(project):
+    status, store, config = do_bake(project, write(project, BASE))
+    for ps in plan_bake(build_graph(TOY), config):
+        folder = store.folder(ps.stage.name, ps.key)
+        manifest = json.loads((folder / "manifest.json").read_text())
+        assert manifest["key"] == ps.key
+        for f, digest in manifest["files"].items():
+            assert (folder / f).is_file()
+    src = plan_bake(build_graph(TOY), config)[0]
+    attrs = exr.read_attributes(store.folder("source", src.key) / "height.exr")
+    assert attrs["worldbake:stage"] == "source" and attrs["worldbake:key"] == src.key
+    assert json.loads(attrs["worldbake:params"])["size"] == 8
+    world = store.worlds / "w"
+    assert usdio.validate(world / "world.usda") == []
+    refs = json.loads((world / "manifest.json").read_text())["artifacts"]
+    assert {r["stage"] for r in refs} == {"source", "shift", "assemble"}
+    from pxr import Usd
+    stage = Usd.Stage.Open(str(world / "world.usda"))
+    assert stage.GetDefaultPrim().GetPath() == "/World"
+    assert not Path(stage.GetRootLayer().subLayerPaths[0]).is_absolute()
+
+
+def test_failed_run_leaves_nothing(project):
+    path = write(project, BASE + "[shift]\nfail_after_write = true\n")
+    with pytest.raises(RuntimeError):
+        do_bake(project, path)
+    store = Store(project / "build")
+    assert not (store.artifacts / "shift").exists()
+    assert not any(store.tmp.iterdir())
+    for folder in store.artifacts.glob("*/*"):
+        assert (folder / "manifest.json").is_file()
+
+
+def test_non_finite_output_is_refused(project):
+    with pytest.raises(StageError, match=r"source.*non-finite.*row 1, col 2"):
+        do_bake(project, write(project, BASE + 'mode = "nan"\n'))
+    assert not (project / "build" / "artifacts" / "source").exists()
+
+
+def test_gc_keeps_referenced_artifacts(project):
+    path = write(project, BASE)
+    do_bake(project, path)
+    do_bake(project, path, sets=["assemble.label=two"])  # world w now points at the new assemble key
+    store = Store(project / "build")
+    assert len(list((store.artifacts / "assemble").iterdir())) == 2
+    removed = store.gc()
+    assert len(removed) == 1 and len(list((store.artifacts / "assemble").iterdir())) == 1
+
+
+def test_stale_tmp_from_a_dead_run_is_removed(project):
+    store = Store(project / "build")
+    (store.tmp / "source-abc-999999999").mkdir(parents=True)
+    do_bake(project, write(project, BASE))
+    assert not (store.tmp / "source-abc-999999999").exists()
+
+
+# ----------------------------------------------------------------- config validation
+
+
+@pytest.mark.parametrize("text, pattern", [
+    (BASE + "bogus = 1\n", r"w.toml: source.bogus: unknown key .*allowed in \[source\]"),
+    (BASE + "[nope]\nx = 1\n", r"w.toml: nope: unknown key"),
+    (BASE + 'level_m = "high"\n', r"w.toml: source.level_m: .*valid number, got 'high'; allowed: -100.0 .. 100.0 m"),
+    (BASE.replace("size = 8", 'size = "8"'), r"w.toml: source.size: .*integer"),
+    (BASE.replace("size = 8", "size = 1000"), r"w.toml: source.size: .*less than or equal to 64.*1000"),
+    (BASE + 'mode = "spiral"\n', r"source.mode"),
+    (BASE + 'data = "../../etc/passwd"\n', r"source.data: .*leaves the project"),
+    (BASE + 'data = "/etc/passwd"\n', r"source.data: .*leaves the project"),
+    (BASE + 'data = "missing.bin"\n', r"source.data: file 'missing.bin' not found"),
+    ('seed = -1\n', r"seed: must be an integer"),
+    ('outputs = ["nothing"]\n', r"outputs: 'nothing' is neither"),
+    ('name = "a b"\n', r"name: must be"),
+    ('extends = "../../outside.toml"\n', r"extends: .*leaves the project"),
+    ('x = [1,\n', r"not valid TOML"),
+])
+def test_bad_config_names_file_and_key(project, text, pattern):
+    with pytest.raises(InputError, match=pattern):
+        cfg = load(project, write(project, text))
+        plan_bake(build_graph(TOY), cfg)
+
+
+def test_extends_variants_and_set(project):
+    write(project, BASE + "level_m = 5.0\n", "base.toml")
+    path = write(project, 'extends = "base.toml"\nname = "child"\n[source]\nsize = 16\n'
+                          '[variants.high]\nsource.level_m = 9.0\n[variants.flat.source]\nmode = "flat"\n')
+    cfg = load(project, path)
+    assert cfg.name == "child" and cfg.params["source"].size == 16 and cfg.params["source"].level_m == 5.0
+    high = load(project, path, variant="high")
+    assert high.name == "child-high" and high.params["source"].level_m == 9.0
+    assert load(project, path, variant="flat").params["source"].mode == "flat"
+    assert load(project, path, sets=["source.size=4"]).params["source"].size == 4
+    with pytest.raises(InputError, match="no variant 'low'"):
+        load(project, path, variant="low")
+    with pytest.raises(InputError, match=r"--set: source.size: .*greater than or equal to 2"):
+        load(project, path, sets=["source.size=1"])
+
+
+def test_error_in_extended_file_names_that_file(project):
+    write(project, BASE.replace("size = 8", "size = 999"), "base.toml")
+    with pytest.raises(InputError, match=r"configs/base.toml: source.size"):
+        load(project, write(project, 'extends = "base.toml"\n'))
+
+
+def test_extends_cycle(project):
+    write(project, 'extends = "b.toml"\n', "a.toml")
+    write(project, 'extends = "a.toml"\n', "b.toml")
+    with pytest.raises(InputError, match="cycle"):
+        load(project, project / "configs" / "a.toml")
+
+
+def test_project_path_content_is_in_the_key(project):
+    (project / "data.bin").write_bytes(b"abc")
+    path = write(project, BASE + 'data = "data.bin"\n')
+    k1 = plan_bake(build_graph(TOY), load(project, path))[0].key
+    (project / "data.bin").write_bytes(b"abcd")
+    assert plan_bake(build_graph(TOY), load(project, path))[0].key != k1
+
+
+# ----------------------------------------------------------------- graph validation
+
+
+def _stage(name, inputs=(), outputs=()):
+    return Stage(name, 1, "", inputs, outputs, toy_stages.AssembleParams, lambda *a: {}, toy_stages.HERE)
+
+
+def test_graph_rejects_bad_declarations():
+    g = Artifact("a.x", "grid", "x.exr", channels=("x",))
+    with pytest.raises(GraphError, match="two producers"):
+        build_graph({"a": _stage("a", outputs=(g, Artifact("a.x", "grid", "y.exr")))})
+    with pytest.raises(GraphError, match="no stage produces"):
+        build_graph({"a": _stage("a", inputs=(Input("t", ("zz.y",)),))})
+    with pytest.raises(GraphError, match="cycle"):
+        build_graph({"a": _stage("a", (Input("t", ("b.y",)),), (Artifact("a.x", "grid", "x.exr"),)),
+                     "b": _stage("b", (Input("t", ("a.x",)),), (Artifact("b.y", "grid", "y.exr"),))})
+    with pytest.raises(GraphError, match="must be named"):
+        build_graph({"a": _stage("a", outputs=(Artifact("b.x", "grid", "x.exr"),))})
