@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY      = $(VENV)/bin/python
 CONFIG ?= configs/default.toml
 
-.PHONY: setup bake plan test bench clean
+.PHONY: setup bake plan test bench docs clean
 .DELETE_ON_ERROR:
 
 # The virtual environment, rebuilt when pyproject.toml changes.
@@ -27,6 +27,10 @@ test: setup
 
 bench: setup
 	$(PY) -m bench.heightmap
+
+# Regenerate the config reference in README.md from the stage declarations.
+docs: setup
+	$(PY) -c "import re,pathlib,pipeline.docs as d,pipeline.registry as r; p=pathlib.Path('README.md'); t=p.read_text(); b=t.index('<!-- BEGIN describe'); b=t.index('\n',b)+1; e=t.index('<!-- END describe'); p.write_text(t[:b]+d.describe(r.all_stages())+t[e:])"
 
 clean:
 	rm -rf build

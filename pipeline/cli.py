@@ -4,6 +4,8 @@
     worldbake plan CONFIG [--variant NAME | --all-variants] [--set KEY=VALUE ...] [--json]
     worldbake validate WORLD_DIR_OR_USD
     worldbake gc
+    worldbake export WORLD DEST
+    worldbake describe
 
 Exit status: 0 done, 1 a stage failed (numerical blow-up, broken invariant),
 2 bad config or input file (nothing written).
@@ -93,6 +95,21 @@ def _cmd_validate(args) -> int:
     return 1 if errors else 0
 
 
+def _cmd_export(args) -> int:
+    store = Store(Path(args.project) / args.build)
+    dest = store.export(args.world, Path(args.dest))
+    errors = usdio.validate(dest / "world.usda" if dest.is_dir() else dest)
+    print(f"exported world {args.world} to {dest} ({len(errors)} validation errors)")
+    return 1 if errors else 0
+
+
+def _cmd_describe(args) -> int:
+    from .docs import describe
+
+    print(describe(all_stages()), end="")
+    return 0
+
+
 def _cmd_gc(args) -> int:
     store = Store(Path(args.project) / args.build)
     removed = store.gc()
@@ -119,8 +136,13 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("validate", help="run every pxr.UsdValidation validator on a world")
     p.add_argument("path", help="a world folder or USD file")
     sub.add_parser("gc", help="remove artifacts no world references")
+    p = sub.add_parser("export", help="a self-contained copy of a baked world: a folder, or a .usdz file")
+    p.add_argument("world", help="the world's name (a folder in build/worlds/)")
+    p.add_argument("dest", help="a new folder, or a path ending in .usdz")
+    sub.add_parser("describe", help="print every stage's inputs, outputs and config keys (markdown)")
     args = parser.parse_args(argv)
-    handlers = {"bake": _cmd_bake, "plan": _cmd_plan, "validate": _cmd_validate, "gc": _cmd_gc}
+    handlers = {"bake": _cmd_bake, "plan": _cmd_plan, "validate": _cmd_validate, "gc": _cmd_gc, "export": _cmd_export,
+                "describe": _cmd_describe}
     try:
         return handlers[args.command](args)
     except InputError as e:

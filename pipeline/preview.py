@@ -10,13 +10,13 @@ def hillshade(height: Grid, azimuth_deg: float = 315.0, altitude_deg: float = 45
     """Lambertian hillshade of a height grid (the usual GIS definition, sun from
     the north-west at 45 degrees), as uint8 RGB of the grid's shape. Slopes are
     computed in metres, so the shading does not change with resolution."""
-    h = height.channel(height.channels[0]).astype(np.float64) * z_factor
+    h = height.channel(height.channels[0]).astype(np.float32) * np.float32(z_factor)
     dx = height.cell_size_m
     dz_dx = np.gradient(h, dx, axis=1) if h.shape[1] > 1 else np.zeros_like(h)
     dz_dy = -np.gradient(h, dx, axis=0) if h.shape[0] > 1 else np.zeros_like(h)  # row 0 is north
     az = np.radians(azimuth_deg)
     alt = np.radians(altitude_deg)
-    sun = np.array([np.sin(az) * np.cos(alt), np.cos(az) * np.cos(alt), np.sin(alt)])  # east, north, up
+    sun = np.array([np.sin(az) * np.cos(alt), np.cos(az) * np.cos(alt), np.sin(alt)], dtype=np.float32)  # east, north, up
     n = np.stack([-dz_dx, -dz_dy, np.ones_like(h)], axis=-1)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     shade = np.clip(n @ sun, 0.0, 1.0)

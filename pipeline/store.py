@@ -141,3 +141,34 @@ class Store:
                 stage_dir.rmdir()
         self.clean_stale()
         return removed
+
+    def export(self, world: str, dest: Path) -> Path:
+        """A self-contained copy of a world for handoff. A folder keeps the
+        store's layout (worlds/<world>/ beside artifacts/<stage>/<key>/ of
+        just the artifacts it uses), so every relative path in the USD still
+        resolves; a .usdz packs every layer and texture into one file."""
+        from .errors import InputError
+
+        src = self.worlds / world
+        if not (src / MANIFEST).is_file():
+            raise InputError(f"no baked world {world!r} in {self.worlds}")
+        if dest.exists():
+            raise InputError(f"{dest} exists; export writes a new folder or file")
+        if dest.suffix == ".usdz":
+            from pxr import Sdf, UsdUtils
+
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(src / "world.usda")), str(dest)):
+                raise OSError(f"cannot write {dest}")
+            return dest
+        work = dest.with_name(dest.name + f".part-{os.getpid()}")
+        shutil.rmtree(work, ignore_errors=True)
+        try:
+            shutil.copytree(src, work / "worlds" / world)
+            for entry in json.loads((src / MANIFEST).read_text())["artifacts"]:
+                shutil.copytree(self.folder(entry["stage"], entry["key"]),
+                                work / "artifacts" / entry["stage"] / entry["key"])
+            os.rename(work, dest)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+        return dest / "worlds" / world

@@ -1,0 +1,190 @@
+"""The whole pipeline through the `worldbake` command, as a user runs it:
+caching and re-runs, plan, kills at any moment, bad configs, determinism,
+and a world.usda that validates."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline import exr, usdio
+
+REPO = Path(__file__).resolve().parents[2]
+SMALL = ["--set", "heightmap.resolution=96", "--set", "world.texture_size=64", "--set", "world.mesh_max_vertices=49"]
+
+
+@pytest.fixture
+def project(tmp_path):
+    shutil.copytree(REPO / "configs", tmp_path / "configs")
+    return tmp_path
+
+
+def worldbake(project: Path, *args: str, build: str = "build", check: bool = True) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "pipeline.cli", "--build", build, *args]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=project, timeout=300)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"{' '.join(cmd)} exited {proc.returncode}:\n{proc.stderr}")
+    return proc
+
+
+def bake_json(project, *args, build="build"):
+    out = worldbake(project, "bake", "configs/default.toml", *SMALL, *args, "--json", build=build)
+    return {s["stage"]: s for s in json.loads(out.stdout)[0]["steps"]}
+
+
+def plan_json(project, *args):
+    out = worldbake(project, "plan", "configs/default.toml", *SMALL, *args, "--json")
+    return {s["stage"]: s["status"] for s in json.loads(out.stdout)[0]["steps"]}
+
+
+def assert_store_whole(build: Path) -> None:
+    for folder in (build / "artifacts").glob("*/*"):
+        assert (folder / "manifest.json").is_file(), f"{folder} has no manifest"
+        manifest = json.loads((folder / "manifest.json").read_text())
+        for name in manifest["files"]:
+            assert (folder / name).is_file()
+
+
+def test_bake_caches_and_reruns_only_what_changed(project):
+    assert set(plan_json(project).values()) == {"will run"}
+    first = bake_json(project)
+    assert {s: v["status"] for s, v in first.items()} == {"heightmap": "ran", "world": "ran"}
+    assert set(plan_json(project).values()) == {"cached"}
+    assert {s: v["status"] for s, v in bake_json(project).items()} == {"heightmap": "cached", "world": "cached"}
+
+    world_change = ["--set", "world.roughness=0.5"]
+    assert plan_json(project, *world_change) == {"heightmap": "cached", "world": "will run"}
+    assert {s: v["status"] for s, v in bake_json(project, *world_change).items()} == {"heightmap": "cached", "world": "ran"}
+
+    hm_change = ["--set", "heightmap.relief_m=1234.0"]
+    assert plan_json(project, *hm_change) == {"heightmap": "will run", "world": "will run"}
+    assert {s: v["status"] for s, v in bake_json(project, *hm_change).items()} == {"heightmap": "ran", "world": "ran"}
+
+    world = project / "build" / "worlds" / "default" / "world.usda"
+    assert usdio.validate(world) == []
+    assert_store_whole(project / "build")
+
+
+def _decoded(build: Path) -> dict:
+    """Every artifact's decoded content: pixels for images, text for USD, by key."""
+    out = {}
+    for folder in sorted((build / "artifacts").glob("*/*")):
+        for f in sorted(folder.iterdir()):
+            name = f"{folder.parent.name}/{folder.name}/{f.name}"
+            if f.suffix == ".exr":
+                import OpenImageIO as oiio
+                out[name] = oiio.ImageBuf(str(f)).get_pixels(oiio.FLOAT).tobytes()
+            elif f.suffix in (".usda", ".usdc"):
+                from pxr import Sdf
+                out[name] = Sdf.Layer.FindOrOpen(str(f)).ExportToString()
+            elif f.suffix == ".png":
+                import OpenImageIO as oiio
+                out[name] = oiio.ImageBuf(str(f)).get_pixels(oiio.UINT8).tobytes()
+    return out
+
+
+def test_two_bakes_give_the_same_keys_pixels_and_usd(project):
+    a = bake_json(project, build="build_a")
+    b = bake_json(project, build="build_b")
+    assert {s: v["key"] for s, v in a.items()} == {s: v["key"] for s, v in b.items()}
+    da, db = _decoded(project / "build_a"), _decoded(project / "build_b")
+    assert da.keys() == db.keys() and len(da) >= 5
+    for name in da:
+        assert da[name] == db[name], f"{name} differs between two bakes"
+    wa = (project / "build_a/worlds/default/world.usda").read_text()
+    assert wa == (project / "build_b/worlds/default/world.usda").read_text()
+
+
+def test_sigkill_at_any_moment_leaves_no_half_artifact(project):
+    reference = _decoded_after_bake(project, "build_ref")
+    cmd = [sys.executable, "-m", "pipeline.cli", "--build", "build_kill", "bake", "configs/default.toml", *SMALL]
+    # Kill at spread-out moments: during start-up, while heightmap runs, while files are written.
+    for delay in (0.3, 0.9, 1.5, 2.2, 3.0, 4.0):
+        proc = subprocess.Popen(cmd, cwd=project, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(delay)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        assert_store_whole(project / "build_kill")
+        shutil.rmtree(project / "build_kill" / "artifacts" / "world", ignore_errors=True)  # make later kills hit world again
+    worldbake(project, "bake", "configs/default.toml", *SMALL, build="build_kill")
+    assert_store_whole(project / "build_kill")
+    assert not any((project / "build_kill" / "tmp").iterdir())
+    assert _decoded(project / "build_kill") == reference
+
+
+def _decoded_after_bake(project, build):
+    worldbake(project, "bake", "configs/default.toml", *SMALL, build=build)
+    return _decoded(project / build)
+
+
+@pytest.mark.parametrize("extra, pattern", [
+    ('[heightmap]\nbogus_key = 3\n', r"bad.toml: heightmap.bogus_key: unknown key"),
+    ('[heightmap]\noctaves = "many"\n', r"bad.toml: heightmap.octaves: .*valid integer"),
+    ('[heightmap]\noctaves = 99\n', r"bad.toml: heightmap.octaves: .*less than or equal"),
+    ('[heightmap]\ngenerator = "dem"\ndem_path = "../../../etc/hostname"\n', r"bad.toml: heightmap.dem_path: .*leaves the project"),
+    ('[world]\nroughness = 2.0\n', r"bad.toml: world.roughness"),
+])
+def test_bad_config_exits_2_names_file_and_key_and_writes_nothing(project, extra, pattern):
+    import re
+    (project / "configs" / "bad.toml").write_text('extends = "default.toml"\n' + extra)
+    proc = worldbake(project, "bake", "configs/bad.toml", check=False)
+    assert proc.returncode == 2, proc.stderr
+    assert re.search(pattern, proc.stderr), proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1  # one clear message, no traceback
+    assert not (project / "build").exists()
+
+
+def test_unknown_config_file_and_variant(project):
+    proc = worldbake(project, "bake", "configs/nope.toml", check=False)
+    assert proc.returncode == 2 and "nope.toml: config file not found" in proc.stderr
+    proc = worldbake(project, "bake", "configs/default.toml", "--variant", "zzz", check=False)
+    assert proc.returncode == 2 and "no variant 'zzz'" in proc.stderr
+
+
+def test_variants_share_upstream_work(project):
+    (project / "configs" / "wedge.toml").write_text(
+        'extends = "default.toml"\nname = "wedge"\n[variants.matte]\nworld.roughness = 1.0\n')
+    out = worldbake(project, "bake", "configs/wedge.toml", *SMALL, "--all-variants", "--json")
+    worlds = {w["world"]: {s["stage"]: s for s in w["steps"]} for w in json.loads(out.stdout)}
+    assert set(worlds) == {"wedge", "wedge-matte"}
+    assert worlds["wedge-matte"]["heightmap"]["status"] == "cached"
+    assert worlds["wedge-matte"]["world"]["status"] == "ran"
+    for w in worlds:
+        assert usdio.validate(project / "build" / "worlds" / w / "world.usda") == []
+
+
+def test_gc_removes_only_unreferenced(project):
+    bake_json(project)
+    bake_json(project, "--set", "world.roughness=0.3")
+    out = worldbake(project, "gc")
+    assert "1 unreferenced artifact folders removed" in out.stdout
+    assert set(plan_json(project, "--set", "world.roughness=0.3").values()) == {"cached"}
+
+
+def test_export_folder_and_usdz_are_self_contained(project, tmp_path_factory):
+    bake_json(project)
+    out = tmp_path_factory.mktemp("handoff")
+    worldbake(project, "export", "default", str(out / "copy"))
+    worldbake(project, "export", "default", str(out / "world.usdz"))
+    shutil.rmtree(project / "build")  # nothing may point back into the store
+    from pxr import Usd, UsdGeom
+    for path in (out / "copy" / "worlds" / "default" / "world.usda", out / "world.usdz"):
+        assert usdio.validate(path) == []
+        stage = Usd.Stage.Open(str(path))
+        assert UsdGeom.Mesh(stage.GetPrimAtPath("/World/Terrain/Ground")).GetPointsAttr().Get()
+        tex = stage.GetPrimAtPath("/World/Terrain/Looks/Ground/Albedo").GetAttribute("inputs:file").Get()
+        assert tex.resolvedPath, f"{path}: texture does not resolve"
+
+
+def test_a_list_valued_key_from_toml_and_from_set(project):
+    plan_json(project, "--set", "heightmap.window=[0, 0, 32, 16]")
+    proc = worldbake(project, "plan", "configs/default.toml", "--set", "heightmap.window=[0, 0, 32]", check=False)
+    assert proc.returncode == 2 and "heightmap.window" in proc.stderr

@@ -1,0 +1,156 @@
+"""DEM import: formats, resampling, and clear errors for bad files."""
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+from pipeline.errors import InputError
+from stages.heightmap import dem
+from stages.heightmap.stage import HeightmapParams, heights
+
+
+def write(path, data, fmt):
+    out = oiio.ImageOutput.create(str(path))
+    assert out is not None, oiio.geterror()
+    spec = oiio.ImageSpec(data.shape[1], data.shape[0], 1, fmt)
+    assert out.open(str(path), spec), out.geterror()
+    assert out.write_image(np.ascontiguousarray(data[:, :, None])), out.geterror()
+    out.close()
+
+
+def ramp(n=40, a=150.0, bx=3.0, bz=-2.0):
+    """h = a + bx * col + bz * row at source pixel centres."""
+    r, c = np.mgrid[0:n, 0:n].astype(np.float64)
+    return a + bx * c + bz * r
+
+
+def expected_ramp(n_src, res, a=150.0, bx=3.0, bz=-2.0):
+    """The ramp at target cell centres, in source pixel coordinates (clamped
+    at the borders as the resampler does)."""
+    s = np.clip((np.arange(res) + 0.5) * n_src / res - 0.5, 0, n_src - 1)
+    return a + bx * s[None, :] + bz * s[:, None]
+
+
+def dem_params(path, res, **kw):
+    return HeightmapParams(generator="dem", dem_path=str(path), resolution=res, size_m=1000.0, **kw)
+
+
+@pytest.mark.parametrize("res", [100, 23])  # up- and downsampling
+@pytest.mark.parametrize("ext,fmt", [("exr", "float"), ("tif", "float"), ("exr", "half")])
+def test_float_dem_ramp_stays_a_ramp(tmp_path, ext, fmt, res):
+    src = ramp()
+    path = tmp_path / f"dem.{ext}"
+    write(path, src.astype(np.float32), fmt)
+    h, _ = heights(dem_params(path, res), seed=0)
+    assert h.dtype == np.float32 and h.shape == (res, res)
+    tol = 0.13 if fmt == "half" else 1e-3  # half: 11-bit mantissa at values up to 270 m
+    np.testing.assert_allclose(h, expected_ramp(40, res), atol=tol)
+
+
+def test_16bit_png_maps_to_metres(tmp_path):
+    n = 40
+    src = ramp(n)  # values 72 .. 267 m
+    lo, hi = 0.0, 500.0
+    path = tmp_path / "dem.png"
+    write(path, ((src - lo) / (hi - lo)).astype(np.float32), "uint16")  # OIIO quantises to 0..65535
+    h, _ = heights(dem_params(path, 64, dem_min_m=lo, dem_max_m=hi), seed=0)
+    np.testing.assert_allclose(h, expected_ramp(n, 64), atol=(hi - lo) / 65535)
+
+
+def test_16bit_tiff_and_normalised_float(tmp_path):
+    src = ramp(32)
+    t = (src - 0.0) / 400.0
+    write(tmp_path / "a.tif", t.astype(np.float32), "uint16")
+    write(tmp_path / "b.exr", t.astype(np.float32), "float")
+    a, _ = heights(dem_params(tmp_path / "a.tif", 50, dem_min_m=0.0, dem_max_m=400.0), seed=0)
+    b, _ = heights(dem_params(tmp_path / "b.exr", 50, dem_min_m=0.0, dem_max_m=400.0), seed=0)
+    want = expected_ramp(32, 50)
+    np.testing.assert_allclose(a, want, atol=400.0 / 65535)
+    np.testing.assert_allclose(b, want, atol=1e-3)
+
+
+def test_identity_resolution_returns_the_pixels(tmp_path):
+    src = np.random.default_rng(0).normal(500.0, 100.0, (37, 37)).astype(np.float32)
+    write(tmp_path / "d.exr", src, "float")
+    h, _ = heights(dem_params(tmp_path / "d.exr", 37), seed=0)
+    np.testing.assert_array_equal(h, src)
+
+
+def test_dem_window_equals_crop(tmp_path):
+    src = np.random.default_rng(1).normal(500.0, 100.0, (50, 50)).astype(np.float32)
+    write(tmp_path / "d.exr", src, "float")
+    whole, _ = heights(dem_params(tmp_path / "d.exr", 300), seed=0)
+    tile, _ = heights(dem_params(tmp_path / "d.exr", 300, window=(17, 260, 283, 40)), seed=0)
+    assert tile.tobytes() == np.ascontiguousarray(whole[260:300, 17:300]).tobytes()
+
+
+def test_corrupt_file(tmp_path):
+    path = tmp_path / "corrupt.png"
+    path.write_bytes(np.random.default_rng(2).bytes(4096))
+    with pytest.raises(InputError, match="corrupt.png"):
+        heights(dem_params(path, 16), seed=0)
+
+
+def test_truncated_png(tmp_path):
+    good = tmp_path / "good.png"
+    write(good, np.random.default_rng(3).random((64, 64)).astype(np.float32), "uint16")
+    bad = tmp_path / "truncated.png"
+    bad.write_bytes(good.read_bytes()[:300])
+    with pytest.raises(InputError, match="truncated.png"):
+        heights(dem_params(bad, 16, dem_min_m=0.0, dem_max_m=1.0), seed=0)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(InputError, match="missing_dem.exr"):
+        heights(dem_params(tmp_path / "missing_dem.exr", 16), seed=0)
+
+
+def test_nan_in_exr(tmp_path):
+    src = ramp(20).astype(np.float32)
+    src[3, 7] = np.nan
+    path = tmp_path / "has_nan.exr"
+    write(path, src, "float")
+    with pytest.raises(InputError, match=r"has_nan.exr.*NaN.*row 3, column 7"):
+        heights(dem_params(path, 16), seed=0)
+
+
+def test_inf_in_tiff(tmp_path):
+    src = ramp(20).astype(np.float32)
+    src[0, 0] = np.inf
+    path = tmp_path / "has_inf.tif"
+    write(path, src, "float")
+    with pytest.raises(InputError, match="has_inf.tif"):
+        heights(dem_params(path, 16), seed=0)
+
+
+def test_integer_dem_needs_range(tmp_path):
+    path = tmp_path / "norange.png"
+    write(path, np.zeros((8, 8), np.float32), "uint16")
+    with pytest.raises(InputError, match="norange.png.*dem_min_m and dem_max_m"):
+        heights(dem_params(path, 16), seed=0)
+
+
+def test_non_square_dem(tmp_path):
+    path = tmp_path / "wide.exr"
+    write(path, np.zeros((8, 16), np.float32), "float")
+    with pytest.raises(InputError, match="wide.exr.*16x8"):
+        heights(dem_params(path, 16), seed=0)
+
+
+def test_text_file_with_image_extension(tmp_path):
+    path = tmp_path / "notes.tif"
+    path.write_text("this is not an image\n" * 20)
+    with pytest.raises(InputError, match="notes.tif"):
+        dem.read_dem(path)
+
+
+def test_run_resolves_dem_path_against_project_root(tmp_path):
+    from pipeline.contract import RunContext
+    from stages.heightmap import STAGE
+
+    (tmp_path / "data").mkdir()
+    write(tmp_path / "data" / "dem.exr", ramp(16).astype(np.float32), "float")
+    ctx = RunContext(stage=STAGE, key="k", out_dir=tmp_path / "out", seed=0, provenance={}, project_root=tmp_path)
+    p = HeightmapParams(generator="dem", dem_path="data/dem.exr", resolution=16, size_m=160.0)
+    g = STAGE.run(ctx, {}, p)["heightmap.height"]
+    np.testing.assert_allclose(g.data, ramp(16), atol=1e-3)
+    assert "dem_seconds" in ctx.metrics

@@ -1,0 +1,92 @@
+"""The world assembly on synthetic terrain: valid USD, mesh conventions, mesh-surface queries."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline import exr, usdio
+from pipeline.contract import RunContext
+from pipeline.grid import Grid
+from stages.world import STAGE
+from stages.world.terrain_mesh import build_terrain_mesh, height_on_mesh
+
+
+def _terrain(rows=33, cols=40, cell=25.0):
+    r, c = np.mgrid[0:rows, 0:cols]
+    h = 800 + 300 * np.sin(c / 6.0) * np.cos(r / 9.0) + 2.0 * r
+    return Grid(h.astype(np.float32), cell)
+
+
+def _run(tmp_path, grid, **params):
+    ctx = RunContext(stage=STAGE, key="k", out_dir=tmp_path, seed=0,
+                     provenance={"stage": "world", "key": "k"}, project_root=tmp_path)
+    out = STAGE.run(ctx, {"terrain": grid}, STAGE.params(**params))
+    return ctx, out
+
+
+def test_world_layers_validate_and_follow_conventions(tmp_path):
+    from pxr import Usd, UsdGeom, UsdShade
+
+    ctx, out = _run(tmp_path, _terrain(), mesh_max_vertices=17, texture_size=32)
+    assert usdio.validate(out["world.root"]) == []
+    stage = Usd.Stage.Open(str(out["world.root"]))
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    assert stage.GetDefaultPrim().GetPath() == "/World"
+    assert Usd.ModelAPI(stage.GetDefaultPrim()).GetKind() == "assembly"
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Terrain/Ground"))
+    assert mesh.GetSubdivisionSchemeAttr().Get() == UsdGeom.Tokens.none
+    pts = np.array(mesh.GetPointsAttr().Get())
+    assert len(pts) == 17 * 17
+    normals = np.array(mesh.GetNormalsAttr().Get())
+    assert np.allclose(np.linalg.norm(normals, axis=1), 1, atol=1e-5) and (normals[:, 1] > 0).all()
+    ext = np.array(mesh.GetExtentAttr().Get())
+    assert np.allclose(ext[0], pts.min(0)) and np.allclose(ext[1], pts.max(0))
+    assert UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st").IsDefined()
+    material, _ = UsdShade.MaterialBindingAPI(mesh.GetPrim()).ComputeBoundMaterial()
+    assert material.GetPath() == "/World/Terrain/Looks/Ground"
+    tex = stage.GetPrimAtPath("/World/Terrain/Looks/Ground/Albedo").GetAttribute("inputs:file").Get()
+    assert tex.resolvedPath and tex.resolvedPath.endswith("albedo.exr")
+    attrs = exr.read_attributes(out["world.albedo"])
+    assert attrs["oiio:miplevels"] > 1 and attrs["worldbake:stage"] == "world"
+
+
+def test_triangles_face_up_and_cover_the_grid(tmp_path):
+    g = _terrain()
+    m = build_terrain_mesh(g, 1000)
+    tri = m.points[m.face_vertex_indices.reshape(-1, 3)].astype(np.float64)
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    assert (n[:, 1] > 0).all()  # counter-clockwise seen from +Y: rightHanded faces up
+    assert m.lattice_shape == g.shape  # full resolution when allowed
+    assert np.allclose(m.points[:, 1].reshape(g.shape), g.data, atol=1e-3)
+
+
+def test_height_on_mesh_lies_on_its_triangles():
+    g = _terrain()
+    m = build_terrain_mesh(g, 12)
+    rng = np.random.default_rng(1)
+    lo, hi = m.extent
+    x = rng.uniform(lo[0], hi[0], 2000)
+    z = rng.uniform(lo[2], hi[2], 2000)
+    y = height_on_mesh(m, x, z)
+    # at the lattice vertices the surface passes through the points
+    assert np.allclose(height_on_mesh(m, m.points[:, 0].astype(np.float64), m.points[:, 2].astype(np.float64)),
+                       m.points[:, 1], atol=1e-3)
+    # every query point lies in the plane of one of the mesh's triangles (brute force)
+    tri = m.points[m.face_vertex_indices.reshape(-1, 3)].astype(np.float64)
+    for xi, zi, yi in zip(x[:200], z[:200], y[:200]):
+        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+        v0, v1 = b - a, c - a
+        det = v0[:, 0] * v1[:, 2] - v0[:, 2] * v1[:, 0]
+        u = ((xi - a[:, 0]) * v1[:, 2] - (zi - a[:, 2]) * v1[:, 0]) / det
+        w = (v0[:, 0] * (zi - a[:, 2]) - v0[:, 2] * (xi - a[:, 0])) / det
+        inside = (u >= -1e-9) & (w >= -1e-9) & (u + w <= 1 + 1e-9)
+        k = np.flatnonzero(inside)[0]
+        y_ref = a[k, 1] + u[k] * v0[k, 1] + w[k] * v1[k, 1]
+        assert abs(y_ref - yi) < 1e-3
+
+
+def test_too_small_terrain_is_refused(tmp_path):
+    from pipeline.errors import InputError
+    with pytest.raises(InputError, match="at least 2x2"):
+        _run(tmp_path, Grid(np.zeros((1, 5), np.float32), 1.0))
