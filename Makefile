@@ -25,8 +25,10 @@ plan: setup
 test: setup
 	$(PY) -m pytest -q
 
+# Every benchmark in bench/, one after the other (minutes; not part of `make test`).
 bench: setup
-	$(PY) -m bench.heightmap
+	@for b in bench/*.py; do m=$$(basename $$b .py); [ "$$m" = __init__ ] && continue; \
+	  echo "== bench.$$m"; $(PY) -m bench.$$m || exit 1; done
 
 # Regenerate the config reference in README.md from the stage declarations.
 docs: setup

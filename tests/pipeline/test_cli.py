@@ -188,3 +188,27 @@ def test_a_list_valued_key_from_toml_and_from_set(project):
     plan_json(project, "--set", "heightmap.window=[0, 0, 32, 16]")
     proc = worldbake(project, "plan", "configs/default.toml", "--set", "heightmap.window=[0, 0, 32]", check=False)
     assert proc.returncode == 2 and "heightmap.window" in proc.stderr
+
+
+def test_corrupt_dem_exits_2_and_leaves_no_artifact(project):
+    (project / "data").mkdir()
+    (project / "data" / "dem.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)) * 4)
+    (project / "configs" / "dem.toml").write_text(
+        'extends = "default.toml"\n[heightmap]\ngenerator = "dem"\ndem_path = "data/dem.png"\n')
+    proc = worldbake(project, "bake", "configs/dem.toml", *SMALL, check=False)
+    assert proc.returncode == 2, proc.stderr
+    assert "dem.png" in proc.stderr.strip().splitlines()[-1] and "Traceback" not in proc.stderr
+    assert not list((project / "build" / "artifacts").glob("*/*")) if (project / "build" / "artifacts").exists() else True
+    assert not (project / "build" / "worlds").exists()
+
+
+def test_dem_import_bakes_a_world(project):
+    import OpenImageIO as oiio
+    (project / "data").mkdir()
+    ramp = np.add.outer(np.arange(50), np.arange(50)).astype(np.uint16) * 600
+    oiio.ImageBuf(ramp).write(str(project / "data" / "dem.png"), oiio.UINT16)
+    (project / "configs" / "dem.toml").write_text(
+        'extends = "default.toml"\nname = "demworld"\n[heightmap]\ngenerator = "dem"\ndem_path = "data/dem.png"\n'
+        'dem_min_m = 100.0\ndem_max_m = 1600.0\n')
+    worldbake(project, "bake", "configs/dem.toml", *SMALL)
+    assert usdio.validate(project / "build" / "worlds" / "demworld" / "world.usda") == []
