@@ -1,0 +1,163 @@
+"""USD writing: one asset file per species and the top layer.
+
+<species>.usdc, defaultPrim /<species> (Xform, kind component):
+    variantSet "lod" = LOD0 .. LODn (selection LOD0); each variant holds
+      /<species>/Geom/Wood    the watertight woody solid (trees, shrubs)
+      /<species>/Geom/Leaves  leaves and needles (doubleSided)
+      /<species>/Geom/Blades  grass blades (doubleSided), /Geom/Cards the slice tuft
+      and the model's extentsHint for that level;
+    /<species>/Looks/Bark, /Looks/Foliage: UsdPreviewSurface materials; the
+      foliage one reads primvars:displayColor (root to tip colour);
+    every mesh: subdivisionScheme none, normals (primvars:normals), primvars:st,
+      extent, and the wind primvars (vertex interpolation):
+        primvars:wind:branchWeight  bend weight, 0 at the root of the plant, 1 at the outermost tips
+        primvars:wind:flutterWeight 0 on wood; 0 at a leaf's stalk / blade root, 1 at its tip
+        primvars:wind:phase         per branch / leaf / blade random phase in [0, 1)
+        primvars:wind:pivot         the point the part swings about: branch base, leaf stalk, blade root
+    customData worldbake:lods: per level its triangles, Hausdorff error (m and
+      fraction of the bounding-box diagonal) and simplification time.
+plants.usda (the stage's artifact), defaultPrim /Plants (kind group), one
+  child per built species referencing "./<species>.usdc": the prototypes a
+  world layer's PointInstancers point to.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from pipeline import usdio
+
+from .mesh import Part
+
+
+def _material(stage, path: str, colour, roughness: float, read_display_color: bool):
+    from pxr import Gf, Sdf, UsdShade
+
+    mat = UsdShade.Material.Define(stage, path)
+    surf = UsdShade.Shader.Define(stage, f"{path}/Surface")
+    surf.CreateIdAttr("UsdPreviewSurface")
+    col = surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f)
+    col.Set(Gf.Vec3f(*map(float, colour)))
+    surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(float(roughness))
+    surf.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(0.0)
+    mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
+    if read_display_color:
+        rd = UsdShade.Shader.Define(stage, f"{path}/DisplayColor")
+        rd.CreateIdAttr("UsdPrimvarReader_float3")
+        rd.CreateInput("varname", Sdf.ValueTypeNames.String).Set("displayColor")
+        rd.CreateInput("fallback", Sdf.ValueTypeNames.Float3).Set(Gf.Vec3f(*map(float, colour)))
+        col.ConnectToSource(rd.ConnectableAPI(), "result")
+        rd.CreateOutput("result", Sdf.ValueTypeNames.Float3)
+    return mat
+
+
+def _extent(pos: np.ndarray):
+    from pxr import Gf, Vt
+
+    lo, hi = pos.min(0), pos.max(0)
+    return Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))])
+
+
+def write_mesh(stage, path: str, part: Part, material, double_sided: bool, colour_root, colour_tip=None):
+    """A UsdGeom.Mesh from a Part: welded points, normals and st as indexed
+    faceVarying primvars where vertices are split (uv seams), vertex ones
+    otherwise; wind primvars per point."""
+    from pxr import Sdf, UsdGeom, UsdShade, Vt
+
+    pos, faces = part.welded()
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+    mesh.CreateDoubleSidedAttr(bool(double_sided))
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(pos, np.float32)))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(faces.ravel(), np.int32)))
+    mesh.CreateExtentAttr(_extent(pos))
+    pv = UsdGeom.PrimvarsAPI(mesh)
+    split = len(part.weld) != len(pos)
+    v = part.verts
+    if split:
+        interp = UsdGeom.Tokens.faceVarying
+        idx = Vt.IntArray.FromNumpy(np.ascontiguousarray(part.tris.ravel(), np.int32))
+        n = pv.CreatePrimvar("normals", Sdf.ValueTypeNames.Normal3fArray, interp)
+        n.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(v[:, 3:6], np.float32)))
+        n.SetIndices(idx)
+        st = pv.CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, interp)
+        st.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(v[:, 6:8], np.float32)))
+        st.SetIndices(idx)
+        first = np.full(len(pos), len(v), np.int64)
+        np.minimum.at(first, part.weld, np.arange(len(v)))
+        pt = v[first]
+    else:
+        interp = UsdGeom.Tokens.vertex
+        order = np.empty(len(v), np.int64)
+        order[part.weld] = np.arange(len(v))
+        pt = v[order]
+        pv.CreatePrimvar("normals", Sdf.ValueTypeNames.Normal3fArray, interp).Set(
+            Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(pt[:, 3:6], np.float32)))
+        pv.CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, interp).Set(
+            Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(pt[:, 6:8], np.float32)))
+    V = UsdGeom.Tokens.vertex
+    pv.CreatePrimvar("wind:branchWeight", Sdf.ValueTypeNames.FloatArray, V).Set(
+        Vt.FloatArray.FromNumpy(np.ascontiguousarray(pt[:, 8], np.float32)))
+    pv.CreatePrimvar("wind:flutterWeight", Sdf.ValueTypeNames.FloatArray, V).Set(
+        Vt.FloatArray.FromNumpy(np.ascontiguousarray(pt[:, 9], np.float32)))
+    pv.CreatePrimvar("wind:phase", Sdf.ValueTypeNames.FloatArray, V).Set(
+        Vt.FloatArray.FromNumpy(np.ascontiguousarray(pt[:, 10], np.float32)))
+    pv.CreatePrimvar("wind:pivot", Sdf.ValueTypeNames.Point3fArray, V).Set(
+        Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(pt[:, 11:14], np.float32)))
+    root = np.asarray(colour_root, np.float32)
+    if colour_tip is None:
+        dc = pv.CreatePrimvar("displayColor", Sdf.ValueTypeNames.Color3fArray, UsdGeom.Tokens.constant)
+        dc.Set(Vt.Vec3fArray.FromNumpy(root[None, :]))
+    else:
+        t = np.clip(pt[:, 9:10], 0, 1)
+        cols = (1 - t) * root[None] + t * np.asarray(colour_tip, np.float32)[None]
+        pv.CreatePrimvar("displayColor", Sdf.ValueTypeNames.Color3fArray, V).Set(
+            Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(cols, np.float32)))
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+    return mesh
+
+
+def write_species(path: Path, name: str, spec, lods: list[dict[str, Part]], lod_info: list[dict], provenance: dict) -> None:
+    """lods[k] maps 'Wood' / 'Leaves' / 'Blades' / 'Cards' to a Part."""
+    from pxr import UsdGeom
+
+    stage, root = usdio.create_stage(path, provenance, root=f"/{name}", kind="component")
+    UsdGeom.Scope.Define(stage, f"/{name}/Looks")
+    has_wood = any(parts.get("Wood") is not None and parts["Wood"].n_tris for parts in lods)
+    bark = _material(stage, f"/{name}/Looks/Bark", spec.bark_color, spec.roughness, False) if has_wood else None
+    foliage = _material(stage, f"/{name}/Looks/Foliage", spec.leaf_color, spec.roughness, True)
+    vset = root.GetVariantSets().AddVariantSet("lod")
+    for k, parts in enumerate(lods):
+        vname = f"LOD{k}"
+        vset.AddVariant(vname)
+        vset.SetVariantSelection(vname)
+        with vset.GetVariantEditContext():
+            UsdGeom.Xform.Define(stage, f"/{name}/Geom")
+            allpos = []
+            for pname, part in parts.items():
+                if part.n_tris == 0:
+                    continue
+                wood = pname == "Wood"
+                write_mesh(stage, f"/{name}/Geom/{pname}", part, bark if wood else foliage, not wood,
+                           spec.bark_color if wood else spec.leaf_color, None if wood else spec.leaf_tip_color)
+                allpos.append(part.welded()[0])
+            if allpos:
+                UsdGeom.ModelAPI(root).SetExtentsHint(_extent(np.concatenate(allpos)))
+    vset.SetVariantSelection("LOD0")
+    root.SetCustomDataByKey("worldbake:lods", json.dumps(lod_info, sort_keys=True))
+    stage.GetRootLayer().Save()
+
+
+def write_top(path: Path, species_files: dict[str, str], provenance: dict, summary: dict) -> None:
+    from pxr import UsdGeom
+
+    stage, root = usdio.create_stage(path, provenance, root="/Plants", kind="group")
+    for name, rel in species_files.items():
+        prim = UsdGeom.Xform.Define(stage, f"/Plants/{name}").GetPrim()
+        prim.GetReferences().AddReference(rel)
+    root.SetCustomDataByKey("worldbake:species", json.dumps(summary, sort_keys=True))
+    stage.GetRootLayer().Save()

@@ -1,0 +1,136 @@
+"""The plants stage: for every species the scene needs, a USD plant asset
+(trunk and branches as one watertight solid, leaves or needles, or grass
+blades and tufts) with normals, UVs, a material, wind primvars and a chain
+of LODs whose geometric error is measured and stored in the asset.
+
+Species are data: configs/species/<name>.toml presets (conifer, broadleaf,
+shrub, grass), available by name, plus any `[plants.species.NAME]` table of
+the config (optionally `preset = "conifer"` with overrides). Only the species
+listed in `build` are meshed (the vegetation stage will say which were placed).
+
+Outputs, in the artifact folder: plants.usda (defaultPrim /Plants, kind
+group, one child per species referencing ./<species>.usdc) and the species
+files. Metrics: per species the module, segment, leaf and triangle counts,
+the woody solid's checks, each LOD's triangles, Hausdorff error and times.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import pydantic
+
+from pipeline import usdio
+from pipeline.contract import Artifact, Param, Params, RunContext, Stage
+from pipeline.errors import StageError
+
+from .asset import write_species, write_top
+from .plant import Settings, build_plant
+from .species import SpeciesShape, preset_tables, resolve_species
+
+
+def _default_species() -> dict[str, SpeciesShape]:
+    return {k: SpeciesShape.model_validate(v) for k, v in resolve_species({}, preset_tables()).items()}
+
+
+PRESETS = _default_species()
+
+
+class PlantsParams(Params):
+    species: dict[str, SpeciesShape] = Param(
+        PRESETS, description="species by name: the presets of configs/species/*.toml plus the config's own tables "
+        "(a table with preset = NAME is merged over that preset)")
+    build: list[str] = Param(sorted(PRESETS), description="the species to mesh (those the vegetation map placed); the others cost nothing")
+    lod_count: int = Param(4, units="levels", description="levels LOD0 .. LOD(n-1) in the lod variant set", ge=1, le=8)
+    lod_ratio: float = Param(0.5, units="", description="each level has at most this share of the triangles of the one before", gt=0.0, le=0.5)
+    lod_error_budget: list[float] = Param(
+        [0.01, 0.03], units="fraction of the bounding-box diagonal",
+        description="largest Hausdorff error allowed at LOD1, LOD2, ...; a level over budget is reported in the metrics")
+    max_modules: int = Param(1_000_000, units="modules", description="largest L-system string; a longer one is an error with its size",
+                             ge=1, le=50_000_000)
+    min_radius: float = Param(0.0005, units="m", description="branches thinner than this are not meshed", ge=0.0, le=1.0)
+    hausdorff_samples: int = Param(20000, units="samples", description="samples per direction of the Hausdorff measurement",
+                                   ge=100, le=10_000_000)
+    leaf_area_compensation: float = Param(
+        1.0, units="", description="thinned foliage LODs scale kept leaves by keep^(-c/2): 1 keeps the leaf area, 0 keeps leaf size",
+        ge=0.0, le=1.0)
+    use_opencl: bool = Param(True, description="generate vertices with the OpenCL kernels (false: the numpy reference)")
+
+    @pydantic.model_validator(mode="before")
+    @classmethod
+    def _presets(cls, data: Any) -> Any:
+        if isinstance(data, dict) and "species" in data:
+            data = dict(data)
+            try:
+                data["species"] = resolve_species(data["species"], preset_tables())
+            except ValueError as e:
+                raise ValueError(str(e)) from None
+        return data
+
+    @pydantic.model_validator(mode="after")
+    def _build_names(self):
+        missing = [b for b in self.build if b not in self.species]
+        if missing:
+            raise ValueError(f"build names unknown species {missing}; known: {', '.join(sorted(self.species))}")
+        if len(set(self.build)) != len(self.build):
+            raise ValueError("build lists a species twice")
+        return self
+
+
+def run(ctx: RunContext, inputs: dict[str, Any], params: PlantsParams) -> dict[str, Path]:
+    cfg = Settings(lod_count=params.lod_count, lod_ratio=params.lod_ratio, max_modules=params.max_modules,
+                   min_radius=params.min_radius, hausdorff_samples=params.hausdorff_samples,
+                   leaf_area_compensation=params.leaf_area_compensation, use_opencl=params.use_opencl,
+                   lod_error_budget=tuple(params.lod_error_budget))
+    out_dir = Path(ctx.out_dir)
+    top = ctx.path("plants.assets")
+    files: dict[str, str] = {}
+    summary: dict[str, Any] = {}
+    metrics: dict[str, Any] = {"species": {}}
+    t0 = time.perf_counter()
+    names = list(params.build)
+    for i, name in enumerate(names):
+        spec = params.species[name]
+        ctx.progress(i / max(len(names), 1), f"plants: building {name}")
+        res = build_plant(name, spec, ctx.seed, cfg)
+        t = time.perf_counter()
+        path = out_dir / f"{name}.usdc"
+        prov = dict(ctx.provenance)
+        prov["species"] = name
+        write_species(path, name, spec, res.lods, res.lod_info, prov)
+        res.metrics["seconds_usd"] = time.perf_counter() - t
+        files[name] = usdio.relative_asset_path(path, top)
+        budget_ok = all(e["hausdorff_fraction"] <= b for e, b in zip(res.lod_info[1:], params.lod_error_budget))
+        halving_ok = all(b["triangles"] <= params.lod_ratio * a["triangles"] for a, b in zip(res.lod_info, res.lod_info[1:]))
+        res.metrics["lod_budget_ok"] = bool(budget_ok)
+        res.metrics["lod_halving_ok"] = bool(halving_ok)
+        metrics["species"][name] = res.metrics
+        summary[name] = {"lods": [{"triangles": e["triangles"], "hausdorff_fraction": round(e["hausdorff_fraction"], 6)}
+                                  for e in res.lod_info]}
+    write_top(top, files, ctx.provenance, summary)
+    errors = usdio.validate(top)
+    if errors:
+        raise StageError("plants: the assets fail USD validation: " + "; ".join(errors[:10]))
+    metrics["seconds"] = time.perf_counter() - t0
+    metrics["built"] = names
+    ctx.metrics.update(metrics)
+    ctx.progress(1.0, "plants: done")
+    return {"plants.assets": top}
+
+
+STAGE = Stage(
+    name="plants",
+    version=1,
+    description="plant assets in USD: L-system trees and shrubs (watertight woody solid, leaves) and grass tufts, "
+    "with a measured lod variant set, wind primvars and materials",
+    inputs=(),
+    outputs=(Artifact("plants.assets", kind="usd", file="plants.usda", shape="any",
+                      description="/Plants (kind group): one prim per built species referencing ./<species>.usdc "
+                      "(kind component, lod variant set LOD0..LODn, extentsHint, UsdPreviewSurface, wind primvars)"),),
+    params=PlantsParams,
+    run=run,
+    source_dir=Path(__file__).parent,
+    uses_seed=True,
+    uses_opencl=True,
+)
