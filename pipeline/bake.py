@@ -123,7 +123,7 @@ def _check_grid(stage: Stage, art: Artifact, value: Any, terrain_shape: tuple[in
         raise StageError(f"stage {stage.name}: output {art.name} is {value.data.dtype}, declared {art.dtype}")
     if art.shape == "terrain" and terrain_shape is not None and value.shape != terrain_shape:
         raise StageError(f"stage {stage.name}: output {art.name} has shape {value.shape}, the terrain is {terrain_shape}")
-    bad = ~np.isfinite(value.data)
+    bad = np.isinf(value.data) if art.nodata_nan else ~np.isfinite(value.data)
     if bad.any():
         r, c = np.argwhere(bad)[0][:2]
         raise StageError(f"stage {stage.name}: output {art.name} has {int(bad.sum())} non-finite values "
@@ -161,7 +161,8 @@ def run_step(store: Store, ps: PlannedStep, config: WorldConfig, graph: Graph,
                   "params": ps.params_json, "seed": config.seed if stage.uses_seed else "none"}
     with store.writing(stage.name, ps.key) as work:
         ctx = RunContext(stage=stage, key=ps.key, out_dir=work, seed=config.seed, provenance=provenance,
-                         project_root=config.project_root, progress=progress)
+                         project_root=config.project_root, progress=progress,
+                         final_dir=store.folder(stage.name, ps.key))
         t0 = time.perf_counter()
         try:
             outputs = stage.run(ctx, inputs, config.params[stage.name])
@@ -216,13 +217,12 @@ def publish_world(store: Store, config: WorldConfig, planned: list[PlannedStep])
         roots = [(ps, art) for ps in planned for art in ps.stage.outputs if art.publish]
         if roots:
             ps, art = roots[-1]
-            stage, _ = usdio.create_stage(work / "world.usda", {"world": config.name, "config": str(config.path),
-                                                                 "seed": config.seed, "key": ps.key})
             target = store.folder(ps.stage.name, ps.key) / art.file
-            # the relative path as seen from the final folder, which sits beside work/ under build/
+            # relative to the final folder, not to work/ (a temporary folder elsewhere)
             final_layer = store.worlds / config.name / "world.usda"
-            stage.GetRootLayer().subLayerPaths.append(usdio.relative_asset_path(target, final_layer))
-            stage.GetRootLayer().Save()
+            usdio.write_root_layer(work / "world.usda",
+                                   {"world": config.name, "config": str(config.path), "seed": config.seed, "key": ps.key},
+                                   [usdio.relative_asset_path(target, final_layer)])
         write_json(work / MANIFEST, {
             "world": config.name, "config": str(config.path), "variant": config.variant, "seed": config.seed,
             "outputs": list(config.outputs),
@@ -252,23 +252,3 @@ def _progress_printer(stage: str, stream=sys.stderr) -> Callable[[float, str], N
             last[0] = now
             print(f"    {stage}: {100 * fraction:5.1f} %  {message}", file=stream, flush=True)
     return show
-
-
-def bake(store: Store, config: WorldConfig, graph: Graph, *, log=sys.stderr) -> list[StepReport]:
-    store.clean_stale()
-    planned = plan_bake(graph, config)
-    reports = []
-    for i, ps in enumerate(planned, 1):
-        head = f"[{i}/{len(planned)}] {ps.stage.name} {ps.key}"
-        if store.has(ps.stage.name, ps.key):
-            print(f"{head} cached", file=log, flush=True)
-            reports.append(StepReport(ps.stage.name, ps.key, "cached", 0.0))
-            continue
-        print(f"{head} running", file=log, flush=True)
-        t0 = time.perf_counter()
-        manifest = run_step(store, ps, config, graph, _progress_printer(ps.stage.name, log))
-        dt = time.perf_counter() - t0
-        print(f"{head} ran in {dt:.2f} s", file=log, flush=True)
-        reports.append(StepReport(ps.stage.name, ps.key, "ran", dt, manifest["metrics"]))
-    publish_world(store, config, planned)
-    return reports

@@ -1,6 +1,6 @@
 """The `worldbake` command.
 
-    worldbake bake CONFIG [--variant NAME | --all-variants] [--set KEY=VALUE ...] [--json]
+    worldbake bake CONFIG [--variant NAME | --all-variants] [--set KEY=VALUE ...] [--json] [--executor local|dask|ADDRESS]
     worldbake plan CONFIG [--variant NAME | --all-variants] [--set KEY=VALUE ...] [--json]
     worldbake validate WORLD_DIR_OR_USD
     worldbake gc
@@ -18,7 +18,8 @@ import sys
 from pathlib import Path
 
 from . import usdio
-from .bake import bake, plan_bake
+from .bake import plan_bake
+from .executors import bake_worlds
 from .config import list_variants, load_config
 from .errors import InputError, StageError
 from .graph import build_graph
@@ -63,15 +64,14 @@ def _cmd_bake(args) -> int:
     graph = build_graph(all_stages())
     configs = _configs(args)  # every config validated before any work
     store = Store(Path(args.project) / args.build)
+    reports = bake_worlds(store, configs, graph, executor=args.executor)
     summary = []
     for config in configs:
-        print(f"baking world {config.name} from {config.path}", file=sys.stderr, flush=True)
-        reports = bake(store, config, graph)
         world_dir = store.worlds / config.name
         summary.append({"world": config.name, "world_dir": str(world_dir),
                         "world_usda": str(world_dir / "world.usda") if (world_dir / "world.usda").exists() else None,
                         "steps": [{"stage": r.stage, "key": r.key, "status": r.status, "seconds": round(r.seconds, 3)}
-                                  for r in reports]})
+                                  for r in reports[config.name]]})
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
@@ -133,6 +133,10 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                        help="override a config key, e.g. --set heightmap.octaves=8 (repeatable)")
         p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
+        if name == "bake":
+            p.add_argument("--executor", default="local", metavar="local|dask|ADDRESS",
+                           help="local: in this process (default); dask: an embedded Dask LocalCluster "
+                                "(2 worker processes); tcp://HOST:PORT: a running Dask scheduler")
     p = sub.add_parser("validate", help="run every pxr.UsdValidation validator on a world")
     p.add_argument("path", help="a world folder or USD file")
     sub.add_parser("gc", help="remove artifacts no world references")

@@ -36,6 +36,7 @@ TOP_LEVEL_KEYS = {
     "extends": "path of a config this one overrides",
     "variants": "tables of overrides baked side by side",
     "description": "free text",
+    "shared": "values of params several stages share (e.g. mesh_max_vertices), set once for all of them",
 }
 
 
@@ -256,12 +257,25 @@ def load_config(path: Path | str, stages: dict[str, Stage], *, project_root: Pat
     if not isinstance(outputs, list) or not outputs or not all(isinstance(o, str) for o in outputs):
         raise InputError(f"{origin.get('outputs', shown)}: outputs: must be a non-empty list of stage or artifact names, got {outputs!r}")
 
+    shared = tree.get("shared", {})
+    shareable = {p for s in stages.values() for p in s.shared_params}
+    if not isinstance(shared, dict):
+        raise InputError(f"{origin.get('shared', shown)}: shared: must be a table")
+    for key in shared:
+        if key not in shareable:
+            raise InputError(f"{origin.get('shared.' + key, shown)}: shared.{key}: unknown key (shared params: {', '.join(sorted(shareable)) or 'none'})")
+
     params: dict[str, Params] = {}
     file_hashes: dict[str, str] = {}
     for stage_name, stage in stages.items():
         table = tree.get(stage_name, {})
         if not isinstance(table, dict):
             raise InputError(f"{origin.get(stage_name, shown)}: {stage_name}: must be a table of parameters, got {table!r}")
+        table = dict(table)
+        for key in stage.shared_params:
+            if key in shared and key not in table:
+                table[key] = shared[key]
+                origin.setdefault(f"{stage_name}.{key}", origin.get(f"shared.{key}", shown))
         try:
             # strict: a TOML string "8" is not an integer; ints are still floats
             model = stage.params.model_validate(table, strict=True)
@@ -269,6 +283,12 @@ def load_config(path: Path | str, stages: dict[str, Stage], *, project_root: Pat
             raise InputError(_format_pydantic(err, stage_name, origin, shown, stage.params)) from None
         params[stage_name] = model
         file_hashes.update(_check_paths(stage, model, root, origin, shown))
+
+    for key in shareable:
+        values = {name: getattr(params[name], key) for name, st in stages.items() if key in st.shared_params}
+        if len(set(map(repr, values.values()))) > 1:
+            listing = ", ".join(f"{name}.{key} = {v!r}" for name, v in values.items())
+            raise InputError(f"{shown}: {listing}: these must agree; set it once as shared.{key}")
 
     return WorldConfig(path=path, project_root=root, name=name, variant=variant, seed=seed,
                        outputs=tuple(outputs), params=params, file_hashes=file_hashes)

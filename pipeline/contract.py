@@ -40,6 +40,7 @@ class Artifact:
     dtype: str = "float32"
     shape: str = "terrain"  # shape rule: "terrain" = (rows, cols) of the terrain grid, "any"
     publish: bool = False  # a world root layer: the engine publishes it to build/worlds/<name>/
+    nodata_nan: bool = False  # grids: NaN marks "no data" here; otherwise any NaN or Inf is a blow-up
 
 
 @dataclass(frozen=True)
@@ -70,7 +71,11 @@ class Stage:
     source_dir: Path  # every .py/.cl file in it is part of the cache key
     uses_seed: bool = False  # the config's seed is part of the key and given in ctx.seed
     uses_opencl: bool = False  # the OpenCL device is part of the key
-    enabled_by_default: bool = True
+    # Params that must hold the same value in every stage declaring them (the
+    # terrain mesh lattice, say: rivers, plants and the ground must use the
+    # same triangles). A config sets them once in [shared]; the engine copies
+    # them into each declaring stage and refuses a config where they differ.
+    shared_params: tuple[str, ...] = ()
 
     def output(self, name: str) -> Artifact:
         for a in self.outputs:
@@ -106,10 +111,19 @@ class RunContext:
     project_root: Path
     progress: Callable[[float, str], None] = field(default=lambda f, m: None)
     metrics: dict[str, Any] = field(default_factory=dict)
+    final_dir: Path | None = None  # where out_dir will be renamed to once the run is whole
 
     def path(self, artifact_name: str) -> Path:
         """Where an output artifact's file goes."""
         return self.out_dir / self.stage.output(artifact_name).file
+
+    def asset_path(self, target: Path) -> str:
+        """A USD asset path from this stage's output folder to `target` (an
+        input artifact's file), relative, valid once the run is moved into
+        place: out_dir is a temporary folder at another depth."""
+        from .usdio import relative_asset_path
+
+        return relative_asset_path(target, (self.final_dir or self.out_dir) / "layer.usda")
 
     def resolve(self, project_path: str) -> Path:
         """The absolute path of a ProjectPath parameter (checked by the engine)."""

@@ -26,7 +26,10 @@ def describe(stages: dict[str, Stage]) -> str:
         lines.append("Writes: " + "; ".join(f"`{a.name}` (`{a.file}`{', ' + a.units if a.units else ''})" for a in stage.outputs) + ".")
         lines += ["", "| key | type | default | allowed, units, meaning |", "|---|---|---|---|"]
         for name, field in stage.params.model_fields.items():
-            default = field.default
-            shown = f"`{default!r}`".replace("'", '"') if not isinstance(default, (dict, list)) or len(repr(default)) < 40 else "see below"
+            default = field.get_default(call_default_factory=True)
+            if isinstance(default, dict):  # tables: name the keys, their contents are documented by the stage
+                shown = "tables " + ", ".join(f"`{k}`" for k in default) if default else "`{}`"
+            else:
+                shown = f"`{default!r}`".replace("'", '"')
             lines.append(f"| `{name}` | {_type_name(field.annotation)} | {shown} | {describe_allowed(field).replace('|', '/')} |")
     return "\n".join(lines) + "\n"

@@ -28,6 +28,24 @@ def create_stage(path: Path | str, provenance: dict[str, Any] | None = None, roo
     return stage, prim
 
 
+def write_root_layer(path: Path | str, provenance: dict[str, Any], sublayers: list[str], root: str = "/World") -> None:
+    """A layer that only composes others: the conventions, /World (kind
+    assembly) as defaultPrim, and the sublayers, strongest first. Written with
+    Sdf alone so nothing is composed (the relative paths may only resolve once
+    the layer is moved into place)."""
+    from pxr import Kind, Sdf, UsdGeom
+
+    layer = Sdf.Layer.CreateNew(str(path))
+    layer.pseudoRoot.SetInfo(UsdGeom.Tokens.upAxis, UsdGeom.Tokens.y)
+    layer.pseudoRoot.SetInfo(UsdGeom.Tokens.metersPerUnit, 1.0)
+    prim = Sdf.PrimSpec(layer, root.strip("/"), Sdf.SpecifierDef, "Xform")
+    prim.SetInfo("kind", Kind.Tokens.assembly)
+    layer.defaultPrim = prim.name
+    layer.subLayerPaths = list(sublayers)
+    set_provenance(layer, provenance)
+    layer.Save()
+
+
 def set_provenance(layer, provenance: dict[str, Any]) -> None:
     """Stage, version, key, params and seed in customLayerData. Params go in
     as canonical JSON text so any dictionary shape round-trips exactly."""

@@ -23,6 +23,11 @@ from pipeline.grid import Grid
 from .terrain_mesh import bilinear, build_terrain_mesh, lattice_coordinates
 
 TERRAIN_SOURCES = ("heightmap.height",)
+# Upstream USD layers composed into the world, strongest first; absent when
+# their stage is disabled or not needed.
+LAYER_INPUTS = (
+    Input("water", one_of=("hydrology.water",), optional=True, description="rivers and lakes"),
+)
 
 
 class WorldParams(Params):
@@ -133,9 +138,10 @@ def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
 
     ctx.progress(0.9, "world layer")
     root_path = ctx.path("world.root")
-    stage, _ = usdio.create_stage(root_path, ctx.provenance)
-    stage.GetRootLayer().subLayerPaths.append("./" + terrain_path.name)
-    stage.GetRootLayer().Save()
+    layers = [ctx.asset_path(inputs[inp.role]) for inp in LAYER_INPUTS if inp.role in inputs]
+    layers.append("./" + terrain_path.name)
+    usdio.write_root_layer(root_path, ctx.provenance, layers)
+    ctx.metrics["layers"] = layers
     return {"world.root": root_path, "world.terrain": terrain_path, "world.albedo": albedo_path}
 
 
@@ -143,7 +149,7 @@ STAGE = Stage(
     name="world",
     version=1,
     description="Assemble world.usda: the terrain mesh and material, and every upstream USD layer.",
-    inputs=(Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height"),),
+    inputs=(Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height"),) + LAYER_INPUTS,
     outputs=(
         Artifact("world.root", kind="usd", file="world.usda", shape="any", publish=True,
                  description="the root layer composing every layer of the world"),
@@ -155,4 +161,5 @@ STAGE = Stage(
     params=WorldParams,
     run=run,
     source_dir=Path(__file__).parent,
+    shared_params=("mesh_max_vertices",),
 )

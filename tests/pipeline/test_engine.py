@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from pipeline import exr, usdio
-from pipeline.bake import bake, plan_bake
+from pipeline.bake import plan_bake
+from pipeline.executors import bake_worlds
 from pipeline.config import load_config
 from pipeline.contract import Artifact, Input, Stage
 from pipeline.errors import InputError, StageError
@@ -39,7 +40,7 @@ def load(project, path, **kw):
 def do_bake(project, path, **kw):
     config = load(project, path, **kw)
     store = Store(project / "build")
-    reports = bake(store, config, build_graph(TOY), log=open("/dev/null", "w"))
+    reports = bake_worlds(store, [config], build_graph(TOY), log=open("/dev/null", "w"))[config.name]
     return {r.stage: r.status for r in reports}, store, config
 
 
@@ -219,3 +220,16 @@ def test_graph_rejects_bad_declarations():
                      "b": _stage("b", (Input("t", ("a.x",)),), (Artifact("b.y", "grid", "y.exr"),))})
     with pytest.raises(GraphError, match="must be named"):
         build_graph({"a": _stage("a", outputs=(Artifact("b.x", "grid", "x.exr"),))})
+
+
+def test_shared_params_are_set_once_and_must_agree(project, monkeypatch):
+    import dataclasses
+    stages = {n: dataclasses.replace(s, shared_params=("size",)) if n == "source" else s for n, s in TOY.items()}
+    stages["twin"] = dataclasses.replace(TOY["source"], name="twin", shared_params=("size",))
+    path = write(project, 'outputs = ["source"]\n[shared]\nsize = 12\n')
+    cfg = load_config(path, stages, project_root=project)
+    assert cfg.params["source"].size == cfg.params["twin"].size == 12
+    with pytest.raises(InputError, match=r"source.size = 12, twin.size = 8: these must agree; set it once as shared.size"):
+        load_config(write(project, '[source]\nsize = 12\n'), stages, project_root=project)
+    with pytest.raises(InputError, match=r"shared.level_m: unknown key"):
+        load_config(write(project, '[shared]\nlevel_m = 1.0\n'), stages, project_root=project)

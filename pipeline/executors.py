@@ -1,0 +1,92 @@
+"""Where stage runs execute: in this process, or on a Dask cluster.
+
+A task is one stage run keyed by its cache key; the same key needed by
+several worlds (variants sharing upstream work) is one task. On Dask, tasks
+whose inputs are ready run in parallel on the workers, each worker building
+its own OpenCL context; they write into the same store (a shared file system
+for a real cluster), with the same rename-into-place rule, so a Dask bake
+gives the same keys and the same files as a local one.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from typing import Any
+
+from .bake import PlannedStep, StepReport, plan_bake, publish_world, run_step, _progress_printer
+from .config import WorldConfig
+from .errors import InputError
+from .graph import Graph
+from .store import Store
+
+
+def _run_or_reuse(store: Store, ps: PlannedStep, config: WorldConfig, graph: Graph, log) -> StepReport:
+    if store.has(ps.stage.name, ps.key):
+        return StepReport(ps.stage.name, ps.key, "cached", 0.0)
+    t0 = time.perf_counter()
+    manifest = run_step(store, ps, config, graph, _progress_printer(ps.stage.name, log))
+    return StepReport(ps.stage.name, ps.key, "ran", time.perf_counter() - t0, manifest["metrics"])
+
+
+def _dask_task(build_dir: str, ps: PlannedStep, config: WorldConfig, graph: Graph, *inputs_done: Any) -> StepReport:
+    # inputs_done only orders this task after its producers
+    return _run_or_reuse(Store(build_dir), ps, config, graph, sys.stderr)
+
+
+def _client(executor: str):
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as e:  # pragma: no cover - distributed is a dependency
+        raise InputError(f"--executor {executor}: the 'distributed' package is not installed") from e
+    if executor == "dask":
+        cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
+        return Client(cluster), cluster
+    if "://" not in executor:
+        raise InputError(f"--executor {executor!r}: use local, dask, or a scheduler address such as tcp://host:8786")
+    return Client(executor), None
+
+
+def bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, *, executor: str = "local",
+                log=sys.stderr) -> dict[str, list[StepReport]]:
+    """Bake every config; returns the step reports per world name."""
+    store.clean_stale()
+    plans = [(config, plan_bake(graph, config)) for config in configs]
+    reports: dict[str, list[StepReport]] = {}
+    if executor == "local":
+        for config, planned in plans:
+            print(f"baking world {config.name} from {config.path}", file=log, flush=True)
+            done = []
+            for i, ps in enumerate(planned, 1):
+                head = f"[{i}/{len(planned)}] {ps.stage.name} {ps.key}"
+                print(f"{head} {'cached' if store.has(ps.stage.name, ps.key) else 'running'}", file=log, flush=True)
+                report = _run_or_reuse(store, ps, config, graph, log)
+                if report.status == "ran":
+                    print(f"{head} ran in {report.seconds:.2f} s", file=log, flush=True)
+                done.append(report)
+            publish_world(store, config, planned)
+            reports[config.name] = done
+        return reports
+
+    client, cluster = _client(executor)
+    try:
+        futures: dict[tuple[str, str], Any] = {}
+        for config, planned in plans:
+            for ps in planned:
+                task = (ps.stage.name, ps.key)
+                if task in futures:
+                    continue
+                deps = [futures[(producer, key)] for (_, producer, key) in ps.inputs.values()]
+                futures[task] = client.submit(_dask_task, str(store.build.resolve()), ps, config, graph, *deps,
+                                              key=f"{ps.stage.name}-{ps.key}", pure=False)
+        print(f"submitted {len(futures)} stage runs to {client.scheduler.address}", file=log, flush=True)
+        results = {task: fut.result() for task, fut in futures.items()}  # re-raises a task's error
+        for task, r in results.items():
+            print(f"{r.stage} {r.key} {r.status}" + (f" in {r.seconds:.2f} s" if r.status == "ran" else ""), file=log)
+        for config, planned in plans:
+            publish_world(store, config, planned)
+            reports[config.name] = [results[(ps.stage.name, ps.key)] for ps in planned]
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    return reports

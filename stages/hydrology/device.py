@@ -1,0 +1,204 @@
+"""Host side of kernels.cl: depression filling, D8 directions, D8
+accumulation and the wetness map on the OpenCL device.
+
+Tile sizes are algorithm constants (not work-group sizes): one work-item
+runs one tile sequentially, which is what a CPU device does best and what
+keeps every result exact (min/max and integer sums only). The work-group
+size (`local`) only changes scheduling, never a bit of the result.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import reference as ref
+
+KERNELS = Path(__file__).with_name("kernels.cl")
+FILL_TILE = 64
+ACC_TILE = 64
+
+
+def _program(acc_type: str = "uint"):
+    from pipeline.opencl import load_program
+
+    return load_program(KERNELS, (f"-DACC_T={acc_type}",))
+
+
+def _env():
+    from pipeline.opencl import get_cl
+
+    return get_cl()
+
+
+def _buf(a: np.ndarray, write: bool = False):
+    import pyopencl as cl
+
+    env = _env()
+    mf = cl.mem_flags
+    return cl.Buffer(env.ctx, (mf.READ_WRITE if write else mf.READ_ONLY) | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(a))
+
+
+def _ceil(n: int, local: int | None) -> tuple[int, ...]:
+    from pipeline.opencl import global_size
+
+    return global_size((n,), (local,) if local else None)
+
+
+def fill(h: np.ndarray, kind: np.ndarray, eps: bool, tile: int = FILL_TILE, local: int | None = None,
+         stats: dict | None = None) -> np.ndarray:
+    """The Priority-Flood fill (eps: Priority-Flood+epsilon) of canonical
+    float32 heights; no-data cells come back as NaN."""
+    import pyopencl as cl
+
+    env = _env()
+    prg = _program()
+    rows, cols = h.shape
+    tiles_x, tiles_y = -(-cols // tile), -(-rows // tile)
+    nt = tiles_x * tiles_y
+    h = np.ascontiguousarray(h, np.float32)
+    W0 = np.where(kind == ref.INTERIOR, np.float32(np.inf), np.where(kind == ref.EDGE, h, np.float32(-np.inf))).astype(np.float32)
+    d_h, d_kind = _buf(h), _buf(kind)
+    d_W, d_pub = _buf(W0, True), _buf(W0, True)
+    active = np.ones(nt, np.uint8)
+    changed = np.zeros(nt, np.uint8)
+    d_active, d_changed = _buf(active, True), _buf(changed, True)
+    k_fill = cl.Kernel(prg, "fill_tiles")
+    k_pub = cl.Kernel(prg, "publish_tiles")
+    i32 = np.int32
+    k_fill.set_args(d_h, d_kind, d_W, d_pub, d_active, d_changed, i32(rows), i32(cols), i32(tile), i32(tiles_x),
+                    i32(nt), i32(1 if eps else 0), i32(4 * tile * tile))
+    k_pub.set_args(d_W, d_pub, d_changed, i32(rows), i32(cols), i32(tile), i32(tiles_x), i32(nt))
+    g = _ceil(nt, local)
+    lw = (local,) if local else None
+    passes = tiles_run = 0
+    while True:
+        cl.enqueue_nd_range_kernel(env.queue, k_fill, g, lw)
+        cl.enqueue_copy(env.queue, changed, d_changed)
+        passes += 1
+        tiles_run += int(active.sum())
+        if not changed.any():
+            break
+        cl.enqueue_nd_range_kernel(env.queue, k_pub, g, lw)
+        c2 = changed.reshape(tiles_y, tiles_x).astype(bool)
+        # the 8-neighbourhood dilation of c2, but a tile whose own cells changed is already converged
+        dil = np.zeros_like(c2)
+        p = np.pad(c2, 1)
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                if dr or dc:
+                    dil |= p[1 + dr:1 + dr + tiles_y, 1 + dc:1 + dc + tiles_x]
+        active[:] = (dil | c2).ravel()  # itself too: the sweep cap may have stopped it early
+        cl.enqueue_copy(env.queue, d_active, active)
+    W = np.empty_like(h)
+    cl.enqueue_copy(env.queue, W, d_W)
+    W[kind == ref.NODATA] = np.nan
+    if stats is not None:
+        stats.update(passes=passes, tiles_run=tiles_run, tiles=nt)
+    return W
+
+
+def d8(z: np.ndarray, kind: np.ndarray, dx: float, local: tuple[int, int] | None = None) -> np.ndarray:
+    """D8 codes of a surface (see kernels.cl)."""
+    import pyopencl as cl
+
+    from pipeline.opencl import global_size
+
+    env = _env()
+    prg = _program()
+    rows, cols = z.shape
+    code = np.empty((rows, cols), np.int8)
+    d_z, d_kind = _buf(np.ascontiguousarray(z, np.float32)), _buf(kind)
+    d_code = cl.Buffer(env.ctx, cl.mem_flags.WRITE_ONLY, code.nbytes)
+    k = cl.Kernel(prg, "d8")
+    k.set_args(d_z, d_kind, d_code, np.int32(rows), np.int32(cols), np.float32(dx), np.float32(dx * np.sqrt(2.0)))
+    cl.enqueue_nd_range_kernel(env.queue, k, global_size((cols, rows), local), local)
+    cl.enqueue_copy(env.queue, code, d_code)
+    return code
+
+
+def accumulate(code: np.ndarray, weights: np.ndarray | None = None, tile: int = ACC_TILE,
+               local: int | None = None) -> np.ndarray:
+    """Exact D8 accumulation: uint32 cell counts (weights None) or int64 sums
+    of integer weights. Cells whose receiver graph is not a forest (cycles)
+    cannot occur for codes from d8 (receivers are strictly lower)."""
+    import pyopencl as cl
+
+    env = _env()
+    unit = weights is None
+    dtype = np.uint32 if unit else np.int64
+    prg = _program("uint" if unit else "long")
+    rows, cols = code.shape
+    n = rows * cols
+    tiles_x, tiles_y = -(-cols // tile), -(-rows // tile)
+    nt = tiles_x * tiles_y
+    mf = cl.mem_flags
+    d_code = _buf(np.ascontiguousarray(code, np.int8))
+    d_w = _buf(np.ascontiguousarray(weights, dtype)) if not unit else cl.Buffer(env.ctx, mf.READ_ONLY, 8)
+    isz = np.dtype(dtype).itemsize
+    d_L = cl.Buffer(env.ctx, mf.READ_WRITE, n * isz)
+    d_in = cl.Buffer(env.ctx, mf.READ_WRITE, n * isz)
+    d_A = cl.Buffer(env.ctx, mf.READ_WRITE, n * isz)
+    d_exit = cl.Buffer(env.ctx, mf.READ_WRITE, n * 4)
+    d_gdeg = cl.Buffer(env.ctx, mf.READ_WRITE, n * 4)
+    d_ord = cl.Buffer(env.ctx, mf.READ_WRITE, nt * tile * tile * 4)
+    d_deg = cl.Buffer(env.ctx, mf.READ_WRITE, n)
+    cl.enqueue_fill_buffer(env.queue, d_in, np.zeros(1, dtype), 0, n * isz)
+    i32 = np.int32
+    geo = (i32(rows), i32(cols), i32(tile), i32(tiles_x), i32(nt))
+    g = _ceil(nt, local)
+    lw = (local,) if local else None
+    k1 = cl.Kernel(prg, "acc_local")
+    k1.set_args(d_code, d_w, d_L, d_exit, d_ord, d_deg, *geo, i32(unit))
+    cl.enqueue_nd_range_kernel(env.queue, k1, g, lw)
+    k2 = cl.Kernel(prg, "acc_global")
+    k2.set_args(d_code, d_exit, d_L, d_in, d_gdeg, *geo)
+    cl.enqueue_nd_range_kernel(env.queue, k2, (1,), None)
+    k3 = cl.Kernel(prg, "acc_final")
+    k3.set_args(d_code, d_w, d_in, d_A, d_ord, *geo, i32(unit))
+    cl.enqueue_nd_range_kernel(env.queue, k3, g, lw)
+    out = np.empty((rows, cols), dtype)
+    cl.enqueue_copy(env.queue, out, d_A)
+    return out
+
+
+def quantize(weights: np.ndarray) -> tuple[np.ndarray, float]:
+    """Non-negative float weights as int64 fixed point whose total fits in
+    2^62, and the scale (value = integer / scale). Integer sums are exact and
+    associative, so accumulation does not depend on any order."""
+    w = np.nan_to_num(np.asarray(weights, np.float64), nan=0.0, posinf=0.0)
+    w = np.maximum(w, 0.0)
+    total = float(w.sum())
+    if total <= 0:
+        return np.zeros(w.shape, np.int64), 1.0
+    scale = 2.0 ** np.floor(np.log2(2.0 ** 62 / total))
+    q = np.rint(w * scale).astype(np.int64)
+    while q.sum() >= 2 ** 62:  # round-up slack
+        scale /= 2
+        q = np.rint(w * scale).astype(np.int64)
+    return q, scale
+
+
+def wetness(h, kind, acc_m2, water, ext, dx, tan_min, twi_dry, twi_wet, local=None):
+    import pyopencl as cl
+
+    from pipeline.opencl import global_size
+
+    env = _env()
+    prg = _program()
+    rows, cols = h.shape
+    f = lambda a: _buf(np.ascontiguousarray(a, np.float32))
+    d_twi = cl.Buffer(env.ctx, cl.mem_flags.WRITE_ONLY, rows * cols * 4)
+    d_m = cl.Buffer(env.ctx, cl.mem_flags.WRITE_ONLY, rows * cols * 4)
+    k = cl.Kernel(prg, "wetness")
+    f32 = np.float32
+    keep = (f(h), _buf(kind), f(acc_m2), f(water), f(ext))  # the kernel does not hold references
+    k.set_args(*keep, d_twi, d_m, np.int32(rows), np.int32(cols),
+               f32(dx), f32(dx), f32(dx * np.sqrt(2.0)), f32(tan_min), f32(twi_dry), f32(twi_wet))
+    cl.enqueue_nd_range_kernel(env.queue, k, global_size((cols, rows), local), local)
+    twi = np.empty((rows, cols), np.float32)
+    m = np.empty((rows, cols), np.float32)
+    cl.enqueue_copy(env.queue, twi, d_twi)
+    cl.enqueue_copy(env.queue, m, d_m)
+    return twi, m

@@ -1,0 +1,211 @@
+"""Plain numpy / pure-Python implementations of kernels.cl and of the
+serial algorithms, small and obviously right, for tests on small grids.
+
+- priority_flood: Barnes 2014 Priority-Flood with one binary heap (heapq);
+  with eps=True it is Priority-Flood+epsilon (a single queue, no pit FIFO),
+  whose result is the least fixed point that the kernel's relaxation reaches.
+- d8: the steepest-descent kernel, same float32 operations.
+- accumulate: D8 accumulation by Kahn's topological order (integers).
+- accumulate_sweeps: seed 003's Algorithm 1 (fixed-point sweeps), the oracle.
+- wetness: the wetness/moisture kernel in float32.
+"""
+from __future__ import annotations
+
+import heapq
+
+import numpy as np
+
+DR = np.array([-1, -1, 0, 1, 1, 1, 0, -1])
+DC = np.array([0, 1, 1, 1, 0, -1, -1, -1])
+F32 = np.float32
+STEP_SMALL = F32(2.0 ** -23)
+
+INTERIOR, EDGE, NODATA = 0, 1, 2
+OUTLET, NODATA_CODE, PIT = -1, -2, -3
+
+
+def canonical(h: np.ndarray) -> np.ndarray:
+    """float32 heights with -0 made +0 and denormals flushed to 0, so that
+    every device compares them alike; NaN and +-inf stay (no-data)."""
+    h = np.asarray(h, dtype=np.float32).copy()
+    with np.errstate(invalid="ignore"):
+        h[np.abs(h) < np.finfo(np.float32).tiny] = 0.0
+    return h
+
+
+def cell_kinds(h: np.ndarray) -> np.ndarray:
+    """0 interior, 1 edge (map border or 8-adjacent to no-data), 2 no-data."""
+    nodata = ~np.isfinite(h)
+    rows, cols = h.shape
+    near = np.zeros((rows + 2, cols + 2), bool)
+    near[0, :] = near[-1, :] = near[:, 0] = near[:, -1] = True
+    near[1:-1, 1:-1] = nodata
+    adj = np.zeros((rows, cols), bool)
+    for dr, dc in zip(DR, DC):
+        adj |= near[1 + dr:1 + dr + rows, 1 + dc:1 + dc + cols]
+    kind = np.where(adj, EDGE, INTERIOR).astype(np.uint8)
+    kind[nodata] = NODATA
+    return kind
+
+
+def step_up(x):
+    """The kernel's epsilon step: next float up where |x| >= 1, else x + 2^-23."""
+    x = np.asarray(x, dtype=np.float32)
+    big = np.nextafter(x, F32(np.inf), dtype=np.float32)
+    small = (x + STEP_SMALL).astype(np.float32)
+    return np.where(np.isinf(x), x, np.where(np.abs(x) >= 1.0, big, small)).astype(np.float32)
+
+
+def priority_flood(h: np.ndarray, eps: bool = False, kind: np.ndarray | None = None) -> np.ndarray:
+    """Fill depressions: the lowest height at which each cell can drain to an
+    edge cell (eps: strictly increasing by step_up along the way). No-data
+    cells come back as NaN."""
+    h = canonical(h)
+    kind = cell_kinds(h) if kind is None else kind
+    rows, cols = h.shape
+    W = np.where(kind == EDGE, h, np.float32(np.inf)).astype(np.float32)
+    done = kind != INTERIOR
+    heap = [(float(h[r, c]), r, c) for r, c in zip(*np.nonzero(kind == EDGE))]
+    heapq.heapify(heap)
+    while heap:
+        v, r, c = heapq.heappop(heap)
+        nv = float(step_up(np.float32(v))) if eps else v
+        for dr, dc in zip(DR, DC):
+            rr, cc = r + dr, c + dc
+            if 0 <= rr < rows and 0 <= cc < cols and not done[rr, cc]:
+                done[rr, cc] = True
+                W[rr, cc] = max(h[rr, cc], np.float32(nv))
+                heapq.heappush(heap, (float(W[rr, cc]), rr, cc))
+    W[kind == NODATA] = np.nan
+    return W
+
+
+def d8(z: np.ndarray, kind: np.ndarray, dx: float) -> np.ndarray:
+    """D8 codes (pysheds order N, NE, E, SE, S, SW, W, NW = 0..7; -1 outlet,
+    -2 no-data, -3 no strictly lower neighbour)."""
+    rows, cols = z.shape
+    dcard, ddiag = F32(dx), F32(dx * np.sqrt(2.0))
+    zp = np.pad(z.astype(np.float32), 1, constant_values=np.inf)
+    best = np.zeros((rows, cols), np.float32)
+    code = np.full((rows, cols), PIT, np.int8)
+    for k in range(8):
+        zn = zp[1 + DR[k]:1 + DR[k] + rows, 1 + DC[k]:1 + DC[k] + cols]
+        with np.errstate(invalid="ignore"):
+            s = ((z - zn) / (ddiag if k & 1 else dcard)).astype(np.float32)
+            better = s > best
+        best = np.where(better, s, best)
+        code = np.where(better, np.int8(k), code)
+    code[kind == EDGE] = OUTLET
+    code[kind == NODATA] = NODATA_CODE
+    return code
+
+
+def receivers(code: np.ndarray) -> np.ndarray:
+    """Flat index of each cell's receiver, -1 where it has none."""
+    rows, cols = code.shape
+    idx = np.arange(rows * cols).reshape(rows, cols)
+    k = np.clip(code, 0, 7).astype(np.int64)
+    r = idx + DR[k] * cols + DC[k]
+    return np.where(code >= 0, r, -1).ravel()
+
+
+def accumulate(code: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """D8 accumulation by Kahn's algorithm in pure Python (int64; unit
+    weights = cell counts, no-data cells weigh 0)."""
+    rcv = receivers(code)
+    n = rcv.size
+    w = (code.ravel() != NODATA_CODE).astype(np.int64) if weights is None else np.asarray(weights, np.int64).ravel()
+    acc = w.copy()
+    deg = np.bincount(rcv[rcv >= 0], minlength=n)
+    stack = list(np.nonzero(deg == 0)[0])
+    while stack:
+        c = stack.pop()
+        r = rcv[c]
+        if r >= 0:
+            acc[r] += acc[c]
+            deg[r] -= 1
+            if deg[r] == 0:
+                stack.append(r)
+    if (deg > 0).any():
+        raise ValueError("the receiver graph has a cycle")
+    return acc.reshape(code.shape)
+
+
+def accumulate_sweeps(code: np.ndarray) -> np.ndarray:
+    """Seed 003's Algorithm 1: S(a) = 1 + sum of S over donors, repeated
+    until nothing changes (as many sweeps as the longest flow path)."""
+    rcv = receivers(code)
+    w = (code.ravel() != NODATA_CODE).astype(np.int64)
+    S = w.copy()
+    has = rcv >= 0
+    while True:
+        new = w + np.bincount(rcv[has], weights=S[has], minlength=S.size).astype(np.int64)
+        if np.array_equal(new, S):
+            return S.reshape(code.shape)
+        S = new
+
+
+def wetness(h, kind, acc_m2, water, ext, dx, tan_min, twi_dry, twi_wet):
+    """The wetness kernel in float32: (twi, moisture)."""
+    rows, cols = h.shape
+    dcard, ddiag = F32(dx), F32(dx * np.sqrt(2.0))
+    hp = np.pad(h.astype(np.float32), 1, constant_values=np.nan)
+    best = np.zeros((rows, cols), np.float32)
+    for k in range(8):
+        hn = hp[1 + DR[k]:1 + DR[k] + rows, 1 + DC[k]:1 + DC[k] + cols]
+        with np.errstate(invalid="ignore"):
+            s = ((h - hn) / (ddiag if k & 1 else dcard)).astype(np.float32)
+            best = np.where(s > best, s, best)
+    tb = np.maximum(best, F32(tan_min))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.log(((acc_m2.astype(np.float32) / F32(dx)) / tb).astype(np.float32)).astype(np.float32)
+        m = np.clip((t - F32(twi_dry)) / (F32(twi_wet) - F32(twi_dry)), 0, 1).astype(np.float32)
+    mo = (F32(1) - (F32(1) - m) * (F32(1) - water.astype(np.float32)) * (F32(1) - ext.astype(np.float32))).astype(np.float32)
+    t[kind == NODATA] = np.nan
+    mo[kind == NODATA] = np.nan
+    return t, mo
+
+
+def breach(h: np.ndarray, kind: np.ndarray | None = None) -> np.ndarray:
+    """Complete breaching (Lindsay 2016, as in RichDEM's Priority-Flood
+    breaching): flood from the edges in height order; when a pit (a cell
+    with no strictly lower neighbour) is reached, lower the cells on the
+    path that flooded it, back toward the edge, to just below the pit's
+    height (one step per cell) until a cell is already low enough. Serial
+    (one heap); no-data cells come back as NaN."""
+    h = canonical(h)
+    kind = cell_kinds(h) if kind is None else kind
+    rows, cols = h.shape
+    n = rows * cols
+    z = h.ravel().astype(np.float32).copy()
+    hp = np.pad(np.where(np.isfinite(h), h, np.inf), 1, constant_values=np.inf)
+    lower = np.zeros((rows, cols), bool)
+    for dr, dc in zip(DR, DC):
+        lower |= hp[1 + dr:1 + dr + rows, 1 + dc:1 + dc + cols] < h
+    pit = ((kind == INTERIOR) & ~lower).ravel()
+    back = np.full(n, -1, np.int64)
+    done = (kind != INTERIOR).ravel().copy()
+    heap = [(float(z[i]), int(i)) for i in np.flatnonzero(kind.ravel() == EDGE)]
+    heapq.heapify(heap)
+    zl = z.tolist()
+    while heap:
+        v, c = heapq.heappop(heap)
+        if pit[c]:
+            cc = int(back[c])
+            target = np.float32(zl[c])
+            while cc >= 0 and zl[cc] > target:
+                zl[cc] = float(target)
+                cc = int(back[cc])
+                target = np.nextafter(target, np.float32(-np.inf), dtype=np.float32)
+        r, col = divmod(c, cols)
+        for dr, dc in zip(DR.tolist(), DC.tolist()):
+            rr, c2 = r + dr, col + dc
+            if 0 <= rr < rows and 0 <= c2 < cols:
+                j = rr * cols + c2
+                if not done[j]:
+                    done[j] = True
+                    back[j] = c
+                    heapq.heappush(heap, (zl[j], j))
+    out = np.array(zl, np.float32).reshape(rows, cols)
+    out[kind == NODATA] = np.nan
+    return out

@@ -1,0 +1,82 @@
+"""Lakes: volume budget, flat surfaces, spilling and merging."""
+import numpy as np
+import pytest
+
+from stages.hydrology import device as dev
+from stages.hydrology import lakes
+from stages.hydrology import reference as ref
+
+
+def solve(h, depth_m, area=4.0, accumulate=dev.accumulate):
+    h = ref.canonical(h)
+    kind = ref.cell_kinds(h)
+    raw = np.nan_to_num(h, nan=0.0)
+    F = dev.fill(h, kind, False)
+    code = dev.d8(np.nan_to_num(dev.fill(h, kind, True), nan=0.0), kind, 2.0)
+    code_raw = dev.d8(raw, kind, 2.0)
+    runoff = np.where(np.isfinite(h), depth_m * area, 0.0)
+    return lakes.solve_lakes(h, kind, F, code, code_raw, runoff, area, accumulate), h, F
+
+
+def two_basins():
+    h = np.full((20, 40), 10.0, np.float32)
+    h[5:15, 3:15] = 6.0   # basin A, floor 6
+    h[5:15, 22:37] = 0.0  # basin B, floor 0
+    h[9, 15:22] = 8.0     # saddle A -> B at 8 m (rim elsewhere 10 m)
+    return h
+
+
+def check(res, h, F):
+    s = res.stats
+    assert s["budget_relative_error"] <= 1e-6
+    assert s["stored_vs_cells_relative_error"] <= 1e-6
+    for i in range(1, s["lakes"] + 1):
+        lv = res.level[res.lake_id == i]
+        assert np.ptp(lv) == 0.0  # flat water surface
+    wet = res.depth > 0
+    assert (res.level[wet] <= F[wet] + 1e-9).all()  # never above the spill level
+
+
+@pytest.mark.parametrize("depth_m", [0.0, 0.01, 0.3, 1.0, 3.0, 50.0])
+def test_budget_and_flat_surfaces(depth_m):
+    res, h, F = solve(two_basins(), depth_m)
+    check(res, h, F)
+
+
+def test_spill_reaches_downstream_basin():
+    # rain only fills A beyond its saddle at 8 m when it has enough water; B lower gets the excess
+    res, h, F = solve(two_basins(), 3.0)  # A (capacity 960 m^3) receives at least 120 cells * 12 m^3
+    a = res.level[9, 8]
+    b = res.level[9, 30]
+    assert a == pytest.approx(8.0)  # A is full to its saddle
+    vol_b = res.depth[5:15, 22:37].sum() * 4.0
+    assert vol_b > 150 * 12.0  # more than B's own rain: A's excess arrived
+    total = 20 * 40 * 3.0 * 4.0
+    vol_a = res.depth[5:15, 3:15].sum() * 4.0
+    # B holds everything that fell on the map except A's share and what ran off the map edge
+    assert vol_b > 0 and b < 8.0
+    assert vol_a + vol_b + res.stats["volume_out_m3"] == pytest.approx(total, rel=1e-9)
+    assert res.stats["depressions"] == 1 and res.stats["basins"] == 2  # A spills into its sibling B
+
+
+def test_merge_into_one_lake():
+    res, h, F = solve(two_basins(), 50.0)
+    assert res.stats["lakes"] == 1
+    lv = res.level[res.depth > 0]
+    assert np.ptp(lv) == 0 and lv[0] == pytest.approx(10.0)  # both basins and the channel under one level
+
+
+def test_random_terrain_and_reference_accumulation():
+    rng = np.random.default_rng(2)
+    h = (rng.random((25, 31)) * 10).astype(np.float32)
+    h[rng.random(h.shape) < 0.03] = np.nan
+    res_d, h2, F = solve(h, 0.7)
+    check(res_d, h2, F)
+    res_r, _, _ = solve(h, 0.7, accumulate=lambda c, w: ref.accumulate(c, w))
+    np.testing.assert_array_equal(res_d.depth, res_r.depth)
+
+
+def test_no_depressions():
+    yy, xx = np.mgrid[0:10, 0:12]
+    res, h, F = solve((xx + yy).astype(np.float32), 1.0)
+    assert res.stats["lakes"] == 0 and (res.depth == 0).all()
