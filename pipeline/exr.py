@@ -6,6 +6,7 @@ provenance travel in header attributes prefixed "worldbake:".
 """
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
 from typing import Any
@@ -46,14 +47,24 @@ def write_grid(path: Path | str, grid: Grid, provenance: dict[str, Any] | None =
         raise OSError(f"cannot write {path}: {out.geterror()}")
 
 
-def read_grid(path: Path | str) -> Grid:
-    """A grid written by write_grid. A file that is missing, corrupt or not a
-    worldbake grid raises InputError naming it."""
+@contextlib.contextmanager
+def _image_input(path: Path | str):
+    """An open OpenImageIO ImageInput; a file it cannot open is an InputError naming it."""
     oiio = _oiio()
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise InputError(f"{path}: cannot read: {oiio.geterror()}")
     try:
+        yield inp
+    finally:
+        inp.close()
+
+
+def read_grid(path: Path | str) -> Grid:
+    """A grid written by write_grid. A file that is missing, corrupt or not a
+    worldbake grid raises InputError naming it."""
+    oiio = _oiio()
+    with _image_input(path) as inp:
         spec = inp.spec()
         pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
         if pixels is None:
@@ -63,8 +74,6 @@ def read_grid(path: Path | str) -> Grid:
             raise InputError(f"{path}: no worldbake:cell_size_m attribute; not a worldbake grid")
         origin = tuple(json.loads(spec.getattribute("worldbake:origin_m") or "[0, 0]"))
         names = tuple(spec.channelnames)
-    finally:
-        inp.close()
     data = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
     if spec.nchannels == 1:
         data = data[:, :, 0]
@@ -73,15 +82,8 @@ def read_grid(path: Path | str) -> Grid:
 
 def read_attributes(path: Path | str) -> dict[str, Any]:
     """The header attributes of an image, as a dict."""
-    oiio = _oiio()
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise InputError(f"{path}: cannot read: {oiio.geterror()}")
-    try:
-        spec = inp.spec()
-        return {a.name: a.value for a in spec.extra_attribs}
-    finally:
-        inp.close()
+    with _image_input(path) as inp:
+        return {a.name: a.value for a in inp.spec().extra_attribs}
 
 
 def write_png(path: Path | str, rgb: np.ndarray) -> None:
