@@ -40,7 +40,7 @@ from . import reference as ref
 from . import rivers as rivers_mod
 
 SECONDS_PER_YEAR = 365.25 * 86400.0
-TERRAIN_SOURCES = ("heightmap.height",)
+TERRAIN_SOURCES = ("erosion.height", "heightmap.height")
 
 
 class HydrologyParams(Params):
@@ -79,8 +79,6 @@ class HydrologyParams(Params):
     wetness_wet: float = Param(12.0, units="ln(m)", description="wetness index mapped to moisture 1", ge=-50.0, le=50.0)
     moisture_water_distance_m: float = Param(
         40.0, units="m", description="moisture from open water decays as exp(-distance / this)", gt=0.0, le=1e5)
-    erosion_moisture_scale_m: float = Param(
-        0.05, units="m", description="erosion moisture M (water column average) counts as 1 - exp(-M / this)", gt=0.0, le=1e3)
     hack_min_area_m2: float = Param(1.0e5, units="m^2", description="smallest drainage area in the Hack's law fit", gt=0.0, le=1e12)
 
     @property
@@ -215,7 +213,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
         M = np.nan_to_num(ext.channel(ext.channels[0]).astype(np.float64), nan=0.0)
         if M.shape != (rows, cols):
             raise InputError(f"hydrology: erosion moisture is {M.shape}, the terrain {(rows, cols)}")
-        m_ext = 1.0 - np.exp(-np.maximum(M, 0.0) / params.erosion_moisture_scale_m)
+        m_ext = np.clip(M, 0.0, 1.0)  # the erosion stage's running average of water presence, 0..1
     else:
         m_ext = np.zeros((rows, cols))
     twi, moisture = dev.wetness(h, kind, twi_area, m_water, m_ext, dx, params.wetness_min_slope,
@@ -325,6 +323,8 @@ STAGE = Stage(
     "order, lakes by Fill-Spill-Merge (seed 003 algorithm 2), wetness index and moisture, and a USD water layer",
     inputs=(
         Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height"),
+        Input("erosion_moisture", one_of=("erosion.moisture",), optional=True,
+              description="where water stood during the erosion storm, 0..1"),
     ),
     outputs=(
         _grid("hydrology.filled", "filled.exr", ("height",), "m", "depression-filled height (Priority-Flood)"),

@@ -22,7 +22,7 @@ from pipeline.grid import Grid
 
 from .terrain_mesh import bilinear, build_terrain_mesh, lattice_coordinates
 
-TERRAIN_SOURCES = ("heightmap.height",)
+TERRAIN_SOURCES = ("erosion.height", "heightmap.height")
 # Upstream USD layers composed into the world, strongest first; absent when
 # their stage is disabled or not needed.
 LAYER_INPUTS = (

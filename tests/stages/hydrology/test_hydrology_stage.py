@@ -12,7 +12,8 @@ from stages.hydrology import STAGE, HydrologyParams
 
 def test_contract():
     assert isinstance(STAGE, Stage) and STAGE.name == "hydrology" and STAGE.uses_opencl
-    assert [i.role for i in STAGE.inputs] == ["terrain"]
+    assert [i.role for i in STAGE.inputs] == ["terrain", "erosion_moisture"]
+    assert STAGE.inputs[0].one_of == ("erosion.height", "heightmap.height")
     assert STAGE.output("hydrology.water").kind == "usd"
     assert STAGE.output("hydrology.accumulation").channels == ("flow.accumulation", "flow.discharge")
     assert issubclass(STAGE.params, Params)
@@ -143,3 +144,7 @@ def test_erosion_moisture_input(tmp_path):
     wet = Grid(np.full(h.shape, 1.0, np.float32), 8.0, ("moisture",))
     out = STAGE.run(ctx, {"terrain": Grid(h, 8.0), "erosion_moisture": wet}, HydrologyParams())
     assert np.allclose(out["hydrology.moisture"].data, 1.0)
+    half = Grid(np.full(h.shape, 0.5, np.float32), 8.0, ("moisture",))
+    dry = STAGE.run(ctx, {"terrain": Grid(h, 8.0)}, HydrologyParams())["hydrology.moisture"].data
+    mixed = STAGE.run(ctx, {"terrain": Grid(h, 8.0), "erosion_moisture": half}, HydrologyParams())["hydrology.moisture"].data
+    assert (mixed >= dry - 1e-6).all() and (mixed > dry + 1e-3).any()  # wetter where the storm left water

@@ -1,0 +1,237 @@
+"""The simulation state resident on the OpenCL device, and the kernel launches.
+
+Only diagnostics (a few numbers per row, every few steps) and the final maps
+are copied back to the host. Arrays carry a one-cell halo ring (see kernels.cl)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.opencl import get_cl, global_size, load_program
+
+from .physics import G, THERMAL_C, Physics, StepConstants, talus_thresholds
+from .state import Diag
+
+KERNELS = Path(__file__).parent / "kernels.cl"
+KERNEL_NAMES = ("flux", "update", "boundary_out", "halo", "thermal_send", "thermal_apply", "diag_rows", "velocity", "copy4")
+VW_THERMAL = 8  # cells per work-item of the talus rule (float8: fastest measured on PoCL/AVX-512)
+DEFAULT_LOCAL = (8, 1)  # work-items per work-group: fastest measured on PoCL; results do not depend on it
+
+
+def step_vector_width(device) -> int:
+    """Cells per work-item of the storm kernels: 16 where the device prefers
+    16-wide floats (AVX-512: 10-17 % faster than 8 in the bench), else 8."""
+    return 16 if device.preferred_vector_width_float >= 16 else 8
+
+# bytes each kernel must move per cell (compulsory traffic: every array read and written once)
+BYTES_PER_CELL = {"flux": 4 * (3 + 4 + 4), "update": 4 * (4 + 4 + 2 + 5), "thermal": 4 * (3 + 2) + 4 * (5 + 1)}
+
+
+def program(boundary_code: int, vw: int):
+    return load_program(KERNELS, (f"-DBOUNDARY={boundary_code}", f"-DVW={vw}"))
+
+
+def pad(a: np.ndarray, periodic: bool, shape: tuple[int, int]) -> np.ndarray:
+    """The array in the padded layout of `shape`: the cells at [1:rows+1, 1:cols+1],
+    the halo ring around them wrapped for periodic grids, zeros elsewhere."""
+    a = np.asarray(a, np.float32)
+    out = np.zeros(shape, np.float32)
+    rows, cols = a.shape
+    out[: rows + 2, : cols + 2] = np.pad(a, 1, mode="wrap" if periodic else "constant")
+    return out
+
+
+class DeviceSim:
+    """One erosion simulation on the device. `local` is the work-group size
+    (work-items along a row, rows) of the per-cell kernels, each work-item
+    handling `vw` cells of a row (default: 16 or 8 for the storm, 8 for the
+    talus rule); results depend on neither."""
+
+    def __init__(self, height: np.ndarray, ph: Physics, *, local: tuple[int, int] | None = DEFAULT_LOCAL,
+                 water: np.ndarray | None = None, sediment: np.ndarray | None = None, vw: int | None = None):
+        import pyopencl as cl
+
+        self.cl = get_cl()
+        self.ph = ph
+        self.rows, self.cols = height.shape
+        self.n = self.rows * self.cols
+        self.periodic = ph.boundary == "periodic"
+        self.open = ph.boundary == "open"
+        self.local = tuple(local) if local is not None else DEFAULT_LOCAL
+        # cells per work-item: vw for every kernel when given, else the device's best
+        self.vw = vw if vw is not None else step_vector_width(self.cl.device)
+        self.vw_thermal = vw if vw is not None else VW_THERMAL
+        # whole work-groups of work-items, each handling vw cells of a row
+        self.gsize = global_size((-(-self.cols // self.vw), self.rows), self.local)
+        self.gsize_th = global_size((-(-self.cols // self.vw_thermal), self.rows), self.local)
+        # padded layout: every lane of every work-item of both has its cell and its halo
+        self.pitch = max(self.gsize[0] * self.vw, self.gsize_th[0] * self.vw_thermal) + 2
+        self.prows = self.gsize[1] + 2
+        self.gsize1 = global_size((self.cols, self.rows), (16, 1))  # scalar 2-D kernels (guarded)
+        prg = program(ph.boundary_code, self.vw)
+        prg_th = program(ph.boundary_code, self.vw_thermal)
+        self.k = {name: cl.Kernel(prg, name) for name in KERNEL_NAMES}
+        for name in ("thermal_send", "thermal_apply"):
+            self.k[name] = cl.Kernel(prg_th, name)
+        ctx = self.cl.ctx
+        self.queue = self.cl.queue
+        mf = cl.mem_flags
+        self.npad = self.prows * self.pitch
+
+        def buf(a):
+            return cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(a))
+
+        shape = (self.rows, self.cols)
+        zeros = np.zeros(shape, np.float32)
+        w0 = zeros if water is None else np.asarray(water, np.float32)
+        s0 = zeros if sediment is None else np.asarray(sediment, np.float32)
+        P = lambda a: pad(a, self.periodic, (self.prows, self.pitch))  # noqa: E731
+        self.Tb = buf(P(height))
+        self.dT = [buf(P(zeros)), buf(P(zeros))]
+        self.W = [buf(P(w0)), buf(P(w0))]
+        self.S = [buf(P(s0)), buf(P(s0))]
+        self.M = buf(P(zeros))
+        self.EA = buf(P(zeros))
+        self.Q = [buf(P(zeros)) for _ in range(4)]
+        self.tmp = buf(P(zeros))  # thermal send factors s
+        self.tmp2 = buf(P(zeros))  # thermal receiver shares r
+        self.wave = buf(P(np.sqrt(np.float32(G) * w0).astype(np.float32)))  # CFL speed per cell
+        self.nfaces = 2 * (self.rows + self.cols)
+        self.bnd = buf(np.zeros(2 * self.nfaces, np.float64))
+        self.sums = cl.Buffer(ctx, mf.READ_WRITE, 8 * 5 * self.rows)
+        self.mx = cl.Buffer(ctx, mf.READ_WRITE, 4 * 5 * self.rows)
+        self.cd = 0  # which dT buffer is current (thermal flips only this one)
+        self.cw = 0  # which W and S buffers are current
+        self.t_ax, self.t_dg = talus_thresholds(ph)
+        self.R, self.C, self.P = np.int32(self.rows), np.int32(self.cols), np.int32(self.pitch)
+
+    # -- kernels -----------------------------------------------------------
+    def _run(self, name: str, *args) -> None:
+        gsize = self.gsize_th if name.startswith("thermal") else self.gsize
+        self.k[name](self.queue, gsize, self.local, *args)
+
+    def _halo(self, *bufs) -> None:
+        if not self.periodic:
+            return
+        b = list(bufs) + [bufs[0]] * (4 - len(bufs))
+        n = self.rows + self.cols + 2
+        self.k["halo"](self.queue, (n,), None, *b, np.int32(len(bufs)), self.R, self.C, self.P)
+
+    def step(self, k: StepConstants, want_wave: bool = False) -> None:
+        d, w = self.cd, self.cw
+        R, C, P = self.R, self.C, self.P
+        self._run("flux", self.Tb, self.dT[d], self.W[w], *self.Q, self.wave, R, C, P,
+                  k.g_dt_dx, k.fric_dt, k.dx_dt, np.int32(want_wave), np.float32(G))
+        self._halo(*self.Q)
+        self._run("update", self.Tb, self.dT[d], self.W[w], self.S[w], *self.Q, self.M, self.EA,
+                  self.dT[1 - d], self.W[1 - w], self.S[1 - w], R, C, P,
+                  k.c_dt_dx, k.kc, k.sin_min2, k.ks_f, k.kd_f, k.rain_dt, k.evap_dt, k.inv_wet, k.am, k.inv_2dx)
+        if self.open:
+            self.k["boundary_out"](self.queue, (self.nfaces,), None, self.W[w], self.S[w], *self.Q,
+                                   self.bnd, R, C, P, k.c_dt_dx)
+        self.cd, self.cw = 1 - d, 1 - w
+        self._halo(self.dT[self.cd], self.W[self.cw], self.S[self.cw])
+
+    def thermal(self, iterations: int, wet_min: float = -1.0, cfrac: float = THERMAL_C) -> None:
+        """Iterations of the talus rule (Olsen's c = cfrac); with wet_min >= 0
+        material only slides into cells holding more water than that (bank slumping)."""
+        R, C, P = self.R, self.C, self.P
+        wm = np.float32(wet_min)
+        W = self.W[self.cw]
+        for _ in range(iterations):
+            a, b = self.cd, 1 - self.cd
+            self._run("thermal_send", self.Tb, self.dT[a], W, self.tmp, self.tmp2, R, C, P, self.t_ax, self.t_dg,
+                      np.float32(cfrac), wm)
+            self._halo(self.tmp, self.tmp2)
+            self._run("thermal_apply", self.Tb, self.dT[a], W, self.tmp, self.tmp2, self.dT[b], R, C, P,
+                      self.t_ax, self.t_dg, wm)
+            self.cd = b
+            self._halo(self.dT[b])
+
+    def diag(self) -> Diag:
+        import pyopencl as cl
+
+        self.k["diag_rows"](self.queue, (self.rows,), None, self.dT[self.cd], self.W[self.cw], self.S[self.cw],
+                            *self.Q, self.EA, self.wave, self.sums, self.mx, self.R, self.C, self.P)
+        sums = np.empty((self.rows, 5), np.float64)
+        mx = np.empty((self.rows, 5), np.float32)
+        bnd = np.empty(2 * self.nfaces, np.float64)
+        cl.enqueue_copy(self.queue, sums, self.sums)
+        cl.enqueue_copy(self.queue, mx, self.mx)
+        cl.enqueue_copy(self.queue, bnd, self.bnd)
+        return Diag.from_rows(sums, mx, bnd.reshape(2, self.nfaces))
+
+    def finish(self) -> None:
+        self.queue.finish()
+
+    def _read(self, b) -> np.ndarray:
+        import pyopencl as cl
+
+        arr = np.empty(self.npad, np.float32)
+        cl.enqueue_copy(self.queue, arr, b)
+        return arr.reshape(self.prows, self.pitch)[1:self.rows + 1, 1:self.cols + 1].copy()
+
+    def fields(self) -> dict[str, np.ndarray]:
+        import pyopencl as cl
+
+        out = {name: self._read(b) for name, b in
+               (("dT", self.dT[self.cd]), ("W", self.W[self.cw]), ("S", self.S[self.cw]), ("M", self.M))}
+        mf = cl.mem_flags
+        VX = cl.Buffer(self.cl.ctx, mf.READ_WRITE, 4 * self.npad)
+        VZ = cl.Buffer(self.cl.ctx, mf.READ_WRITE, 4 * self.npad)
+        self.k["velocity"](self.queue, self.gsize1, (16, 1), *self.Q, self.W[self.cw], VX, VZ, self.R, self.C, self.P)
+        out["vx"], out["vz"] = self._read(VX), self._read(VZ)
+        out["F"] = np.stack([self._read(q) for q in self.Q], axis=-1)
+        return out
+
+    # -- measurement (bench) ---------------------------------------------------
+    def profile(self, k: StepConstants, reps: int = 10) -> dict[str, float]:
+        """Seconds per launch of each per-step kernel, and of a copy kernel moving
+        as many bytes as one step must, measured back to back (the roofline).
+        Runs on scratch copies of the state: the simulation is not advanced."""
+        import time
+
+        import pyopencl as cl
+
+        q = self.queue
+        R, C, P = self.R, self.C, self.P
+        d, w = self.cd, self.cw
+        ctx = self.cl.ctx
+        scratch = [cl.Buffer(ctx, cl.mem_flags.READ_WRITE, 4 * self.npad) for _ in range(3)]
+        n4 = max(1, (BYTES_PER_CELL["flux"] + BYTES_PER_CELL["update"]) * self.n // 32)
+        ca = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, 16 * n4)
+        cb = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, 16 * n4)
+        Qs = [cl.Buffer(ctx, cl.mem_flags.READ_WRITE, 4 * self.npad) for _ in range(4)]
+        for src, dst in zip(self.Q, Qs):
+            cl.enqueue_copy(q, dst, src)
+        M2 = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, 4 * self.npad)
+        EA2 = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, 4 * self.npad)
+        cl.enqueue_copy(q, M2, self.M)
+        cl.enqueue_copy(q, EA2, self.EA)
+        launches = {
+            "copy": lambda: self.k["copy4"](q, (n4,), (256,) if n4 % 256 == 0 else None, ca, cb, np.int32(n4)),
+            "flux": lambda: self._run("flux", self.Tb, self.dT[d], self.W[w], *Qs, scratch[0], R, C, P,
+                                      k.g_dt_dx, k.fric_dt, k.dx_dt, np.int32(0), np.float32(G)),
+            "update": lambda: self._run("update", self.Tb, self.dT[d], self.W[w], self.S[w], *Qs, M2, EA2,
+                                        scratch[0], scratch[1], scratch[2], R, C, P, k.c_dt_dx, k.kc, k.sin_min2,
+                                        k.ks_f, k.kd_f, k.rain_dt, k.evap_dt, k.inv_wet, k.am, k.inv_2dx),
+            "thermal_send": lambda: self._run("thermal_send", self.Tb, self.dT[d], self.W[w], scratch[0], scratch[1],
+                                              R, C, P, self.t_ax, self.t_dg, np.float32(THERMAL_C), np.float32(-1)),
+            "thermal_apply": lambda: self._run("thermal_apply", self.Tb, self.dT[d], self.W[w], scratch[0], scratch[1],
+                                               scratch[2], R, C, P, self.t_ax, self.t_dg, np.float32(-1)),
+        }
+        out = {name: float("inf") for name in launches}
+        for name, f in launches.items():  # warm up (build, first touch)
+            f()
+        q.finish()
+        for _ in range(3):  # best of three rounds of `reps`, interleaved so load spikes hit all alike
+            for name, f in launches.items():
+                t = time.perf_counter()
+                for _ in range(reps):
+                    f()
+                q.finish()
+                out[name] = min(out[name], (time.perf_counter() - t) / reps)
+        out["copy_bytes"] = 32.0 * n4
+        return out
+

@@ -1,0 +1,489 @@
+/* worldbake erosion kernels: thermal weathering (Olsen's multi-neighbour talus
+ * rule) and hydraulic erosion on the virtual-pipe shallow-water model.
+ *
+ * Every kernel reads its neighbours and writes only its own cells: no atomics,
+ * no races, results independent of the work-group size. Every transfer between
+ * two cells (water through a pipe, sediment carried with it, scree sliding
+ * down) is one float computed from the same stored floats by the same
+ * expression in both cells, so what leaves one cell is exactly what enters the
+ * other; only the final rounding of each cell's own state is left.
+ * stages/erosion/reference.py is the numpy twin of every kernel, operation for
+ * operation (the two agree bit for bit).
+ *
+ * Work-items: each per-step kernel work-item handles VW consecutive cells of a
+ * row as one floatVW vector (the same IEEE operations on every lane). PoCL
+ * vectorizes across work-items only when clang's SLP pass has not already
+ * packed pieces of the kernel into short vectors, which it does to these
+ * kernels; writing the vectors ourselves is robust and is still plain
+ * per-cell arithmetic for a GPU.
+ *
+ * Layout: every per-cell array has a one-cell halo ring and is padded so the
+ * NDRange is a whole number of work-groups: cell (r, c) sits at
+ * i = (r+1)*P + (c+1) with the pitch P >= (work-items along a row) * VW + 2
+ * (of every kernel) and (rows rounded up to the work-group) + 2 rows, so
+ * neighbours are i+-1 and i+-P
+ * without index clamping (clamped indices are gathers) and no bounds guard is
+ * needed. Lanes beyond the grid compute on the padding and their results are
+ * never read. Closed and open grids mask the ring out by the cell position;
+ * periodic grids fill it with the wrapped values (kernel `halo`) after every
+ * kernel that writes a field. Row r runs north to south, column c west to east.
+ *
+ * Pipes: QE, QS, QW, QN hold each cell's outflow through its east, south,
+ * west and north face per unit face width (m^2/s), never negative.
+ *
+ * Heights: h = Tb + dT where Tb is the input terrain (never changed) and dT
+ * the accumulated change. dT is small, so erosion steps far below one ulp of
+ * a 2000 m height are still represented; the mass budget sums dT + S.
+ *
+ * Only + - * / and compare-select in the per-step kernels: PoCL's fmax, fmin,
+ * fabs and sqrt builtins are scalar library calls, and basic IEEE operations
+ * give the same bits at every vector width and on every device.
+ *
+ * Compile-time: BOUNDARY 0 closed, 1 open (free outfall), 2 periodic;
+ * VW vector width (8 or 16).
+ */
+#pragma OPENCL FP_CONTRACT OFF
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+
+#ifndef BOUNDARY
+#define BOUNDARY 0
+#endif
+#ifndef VW
+#define VW 8
+#endif
+
+#define CAT_(a, b) a##b
+#define CAT(a, b) CAT_(a, b)
+#define floatV CAT(float, VW)
+#define intV CAT(int, VW)
+/* Unaligned vector access through a vector type whose alignment is lowered to
+ * that of a float (vloadn/vstoren are out-of-line library calls in PoCL). */
+typedef floatV __attribute__((aligned(4))) floatV_u;
+#define LD(p, k) (*(__global const floatV_u *)((p) + (k)))
+#define ST(v, p, k) (*(__global floatV_u *)((p) + (k)) = (v))
+#define as_floatV CAT(as_float, VW)
+#define as_intV CAT(as_int, VW)
+#if VW == 8
+#define LANES ((int8)(0, 1, 2, 3, 4, 5, 6, 7))
+#elif VW == 16
+#define LANES ((int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
+#endif
+
+#define HMIN 1e-6f        /* face flow depth (m) below which a pipe carries nothing */
+#define VEL_HMIN 1e-3f    /* depth floor (m) when dividing discharge by depth for velocity */
+#define TINY 1e-30f
+#define MAX(a, b) ((a) > (b) ? (a) : (b))
+#define MIN(a, b) ((a) < (b) ? (a) : (b))
+#define F(x) ((floatV)(x))
+#define ZERO F(0.0f)
+
+/* Cells (r, c0 .. c0+VW-1) of this work-item and which neighbours exist. */
+#if BOUNDARY == 2
+#define MASKS                                                    \
+    const intV exE = (intV)(-1), exW = (intV)(-1);               \
+    const intV exS = (intV)(-1), exN = (intV)(-1);
+#else
+#define MASKS                                                    \
+    const intV col = LANES + c0;                                 \
+    const intV exE = col + 1 < cols, exW = col > 0;              \
+    const intV exS = (intV)(r + 1 < rows ? -1 : 0);              \
+    const intV exN = (intV)(r > 0 ? -1 : 0);
+#endif
+#define CELLS                                                    \
+    const int c0 = get_global_id(0) * VW, r = get_global_id(1);  \
+    const int i = (r + 1) * P + (c0 + 1);                        \
+    MASKS
+
+/* Square root from basic IEEE operations, without division: a bit-level
+ * first guess of 1/sqrt(x) and three Newton steps y <- y (1.5 - 0.5 x y^2),
+ * then sqrt(x) = x y (relative error below 3e-7). Deterministic at any vector
+ * width and reproduced exactly by numpy. */
+inline floatV sqrt_n(floatV x)
+{
+    floatV y = as_floatV(0x5f3759df - (as_intV(x) >> 1));
+    floatV hx = 0.5f * x;
+    y = y * (1.5f - hx * (y * y));
+    y = y * (1.5f - hx * (y * y));
+    y = y * (1.5f - hx * (y * y));
+    return x > 0.0f ? x * y : ZERO;
+}
+
+/* ---------------------------------------------------------------------------
+ * 1. Pipe fluxes: Mei et al. 2007 virtual pipes whose cross-section is the flow
+ * depth at the face (the local-inertial shallow-water momentum equation of
+ * Bates et al. 2010), semi-implicit Darcy-Weisbach friction, then the outflow
+ * scaling that keeps water non-negative.
+ *   hf = max(eta_i, eta_j) - max(h_i, h_j)
+ *   q <- max(0, (q + g dt hf (eta_i - eta_j) / dx) / (1 + dt (f/8) q / hf^2))
+ *   (evaluated as (q + ...) hf^2 / (hf^2 + dt (f/8) q): one division)
+ *   q <- q * min(1, (1 - eps) W dx / (dt sum q))
+ * A missing neighbour of an open grid is a dry ghost at the same ground height
+ * (free outfall); of a closed grid, a wall (q = 0).
+ * ------------------------------------------------------------------------- */
+inline floatV face_q(floatV q, floatV hi, floatV wi, floatV hj, floatV wj, intV ex,
+                     float g_dt_dx, float fric_dt, floatV *hf_out)
+{
+    floatV dh = ex ? hi - hj : ZERO;
+    wj = ex ? wj : ZERO;
+    /* the face depth, written so thin films stay exact at any altitude */
+    floatV hf = dh >= 0.0f ? MAX(wi, wj - dh) : MAX(wi + dh, wj);
+    floatV deta = dh + (wi - wj);
+    floatV hfs = MAX(hf, F(HMIN));
+    floatV h2 = hfs * hfs;
+    floatV qn = ((q + g_dt_dx * hf * deta) * h2) / (h2 + fric_dt * q);  /* one division */
+    qn = MAX(qn, ZERO);
+    qn = hf > HMIN ? qn : ZERO;
+#if BOUNDARY == 0
+    qn = ex ? qn : ZERO;
+#endif
+    *hf_out = hf;
+    return qn;
+}
+
+__kernel void flux(__global const float *restrict Tb, __global const float *restrict dT,
+                   __global const float *restrict W,
+                   __global float *restrict QE, __global float *restrict QS,
+                   __global float *restrict QW, __global float *restrict QN,
+                   __global float *restrict wave, /* when want_wave: max over faces of q/hf + sqrt(g hf) */
+                   const int rows, const int cols, const int P,
+                   const float g_dt_dx,    /* g dt / dx */
+                   const float fric_dt,    /* (f/8) dt (s) */
+                   const float dx_dt,      /* (1 - eps) dx / dt (m/s) */
+                   const int want_wave, const float g)
+{
+    CELLS
+    floatV hi = LD(Tb, i) + LD(dT, i), wi = LD(W, i);
+    floatV hfE, hfS, hfW, hfN;
+    floatV qE = face_q(LD(QE, i), hi, wi, LD(Tb, i + 1) + LD(dT, i + 1), LD(W, i + 1), exE, g_dt_dx, fric_dt, &hfE);
+    floatV qS = face_q(LD(QS, i), hi, wi, LD(Tb, i + P) + LD(dT, i + P), LD(W, i + P), exS, g_dt_dx, fric_dt, &hfS);
+    floatV qW = face_q(LD(QW, i), hi, wi, LD(Tb, i - 1) + LD(dT, i - 1), LD(W, i - 1), exW, g_dt_dx, fric_dt, &hfW);
+    floatV qN = face_q(LD(QN, i), hi, wi, LD(Tb, i - P) + LD(dT, i - P), LD(W, i - P), exN, g_dt_dx, fric_dt, &hfN);
+    floatV sum = ((qE + qS) + qW) + qN;
+    floatV k = sum > 0.0f ? MIN(F(1.0f), (wi * dx_dt) / MAX(sum, F(TINY))) : F(1.0f);
+    qE *= k; qS *= k; qW *= k; qN *= k;
+    ST(qE, QE, i); ST(qS, QS, i); ST(qW, QW, i); ST(qN, QN, i);
+    if (want_wave) {
+        /* the CFL speed where water moves: face velocity q/hf plus the gravity wave */
+        floatV sp = sqrt_n(g * wi);
+        sp = qE > 0.0f ? MAX(sp, qE / MAX(hfE, F(HMIN)) + sqrt_n(g * hfE)) : sp;
+        sp = qS > 0.0f ? MAX(sp, qS / MAX(hfS, F(HMIN)) + sqrt_n(g * hfS)) : sp;
+        sp = qW > 0.0f ? MAX(sp, qW / MAX(hfW, F(HMIN)) + sqrt_n(g * hfW)) : sp;
+        sp = qN > 0.0f ? MAX(sp, qN / MAX(hfN, F(HMIN)) + sqrt_n(g * hfN)) : sp;
+        ST(sp, wave, i);
+    }
+}
+
+/* Sediment that leaves a cell with its water through one face in one step,
+ * S (q c) / max(W, sum q c), written S * ((q c) * rden) with the cell's
+ * rden = 1 / max(W, sum q c) (one division per cell, not per face). The
+ * sender and the receiver evaluate it from the same stored floats, so both get
+ * the same bits (a dry cell has q = 0). */
+inline floatV sed_rden(floatV W, floatV sumqc)
+{
+    return 1.0f / MAX(MAX(W, sumqc), F(TINY));
+}
+
+inline floatV sed_out(floatV S, floatV q, float c, floatV rden)
+{
+    return S * ((q * c) * rden);
+}
+
+/* ---------------------------------------------------------------------------
+ * 2. Water, sediment, erosion/deposition, rain, evaporation, moisture.
+ * Water:     W1 = W + dt/dx (sum q_in - sum q_out)
+ * Sediment:  moved in flux form with the water (sed_out on every face).
+ * Capacity:  C = Kc |q| max(sin a, sin a_min)   (m; |q| unit discharge, m^2/s)
+ * Exchange:  C > S: erode min(ks (C - S), h - min h_neighbour); else deposit
+ *            kd (S - C); ks = 1-exp(-Ks dt), kd = 1-exp(-Kd dt). The amount moved
+ *            is the actual change of dT, so dT + S is conserved.
+ * Rain/evap: W += rain dt; evaporate min(W, E dt); water gone -> sediment settles.
+ * Moisture:  M += am (min(W/wet, 1) - M), am = 1 - exp(-dt/tau).
+ * ------------------------------------------------------------------------- */
+__kernel void update(__global const float *restrict Tb, __global const float *restrict dT,
+                     __global const float *restrict W, __global const float *restrict S,
+                     __global const float *restrict QE, __global const float *restrict QS,
+                     __global const float *restrict QW, __global const float *restrict QN,
+                     __global float *restrict M, __global float *restrict EA,
+                     __global float *restrict dT_out, __global float *restrict W_out,
+                     __global float *restrict S_out,
+                     const int rows, const int cols, const int P,
+                     const float cc,                   /* dt/dx */
+                     const float kc,                   /* capacity, s/m */
+                     const float sin_min2,             /* sin(a_min)^2 */
+                     const float ks_f, const float kd_f,
+                     const float rain_dt, const float evap_dt,
+                     const float inv_wet, const float am,
+                     const float inv_2dx)
+{
+    CELLS
+    const int iE = i + 1, iS = i + P, iW = i - 1, iN = i - P;
+    floatV wi = LD(W, i), si = LD(S, i), dti = LD(dT, i);
+    floatV hi = LD(Tb, i) + dti;
+    floatV oE = LD(QE, i), oS = LD(QS, i), oW = LD(QW, i), oN = LD(QN, i);
+    floatV sumqc_i = (((oE + oS) + oW) + oN) * cc;
+    /* inflow: the neighbour on each side sends through its opposite face */
+    floatV iqE = exE ? LD(QW, iE) : ZERO;
+    floatV iqS = exS ? LD(QN, iS) : ZERO;
+    floatV iqW = exW ? LD(QE, iW) : ZERO;
+    floatV iqN = exN ? LD(QS, iN) : ZERO;
+    floatV rden_i = sed_rden(wi, sumqc_i);
+    floatV soE = sed_out(si, oE, cc, rden_i);
+    floatV soS = sed_out(si, oS, cc, rden_i);
+    floatV soW = sed_out(si, oW, cc, rden_i);
+    floatV soN = sed_out(si, oN, cc, rden_i);
+#define RDEN(j) sed_rden(LD(W, j), (((LD(QE, j) + LD(QS, j)) + LD(QW, j)) + LD(QN, j)) * cc)
+    floatV siE = exE ? sed_out(LD(S, iE), iqE, cc, RDEN(iE)) : ZERO;
+    floatV siS = exS ? sed_out(LD(S, iS), iqS, cc, RDEN(iS)) : ZERO;
+    floatV siW = exW ? sed_out(LD(S, iW), iqW, cc, RDEN(iW)) : ZERO;
+    floatV siN = exN ? sed_out(LD(S, iN), iqN, cc, RDEN(iN)) : ZERO;
+#undef RDEN
+    floatV hE = exE ? LD(Tb, iE) + LD(dT, iE) : hi;
+    floatV hS = exS ? LD(Tb, iS) + LD(dT, iS) : hi;
+    floatV hW = exW ? LD(Tb, iW) + LD(dT, iW) : hi;
+    floatV hN = exN ? LD(Tb, iN) + LD(dT, iN) : hi;
+
+    floatV qin_sum = ((iqE + iqS) + iqW) + iqN;
+    floatV qout_sum = ((oE + oS) + oW) + oN;
+    floatV w1 = MAX(wi + (qin_sum * cc - qout_sum * cc), ZERO);
+    floatV s_in = ((siE + siS) + siW) + siN;
+    floatV s_out = ((soE + soS) + soW) + soN;
+    floatV s1 = MAX(si + (s_in - s_out), ZERO);
+
+    /* unit discharge through the cell (m^2/s): mean of its two faces per axis */
+    floatV qx = 0.5f * ((iqW - oW) + (oE - iqE));
+    floatV qy = 0.5f * ((iqN - oN) + (oS - iqS));
+    /* terrain slope (central differences; one-sided at closed and open edges) */
+    floatV gx = (hE - hW) * inv_2dx;
+    floatV gy = (hS - hN) * inv_2dx;
+    floatV g2 = gx * gx + gy * gy;
+    floatV sin2 = g2 / (1.0f + g2);
+    floatV cap = kc * sqrt_n((qx * qx + qy * qy) * MAX(sin2, F(sin_min2)));
+
+    /* erosion never takes a cell below its lowest neighbour: no pits are dug
+     * (a pit would fill with deep water whose flow digs it deeper) */
+    floatV hlow = MIN(MIN(hE, hW), MIN(hS, hN));
+    floatV emax = MAX(hi - hlow, ZERO);
+    floatV dt_e = dti - MIN(ks_f * (cap - s1), emax);
+    floatV s_e = s1 + (dti - dt_e);
+    floatV dt_d = dti + kd_f * (s1 - cap);
+    floatV s_d = MAX(s1 - (dt_d - dti), ZERO);
+    intV ero = cap > s1;
+    floatV dt1 = ero ? dt_e : dt_d;
+    floatV s2 = ero ? s_e : s_d;
+
+    floatV w2 = w1 + rain_dt;
+    floatV ev = MIN(w2, F(evap_dt));
+    floatV w3 = w2 - ev;
+    floatV ev_act = w2 - w3;
+    /* the water is gone: what it carried settles */
+    intV dry = (w3 <= 0.0f) & (s2 > 0.0f);
+    floatV dt2 = dt1 + s2;
+    floatV s_dry = MAX(s2 - (dt2 - dt1), ZERO);
+    dt1 = dry ? dt2 : dt1;
+    s2 = dry ? s_dry : s2;
+
+    floatV pres = MIN(w3 * inv_wet, F(1.0f));
+    floatV m = LD(M, i);
+    ST(m + am * (pres - m), M, i);
+    ST(LD(EA, i) + ev_act, EA, i);
+    ST(w3, W_out, i);
+    ST(s2, S_out, i);
+    ST(dt1, dT_out, i);
+}
+
+/* ---------------------------------------------------------------------------
+ * 3. Thermal weathering, Olsen (2004) multi-neighbour rule on the Moore
+ * neighbourhood, in gather form (two passes, no atomics).
+ * d_k = h - h_k; T_k = dx tan(talus) (axial) or sqrt(2) dx tan(talus) (diagonal).
+ * A cell moves c * max_k(d_k - T_k) in total, to every neighbour with d_k > T_k
+ * in proportion d_k / sum d_k. Pass 1 stores s = c * max(d_k - T_k) / sum d_k
+ * and r = 1 / (number of neighbours that send to this cell); pass 2 gathers:
+ * h' = h - sum (s_i d_ik) r_k + sum (s_k d_ki) r_i.
+ * The r share is ours: Olsen's rule updates cells one after another, and in
+ * parallel a pit receives from all 8 neighbours at once (4 times too much with
+ * c = 0.5: a -1000 m hole becomes a +3000 m tower). Sharing each receiver
+ * between its senders bounds what it gets by c times the largest excess; a
+ * cell with one sender above it is treated exactly as in Olsen's rule.
+ * Neighbours outside a closed or open grid do not exist (scree stays inside).
+ * During the storm (bank slumping) material only slides into cells holding
+ * more than wet_min metres of water: banks collapse into the channels. Both
+ * ends of a transfer test the same stored W. wet_min < 0: everywhere.
+ * Order of the neighbours: E, S, W, N, SE, SW, NW, NE.
+ * ------------------------------------------------------------------------- */
+#define MOORE                                                                    \
+    const int off[8] = {1, P, -1, -P, P + 1, P - 1, -P - 1, -P + 1};             \
+    const intV ex[8] = {exE, exS, exW, exN, exS & exE, exS & exW, exN & exW, exN & exE};
+
+__kernel void thermal_send(__global const float *restrict Tb, __global const float *restrict dT,
+                           __global const float *restrict W,
+                           __global float *restrict s_out, __global float *restrict r_out,
+                           const int rows, const int cols, const int P,
+                           const float t_ax, const float t_dg, const float cfrac, const float wet_min)
+{
+    CELLS
+    MOORE
+    floatV hi = LD(Tb, i) + LD(dT, i);
+    intV wet_i = LD(W, i) > wet_min;
+    floatV dtot = ZERO, emax = ZERO, senders = ZERO;
+    for (int k = 0; k < 8; k++) {
+        int j = i + off[k];
+        floatV d = hi - (LD(Tb, j) + LD(dT, j));
+        float t = k < 4 ? t_ax : t_dg;
+        intV m = ex[k] & (d > t) & (LD(W, j) > wet_min);
+        dtot = m ? dtot + d : dtot;
+        emax = m ? MAX(emax, d - t) : emax;
+        senders = (ex[k] & (-d > t) & wet_i) ? senders + 1.0f : senders;  /* a higher neighbour sends here */
+    }
+    ST(dtot > 0.0f ? (cfrac * emax) / MAX(dtot, F(TINY)) : ZERO, s_out, i);
+    ST(1.0f / MAX(senders, F(1.0f)), r_out, i);
+}
+
+__kernel void thermal_apply(__global const float *restrict Tb, __global const float *restrict dT,
+                            __global const float *restrict W,
+                            __global const float *restrict s, __global const float *restrict rr,
+                            __global float *restrict dT_out,
+                            const int rows, const int cols, const int P,
+                            const float t_ax, const float t_dg, const float wet_min)
+{
+    CELLS
+    MOORE
+    floatV hi = LD(Tb, i) + LD(dT, i);
+    floatV si = LD(s, i), ri = LD(rr, i);
+    intV wet_i = LD(W, i) > wet_min;
+    floatV out = ZERO, in = ZERO;
+    for (int k = 0; k < 8; k++) {
+        int j = i + off[k];
+        floatV hj = LD(Tb, j) + LD(dT, j);
+        float t = k < 4 ? t_ax : t_dg;
+        floatV d = hi - hj;
+        out = (ex[k] & (d > t) & (LD(W, j) > wet_min)) ? out + (si * d) * LD(rr, j) : out;
+        floatV e = hj - hi;
+        in = (ex[k] & (e > t) & wet_i) ? in + (LD(s, j) * e) * ri : in;
+    }
+    ST(LD(dT, i) + (in - out), dT_out, i);
+}
+
+/* ---------------------------------------------------------------------------
+ * Scalar kernels: boundary bookkeeping, halo, diagnostics, output maps.
+ * ------------------------------------------------------------------------- */
+
+/* Open grids: the water and sediment each boundary face lets out in this step,
+ * accumulated in float64 per face (run before the state buffers swap roles).
+ * Faces: [0,rows) east, [rows, rows+cols) south, then west, then north. */
+__kernel void boundary_out(__global const float *restrict W, __global const float *restrict S,
+                           __global const float *restrict QE, __global const float *restrict QS,
+                           __global const float *restrict QW, __global const float *restrict QN,
+                           __global double *restrict bnd, const int rows, const int cols, const int P,
+                           const float cc)
+{
+    int f = get_global_id(0);
+    int nf = 2 * (rows + cols);
+    if (f >= nf) return;
+    int r, c;
+    if (f < rows) { r = f; c = cols - 1; }
+    else if (f < rows + cols) { c = f - rows; r = rows - 1; }
+    else if (f < 2 * rows + cols) { r = f - rows - cols; c = 0; }
+    else { c = f - 2 * rows - cols; r = 0; }
+    int i = (r + 1) * P + c + 1;
+    float q = f < rows ? QE[i] : f < rows + cols ? QS[i] : f < 2 * rows + cols ? QW[i] : QN[i];
+    float sumqc = (((QE[i] + QS[i]) + QW[i]) + QN[i]) * cc;
+    float den = W[i] > sumqc ? W[i] : sumqc;
+    den = den > TINY ? den : TINY;
+    float rden = 1.0f / den;
+    bnd[f] += (double)(q * cc);
+    bnd[nf + f] += (double)(S[i] * ((q * cc) * rden));
+}
+
+/* Periodic grids: fill the halo ring of up to four arrays with wrapped values.
+ * Work-items [0, rows) do the west and east ghosts of row r, [rows, rows+cols+2)
+ * the north and south ghost rows (corners included) straight from the interior. */
+inline void wrap1(__global float *a, int k, int rows, int cols, int P)
+{
+    if (k < rows) {
+        int row = (k + 1) * P;
+        a[row] = a[row + cols];
+        a[row + cols + 1] = a[row + 1];
+    } else {
+        int pcol = k - rows;
+        int src = pcol == 0 ? cols : (pcol == cols + 1 ? 1 : pcol);
+        a[pcol] = a[rows * P + src];
+        a[(rows + 1) * P + pcol] = a[P + src];
+    }
+}
+
+__kernel void halo(__global float *a, __global float *b, __global float *c_, __global float *d,
+                   const int n, const int rows, const int cols, const int P)
+{
+    int k = get_global_id(0);
+    if (k >= rows + cols + 2) return;
+    wrap1(a, k, rows, cols, P);
+    if (n > 1) wrap1(b, k, rows, cols, P);
+    if (n > 2) wrap1(c_, k, rows, cols, P);
+    if (n > 3) wrap1(d, k, rows, cols, P);
+}
+
+/* Diagnostics, one work-item per row, summed left to right in float64:
+ * sums[r] = (sum W, sum dT, sum S, sum EA, sum |dT|), then EA is reset;
+ * mx[r] = (max CFL speed from the last flux pass that measured it, min W,
+ * min S, count of non-finite values, max W). */
+__kernel void diag_rows(__global const float *restrict dT, __global const float *restrict W,
+                        __global const float *restrict S, __global const float *restrict QE,
+                        __global const float *restrict QS, __global const float *restrict QW,
+                        __global const float *restrict QN, __global float *restrict EA,
+                        __global const float *restrict wavebuf,
+                        __global double *restrict sums, __global float *restrict mx,
+                        const int rows, const int cols, const int P)
+{
+    int r = get_global_id(0);
+    if (r >= rows) return;
+    double sw = 0.0, sd = 0.0, ss = 0.0, se = 0.0, sa = 0.0;
+    float wave = 0.0f, wmin = INFINITY, smin = INFINITY, bad = 0.0f, wmax = 0.0f;
+    for (int c = 0; c < cols; c++) {
+        int i = (r + 1) * P + c + 1;
+        float w = W[i], d = dT[i], s = S[i], e = EA[i];
+        if (!isfinite(w) || !isfinite(d) || !isfinite(s) || !isfinite(e) || !isfinite(QE[i]) ||
+            !isfinite(QS[i]) || !isfinite(QW[i]) || !isfinite(QN[i])) {
+            bad += 1.0f;
+            continue;
+        }
+        sw += (double)w; sd += (double)d; ss += (double)s; se += (double)e; sa += (double)fabs(d);
+        EA[i] = 0.0f;
+        wmin = fmin(wmin, w); smin = fmin(smin, s); wmax = fmax(wmax, w);
+        wave = fmax(wave, wavebuf[i]);
+    }
+    sums[5 * r + 0] = sw; sums[5 * r + 1] = sd; sums[5 * r + 2] = ss; sums[5 * r + 3] = se; sums[5 * r + 4] = sa;
+    mx[5 * r + 0] = wave; mx[5 * r + 1] = wmin; mx[5 * r + 2] = smin; mx[5 * r + 3] = bad; mx[5 * r + 4] = wmax;
+}
+
+/* Velocity (m/s) of every cell for the output maps: (vx east, vz south),
+ * the mean discharge of the two faces on each axis over the depth. */
+__kernel void velocity(__global const float *restrict QE, __global const float *restrict QS,
+                       __global const float *restrict QW, __global const float *restrict QN,
+                       __global const float *restrict W, __global float *restrict VX,
+                       __global float *restrict VZ, const int rows, const int cols, const int P)
+{
+    int c = get_global_id(0), r = get_global_id(1);
+    if (c >= cols || r >= rows) return;
+    int i = (r + 1) * P + c + 1;
+#if BOUNDARY == 2
+    int exE = 1, exS = 1, exW = 1, exN = 1;
+#else
+    int exE = c + 1 < cols, exS = r + 1 < rows, exW = c > 0, exN = r > 0;
+#endif
+    float iqE = exE ? QW[i + 1] : 0.0f;
+    float iqS = exS ? QN[i + P] : 0.0f;
+    float iqW = exW ? QE[i - 1] : 0.0f;
+    float iqN = exN ? QS[i - P] : 0.0f;
+    float qx = 0.5f * ((iqW - QW[i]) + (QE[i] - iqE));
+    float qy = 0.5f * ((iqN - QN[i]) + (QS[i] - iqS));
+    float h = W[i] > VEL_HMIN ? W[i] : VEL_HMIN;
+    VX[i] = qx / h;
+    VZ[i] = qy / h;
+}
+
+/* The roofline reference: a plain copy, one float4 per work-item. */
+__kernel void copy4(__global const float4 *restrict a, __global float4 *restrict b, const int n)
+{
+    int i = get_global_id(0);
+    if (i < n) b[i] = a[i];
+}

@@ -1,0 +1,269 @@
+"""The erosion stage: thermal weathering (talus slopes and scree, seed 003,
+Olsen's multi-neighbour rule) followed by a storm of hydraulic erosion on the
+virtual-pipe shallow-water model (seed 004; Mei et al. 2007, Stava et al.
+2008) with sediment moved in flux form so terrain + sediment is conserved.
+
+Every parameter is physical (mm/h, degrees, hours, years, s/m, 1/s) and means
+the same at any resolution. The whole state stays on the OpenCL device; only
+diagnostics every few steps and the final maps come back.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Literal, Optional
+
+import numpy as np
+
+from pipeline.contract import Artifact, Input, Param, Params, RunContext, Stage
+from pipeline.errors import InputError, StageError
+from pipeline.grid import Grid
+from pipeline.preview import hillshade
+
+from . import simulate
+from .physics import THERMAL_C, Physics
+
+MAX_THERMAL_ITERATIONS = 200_000
+MAX_STEPS = 2_000_000
+SLOPE_TOLERANCE_DEG = 0.5  # reported: cells steeper than talus + this after thermal weathering
+
+
+class ErosionParams(Params):
+    boundary: Literal["closed", "open", "periodic"] = Param(
+        "open", description="grid edges: closed walls keep all water and sediment; open lets water and sediment "
+        "flow out (free outfall); periodic wraps around (for tiling heightmaps)")
+    # thermal weathering
+    talus_angle_deg: float = Param(
+        40.0, units="deg", description="angle of repose: thermal weathering moves material down slopes steeper than "
+        "this (Olsen's multi-neighbour rule on the 8 neighbours)", ge=1.0, le=89.0)
+    thermal_years: float = Param(
+        300.0, units="years", description="duration of thermal weathering (scree and talus slopes) before the storm", ge=0.0, le=1e7)
+    scree_diffusivity_m2_per_year: float = Param(
+        1.0, units="m^2/year", description="rate of thermal weathering: how fast material above the talus angle "
+        "slides, as the diffusivity D of flux = D * (slope - tan(talus)); one rule iteration is 0.5 dx^2 / D", ge=0.0, le=1e6)
+    # the storm
+    storm_hours: float = Param(
+        0.35, units="h", description="duration of the hydraulic erosion storm (simulated time); 0 skips it", ge=0.0, le=1000.0)
+    rain_mm_per_hour: float = Param(
+        100.0, units="mm/h", description="uniform rain rate during the storm", ge=0.0, le=1e5)
+    evaporation_mm_per_hour: float = Param(
+        2.0, units="mm/h", description="evaporation (and infiltration) rate, taken from wherever there is water", ge=0.0, le=1e5)
+    friction: float = Param(
+        0.3, units="", description="Darcy-Weisbach friction factor f of the water flow (0.02 smooth channels .. 1 rough "
+        "hillslopes); steady flow speed is sqrt(8 g depth slope / f)", ge=0.001, le=100.0)
+    sediment_capacity_s_per_m: float = Param(
+        3.0, units="s/m", description="Kc: the water can carry a sediment column C = Kc |q| sin(slope), q the unit "
+        "discharge (m^2/s), i.e. a volume concentration Kc * speed * sin(slope)", ge=0.0, le=100.0)
+    dissolve_rate_per_s: float = Param(
+        0.5, units="1/s", description="Ks: where the water carries less than its capacity C, terrain is eroded at "
+        "Ks * (C - S) metres per second", ge=0.0, le=100.0)
+    deposit_rate_per_s: float = Param(
+        0.5, units="1/s", description="Kd: where the water carries more than its capacity, sediment settles at "
+        "Kd * (S - C) metres per second", ge=0.0, le=100.0)
+    min_slope_deg: float = Param(
+        2.0, units="deg", description="slope used for the capacity on flatter ground, so water on flats still carries sediment",
+        ge=0.0, le=45.0)
+    bank_diffusivity_m2_per_hour: float = Param(
+        0.0, units="m^2/h", description="bank slumping during the storm: the talus rule runs at this rate (as "
+        "scree_diffusivity) but only moves material into cells holding more than wet_depth_m of water, so banks "
+        "steeper than the talus angle collapse into the channels; 0 turns it off", ge=0.0, le=1e8)
+    # output maps
+    moisture_time_hours: float = Param(
+        0.1, units="h", description="time constant of the moisture map, a running average of water presence", gt=0.0, le=1e4)
+    wet_depth_m: float = Param(
+        0.01, units="m", description="water depth that counts as fully wet in the moisture map (shallower: "
+        "proportionally), and that bank slumping needs in the receiving cell",
+        gt=0.0, le=100.0)
+    # time stepping
+    cfl: float = Param(
+        0.5, units="", description="Courant number of the adaptive time step dt = cfl dx / max(|u| + sqrt(g h))",
+        ge=0.05, le=0.9)
+    dt_s: Optional[float] = Param(
+        None, units="s", description="fixed time step instead of the adaptive one; the run is refused when it breaks "
+        "the CFL limit (Courant number above 0.9)", gt=0.0, le=3600.0)
+
+
+def physics_for(params: ErosionParams, dx: float) -> Physics:
+    return Physics(
+        dx=dx,
+        boundary=params.boundary,
+        rain=params.rain_mm_per_hour / 1000.0 / 3600.0,
+        evaporation=params.evaporation_mm_per_hour / 1000.0 / 3600.0,
+        friction=params.friction,
+        capacity=params.sediment_capacity_s_per_m,
+        min_slope_sin=math.sin(math.radians(params.min_slope_deg)),
+        dissolve_rate=params.dissolve_rate_per_s,
+        deposit_rate=params.deposit_rate_per_s,
+        wet_depth=params.wet_depth_m,
+        moisture_tau=params.moisture_time_hours * 3600.0,
+        talus_tan=math.tan(math.radians(params.talus_angle_deg)),
+        bank_diffusivity=params.bank_diffusivity_m2_per_hour / 3600.0,
+        cfl=params.cfl,
+    )
+
+
+def thermal_iterations(params: ErosionParams, dx: float) -> int:
+    """Rule iterations standing for thermal_years at this cell size (see Physics)."""
+    if params.thermal_years <= 0 or params.scree_diffusivity_m2_per_year <= 0:
+        return 0
+    return int(math.ceil(_thermal_exact(params, dx) - 1e-9))
+
+
+def _thermal_exact(params: ErosionParams, dx: float) -> float:
+    return params.thermal_years * params.scree_diffusivity_m2_per_year / (THERMAL_C * dx * dx)
+
+
+def thermal_c(params: ErosionParams, dx: float) -> float:
+    """Olsen's c for those iterations: 0.5, scaled down so that iterations x c
+    matches the years exactly (on coarse grids less than one iteration may be due)."""
+    n = thermal_iterations(params, dx)
+    return THERMAL_C * min(1.0, _thermal_exact(params, dx) / n) if n else THERMAL_C
+
+
+def plan_for(params: ErosionParams, dx: float, ph: Physics) -> simulate.Plan:
+    """The run plan, or InputError when the params cannot run on this grid."""
+    n_th = thermal_iterations(params, dx)
+    if n_th > MAX_THERMAL_ITERATIONS:
+        raise InputError(
+            f"erosion: thermal_years = {params.thermal_years:g} at scree_diffusivity_m2_per_year = "
+            f"{params.scree_diffusivity_m2_per_year:g} needs {n_th} iterations of the talus rule on {dx:g} m cells "
+            f"(at most {MAX_THERMAL_ITERATIONS}); lower one of them")
+    if params.dt_s is not None:
+        # the least the flow can do is a 1 m/s wave: a step beyond that limit can never run
+        limit = ph.cfl_limit * dx / ph.min_wave_speed
+        if params.dt_s > limit:
+            raise InputError(
+                f"erosion: dt_s = {params.dt_s:g} s breaks the CFL limit on {dx:g} m cells: even a {ph.min_wave_speed:g} m/s "
+                f"wave needs dt_s <= {limit:.3g} s (Courant number {ph.cfl_limit}); lower dt_s or leave it unset "
+                f"for the adaptive step")
+        steps = params.storm_hours * 3600.0 / params.dt_s
+        if steps > MAX_STEPS:
+            raise InputError(f"erosion: storm_hours = {params.storm_hours:g} at dt_s = {params.dt_s:g} s is "
+                             f"{steps:.3g} steps (at most {MAX_STEPS})")
+    return simulate.Plan(thermal_iterations=n_th, thermal_c=thermal_c(params, dx), duration_s=params.storm_hours * 3600.0,
+                         fixed_dt=params.dt_s, max_total_steps=MAX_STEPS)
+
+
+def check_input(height: Grid) -> np.ndarray:
+    h = height.channel(height.channels[0])
+    if h.ndim != 2 or min(h.shape) < 3:
+        raise InputError(f"erosion: the height grid must be 2-D with at least 3 x 3 cells, got {h.shape}")
+    bad = ~np.isfinite(h)
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        raise InputError(f"erosion: the input height has {int(bad.sum())} NaN or infinite cells (first at row {r}, "
+                         f"column {c}); fix the heightmap before eroding it")
+    if float(np.max(np.abs(h))) > 1e6:
+        raise InputError(f"erosion: input heights reach {float(np.max(np.abs(h))):.3g} m; heights beyond 1e6 m are "
+                         f"not terrain (wrong units?)")
+    return np.ascontiguousarray(h, dtype=np.float32)
+
+
+def slope_excess(h: np.ndarray, dx: float, talus_deg: float, periodic: bool) -> dict[str, float]:
+    """How far the 8-neighbour slopes exceed the talus angle (float64)."""
+    h = h.astype(np.float64)
+    worst = 0.0
+    above = 0
+    pairs = 0
+    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        if periodic:
+            d = np.abs(h - np.roll(h, (-dr, -dc), axis=(0, 1)))
+        else:
+            rows, cols = h.shape
+            r0, r1 = max(0, -dr), rows - max(0, dr)
+            c0, c1 = max(0, -dc), cols - max(0, dc)
+            d = np.abs(h[r0:r1, c0:c1] - h[r0 + dr:r1 + dr, c0 + dc:c1 + dc])
+        ang = np.degrees(np.arctan(d / (dx * math.hypot(dr, dc))))
+        worst = max(worst, float(ang.max()) - talus_deg)
+        above += int((ang > talus_deg + SLOPE_TOLERANCE_DEG).sum())
+        pairs += ang.size
+    return {"max_excess_deg": worst, "fraction_above_tolerance": above / max(pairs, 1)}
+
+
+def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[str, Any]:
+    from .device import DeviceSim
+
+    grid: Grid = inputs["height"]
+    h = check_input(grid)
+    dx = float(grid.cell_size_m)
+    ph = physics_for(params, dx)
+    plan = plan_for(params, dx, ph)
+    ctx.progress(0.0, f"erosion {h.shape[1]}x{h.shape[0]} cells of {dx:g} m: {plan.thermal_iterations} talus "
+                      f"iterations, {params.storm_hours:g} h storm")
+    sim = DeviceSim(h, ph)
+    after_thermal = {}
+
+    def on_thermal_done(fields: dict[str, np.ndarray]) -> None:
+        after_thermal.update(slope_excess(h + fields["dT"], dx, params.talus_angle_deg, params.boundary == "periodic"))
+
+    metrics = simulate.run(sim, ph, plan, progress=ctx.progress, after_thermal=on_thermal_done)
+    ctx.progress(0.96, "reading the maps back")
+    f = sim.fields()
+    height = (h + f["dT"]).astype(np.float32)
+    for name, arr in (("height", height), ("water", f["W"]), ("sediment", f["S"])):
+        if not np.isfinite(arr).all():
+            raise StageError(f"erosion: non-finite {name} in the final state (step {metrics['steps']})")
+    speed = np.sqrt(f["vx"].astype(np.float64) ** 2 + f["vz"].astype(np.float64) ** 2).astype(np.float32)
+    change = f["dT"]
+    out_grid = lambda data, ch: Grid(np.ascontiguousarray(data, np.float32), cell_size_m=dx, channels=ch,  # noqa: E731
+                                     origin_m=grid.origin_m)
+    outputs = {
+        "erosion.height": out_grid(height, ("height",)),
+        "erosion.water": out_grid(f["W"], ("water.depth",)),
+        "erosion.flow": out_grid(np.stack([f["vx"], f["vz"], speed], axis=-1), ("flow.vx", "flow.vz", "flow.speed")),
+        "erosion.sediment": out_grid(f["S"], ("sediment.depth",)),
+        "erosion.change": out_grid(np.stack([change, np.maximum(-change, 0), np.maximum(change, 0)], axis=-1),
+                                   ("change.net", "change.wear", "change.deposition")),
+        "erosion.moisture": out_grid(np.clip(f["M"], 0.0, 1.0), ("moisture",)),
+    }
+    ctx.progress(0.98, "hillshade")
+    outputs["erosion.hillshade"] = hillshade(outputs["erosion.height"])
+    final = slope_excess(height, dx, params.talus_angle_deg, params.boundary == "periodic")
+    c64 = change.astype(np.float64)
+    metrics.update(
+        cells=int(h.size), cell_size_m=dx,
+        thermal_max_excess_deg=after_thermal.get("max_excess_deg"),
+        thermal_fraction_above_talus=after_thermal.get("fraction_above_tolerance"),
+        slope_tolerance_deg=SLOPE_TOLERANCE_DEG,
+        final_max_excess_deg=final["max_excess_deg"], final_fraction_above_talus=final["fraction_above_tolerance"],
+        wear_max_m=float(max(-c64.min(), 0.0)), deposition_max_m=float(max(c64.max(), 0.0)),
+        wear_volume_m3=float(np.maximum(-c64, 0).sum() * dx * dx),
+        deposition_volume_m3=float(np.maximum(c64, 0).sum() * dx * dx),
+        water_volume_m3=float(f["W"].astype(np.float64).sum() * dx * dx),
+        wet_fraction=float((f["W"] > params.wet_depth_m).mean()),
+        opencl_local_size=list(sim.local), opencl_vector_width=sim.vw, opencl_vector_width_thermal=sim.vw_thermal,
+    )
+    ctx.metrics.update(metrics)
+    ctx.progress(1.0, "done")
+    return outputs
+
+
+STAGE = Stage(
+    name="erosion",
+    version=1,
+    description="Thermal weathering (talus angle, Olsen's rule) and hydraulic erosion on the virtual-pipe "
+    "shallow-water model with mass-conserving sediment transport, on the OpenCL device",
+    inputs=(Input("height", one_of=("heightmap.height",), description="the terrain to erode"),),
+    outputs=(
+        Artifact("erosion.height", kind="grid", file="height.exr", channels=("height",), units="m",
+                 description="eroded terrain height, float32, one value per cell"),
+        Artifact("erosion.water", kind="grid", file="water.exr", channels=("water.depth",), units="m",
+                 description="water depth at the end of the storm"),
+        Artifact("erosion.flow", kind="grid", file="flow.exr", channels=("flow.vx", "flow.vz", "flow.speed"), units="m/s",
+                 description="flow velocity at the end of the storm: vx east, vz south (rows), and speed"),
+        Artifact("erosion.sediment", kind="grid", file="sediment.exr", channels=("sediment.depth",), units="m",
+                 description="suspended sediment (column height) at the end of the storm"),
+        Artifact("erosion.change", kind="grid", file="change.exr",
+                 channels=("change.net", "change.wear", "change.deposition"), units="m",
+                 description="terrain change: net (eroded height minus input), wear = max(-net, 0), deposition = max(net, 0)"),
+        Artifact("erosion.moisture", kind="grid", file="moisture.exr", channels=("moisture",), units="1",
+                 description="moisture: running average of water presence over the storm, 0 (dry) .. 1 (always wet)"),
+        Artifact("erosion.hillshade", kind="image", file="hillshade.png", dtype="uint8",
+                 description="hillshade preview of the eroded terrain (sun from the north-west at 45 degrees), 8-bit RGB"),
+    ),
+    params=ErosionParams,
+    run=run,
+    source_dir=Path(__file__).resolve().parent,
+    uses_seed=False,
+    uses_opencl=True,
+)
