@@ -22,7 +22,7 @@ from typing import Any
 import pydantic
 
 from pipeline import usdio
-from pipeline.contract import Artifact, Param, Params, RunContext, Stage
+from pipeline.contract import Input, Artifact, Param, Params, RunContext, Stage
 from pipeline.errors import StageError
 
 from .asset import write_species, write_top
@@ -90,6 +90,13 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: PlantsParams) -> dict[s
     metrics: dict[str, Any] = {"species": {}}
     t0 = time.perf_counter()
     names = list(params.build)
+    placed = inputs.get("placed")
+    if placed is not None:
+        # Only what the vegetation map placed is built; a placed species
+        # without a shape here keeps its placeholder in the world (reported).
+        names = [n for n in names if n in placed["placed"]]
+        metrics["not_placed"] = [n for n in params.build if n not in placed["placed"]]
+        metrics["placed_without_shape"] = [n for n in placed["placed"] if n not in params.build]
     for i, name in enumerate(names):
         spec = params.species[name]
         ctx.progress(i / max(len(names), 1), f"plants: building {name}")
@@ -124,7 +131,8 @@ STAGE = Stage(
     version=1,
     description="plant assets in USD: L-system trees and shrubs (watertight woody solid, leaves) and grass tufts, "
     "with a measured lod variant set, wind primvars and materials",
-    inputs=(),
+    inputs=(Input("placed", one_of=("vegetation.species",), optional=True,
+                  description="the species the vegetation map placed; only those are built"),),
     outputs=(Artifact("plants.assets", kind="usd", file="plants.usda", shape="any",
                       description="/Plants (kind group): one prim per built species referencing ./<species>.usdc "
                       "(kind component, lod variant set LOD0..LODn, extentsHint, UsdPreviewSurface, wind primvars)"),),

@@ -27,6 +27,13 @@ TERRAIN_SOURCES = ("erosion.height", "heightmap.height")
 # their stage is disabled or not needed.
 LAYER_INPUTS = (
     Input("water", one_of=("hydrology.water",), optional=True, description="rivers and lakes"),
+    Input("vegetation", one_of=("vegetation.instances",), optional=True,
+          description="PointInstancers per species and quadtree tile, with placeholder prototypes"),
+)
+# The plant assets that replace the vegetation placeholders.
+ASSET_INPUTS = (
+    Input("placed", one_of=("vegetation.species",), optional=True, description="which species were placed, where their prototypes are"),
+    Input("plants", one_of=("plants.assets",), optional=True, description="the plant assets (plants.usda)"),
 )
 
 
@@ -120,6 +127,30 @@ def write_terrain_layer(path: Path, height: Grid, texture: str, params: WorldPar
             "height_min_m": float(ext[0][1]), "height_max_m": float(ext[1][1])}
 
 
+def bind_plant_assets(root_path: Path, placed: dict, plants_layer: Path, ctx: RunContext) -> dict[str, str]:
+    """In the root layer (stronger than the vegetation layer it composes),
+    reference each placed species' plant asset on its prototype class prim
+    and switch its placeholder off; every instancer's prototype inherits that
+    class, so the asset shows in every tile. Species without an asset keep
+    their placeholder."""
+    from pxr import Sdf
+
+    assets = Sdf.Layer.FindOrOpen(str(plants_layer))
+    layer = Sdf.Layer.FindOrOpen(str(root_path))
+    bound = {}
+    for species, proto_path in placed.get("prototypes", {}).items():
+        asset_prim = Sdf.Path(f"/Plants/{species}")
+        if not assets.GetPrimAtPath(asset_prim):
+            continue
+        spec = Sdf.CreatePrimInLayer(layer, Sdf.Path(proto_path))
+        spec.referenceList.Prepend(Sdf.Reference(ctx.asset_path(plants_layer), asset_prim))
+        placeholder = Sdf.CreatePrimInLayer(layer, Sdf.Path(proto_path).AppendChild("Placeholder"))
+        placeholder.active = False
+        bound[species] = str(asset_prim)
+    layer.Save()
+    return bound
+
+
 def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
     height: Grid = inputs["terrain"]
     rows, cols = height.shape
@@ -142,6 +173,8 @@ def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
     layers.append("./" + terrain_path.name)
     usdio.write_root_layer(root_path, ctx.provenance, layers)
     ctx.metrics["layers"] = layers
+    if "placed" in inputs and "plants" in inputs:
+        ctx.metrics["plant_assets"] = bind_plant_assets(root_path, inputs["placed"], inputs["plants"], ctx)
     return {"world.root": root_path, "world.terrain": terrain_path, "world.albedo": albedo_path}
 
 
@@ -149,7 +182,7 @@ STAGE = Stage(
     name="world",
     version=1,
     description="Assemble world.usda: the terrain mesh and material, and every upstream USD layer.",
-    inputs=(Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height"),) + LAYER_INPUTS,
+    inputs=(Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height"),) + LAYER_INPUTS + ASSET_INPUTS,
     outputs=(
         Artifact("world.root", kind="usd", file="world.usda", shape="any", publish=True,
                  description="the root layer composing every layer of the world"),

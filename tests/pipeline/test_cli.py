@@ -18,7 +18,9 @@ import pytest
 from pipeline import exr, usdio
 
 REPO = Path(__file__).resolve().parents[2]
-SMALL = ["--set", "heightmap.resolution=96", "--set", "world.texture_size=64", "--set", "shared.mesh_max_vertices=49"]
+# A small world: 96^2 cells, and only the grass asset (the tree presets take seconds each; tests/stages/plants covers them)
+SMALL = ["--set", "heightmap.resolution=96", "--set", "world.texture_size=64", "--set", "shared.mesh_max_vertices=49",
+         "--set", 'plants.build=["grass"]']
 
 
 @pytest.fixture
@@ -227,3 +229,21 @@ def test_dask_bake_gives_the_same_keys_and_pixels_as_local(project):
     assert {v["status"] for v in dask.values()} == {"ran"}
     assert _decoded(project / "build_local") == _decoded(project / "build_dask")
     assert usdio.validate(project / "build_dask" / "worlds" / "default" / "world.usda") == []
+
+
+def test_world_instancers_use_the_plant_assets(project):
+    from pxr import Usd, UsdGeom
+    bake_json(project, "--set", 'plants.build=["grass", "shrub"]', "--set", "heightmap.resolution=128")
+    stage = Usd.Stage.Open(str(project / "build" / "worlds" / "default" / "world.usda"))
+    placed = json.loads(next((project / "build" / "artifacts" / "vegetation").glob("*/species.json")).read_text())["placed"]
+    assert {"grass", "shrub"} & set(placed)
+    seen = set()
+    for prim in stage.Traverse():
+        if prim.IsA(UsdGeom.PointInstancer):
+            proto = stage.GetPrimAtPath(UsdGeom.PointInstancer(prim).GetPrototypesRel().GetTargets()[0])
+            species = proto.GetName()
+            has_asset = proto.GetVariantSets().HasVariantSet("lod")
+            assert has_asset == (species in ("grass", "shrub")), species
+            seen.add(species)
+    assert seen == set(placed)
+    assert usdio.validate(project / "build" / "worlds" / "default" / "world.usda") == []

@@ -1,0 +1,236 @@
+"""Host side of kernels.cl: the same functions and classes as reference.py,
+run on the OpenCL device. Buffers of the simulation and of the Poisson-disk
+sampler stay on the device across steps; only results are copied back.
+
+`local` is the work-group size (None: the runtime chooses); results do not
+depend on it (the tests run several).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from . import reference as ref
+
+KERNELS = Path(__file__).with_name("kernels.cl")
+F = np.float32
+
+
+def _cl():
+    import pyopencl as cl
+
+    from pipeline.opencl import get_cl
+
+    return cl, get_cl()
+
+
+def program(nb: int = 2):
+    from pipeline.opencl import load_program
+
+    return _Kernels(load_program(KERNELS, (f"-DNB={int(nb)}", f"-DPN={ref.PN}")))
+
+
+_KERNELS: dict = {}
+
+
+class _Kernels:
+    """Kernel objects of a program, retrieved once (each retrieval would
+    build a new kernel object)."""
+
+    def __init__(self, prg):
+        self.prg = prg
+
+    def __getattr__(self, name):
+        import pyopencl as cl
+
+        key = (id(self.prg), name)
+        if key not in _KERNELS:
+            _KERNELS[key] = (self.prg, cl.Kernel(self.prg, name))
+        return _KERNELS[key][1]
+
+
+def _gs(shape, local):
+    from pipeline.opencl import global_size
+
+    return global_size(tuple(shape), local)
+
+
+class Buffers:
+    """Small helper: device buffers from arrays, and back."""
+
+    def __init__(self):
+        self.cl, self.env = _cl()
+
+    def arr(self, a, write=False):
+        mf = self.cl.mem_flags
+        a = np.ascontiguousarray(a)
+        flags = (mf.READ_WRITE if write else mf.READ_ONLY) | mf.COPY_HOST_PTR
+        return self.cl.Buffer(self.env.ctx, flags, hostbuf=a if a.nbytes else np.zeros(1, a.dtype))
+
+    def empty(self, nbytes):
+        return self.cl.Buffer(self.env.ctx, self.cl.mem_flags.READ_WRITE, max(int(nbytes), 4))
+
+    def get(self, buf, shape, dtype):
+        out = np.empty(shape, dtype)
+        self.cl.enqueue_copy(self.env.queue, out, buf)
+        return out
+
+    def run(self, kernel, gsize, local, *args):
+        kernel(self.env.queue, _gs(gsize, local), local, *args)
+
+
+def attributes(h, dx, kc, inv_kc2, dirs, steps, sun0, sun1, inv_direct, diffuse, local=None):
+    b = Buffers()
+    h = np.ascontiguousarray(h, F)
+    rows, cols = h.shape
+    nd = len(dirs)
+    prg = program()
+    hb = b.arr(h)
+    sb = b.arr(np.ascontiguousarray(steps, F))
+    hz = b.empty(nd * h.nbytes)
+    dirs = np.asarray(dirs, F)
+    for d in range(nd):
+        b.run(prg.horizon, (cols, rows), local, hb, np.int32(rows), np.int32(cols), F(dx), dirs[d, 0], dirs[d, 1],
+              sb, np.int32(len(steps)), np.int32(d), hz)
+    outs = [b.empty(h.nbytes) for _ in range(6)]
+    sun0 = np.ascontiguousarray(sun0, F).reshape(-1, 4)
+    sun1 = np.ascontiguousarray(sun1, F).reshape(-1, 4)
+    b.run(prg.shade, (cols, rows), local, hb, np.int32(rows), np.int32(cols), F(dx), np.int32(kc), F(inv_kc2), hz,
+          np.int32(nd), b.arr(sun0), b.arr(sun1), np.int32(len(sun0)), F(inv_direct), F(diffuse), *outs)
+    return tuple(b.get(o, (rows, cols), F) for o in outs)
+
+
+def moisture_filter(m, jitter, key, local=None):
+    b = Buffers()
+    m = np.ascontiguousarray(m, F)
+    rows, cols = m.shape
+    out = b.empty(m.nbytes)
+    b.run(program().moisture_filter, (cols, rows), local, b.arr(m), np.int32(rows), np.int32(cols), F(jitter),
+          np.uint32(key), out)
+    return b.get(out, (rows, cols), F)
+
+
+def suitability(alt, slope, moist, sun, curv, blocked, prefs, local=None):
+    b = Buffers()
+    shape = np.shape(alt)
+    n = int(np.prod(shape))
+    prefs = np.ascontiguousarray(prefs, F).reshape(-1, 4)
+    nsp = len(prefs) // ref.NPREF
+    out = b.empty(max(nsp, 1) * n * 4)
+    args = [b.arr(np.ascontiguousarray(a, F)) for a in (alt, slope, moist, sun, curv)]
+    if nsp:
+        b.run(program().suitability, (n,), local, *args, b.arr(np.ascontiguousarray(blocked, np.uint8)),
+              np.int32(n), b.arr(prefs), np.int32(nsp), out)
+    return b.get(out, (nsp,) + shape, F) if nsp else np.zeros((0,) + shape, F)
+
+
+def splat(alt, slope, grad, moist, water, p, local=None):
+    b = Buffers()
+    shape = np.shape(alt)
+    n = int(np.prod(shape))
+    out = b.empty(n * 6 * 4)
+    args = [b.arr(np.ascontiguousarray(a, F)) for a in (alt, slope, grad, moist)]
+    b.run(program().splat, (n,), local, *args, b.arr(np.ascontiguousarray(water, np.uint8)), np.int32(n),
+          b.arr(np.ascontiguousarray(p, F)), out)
+    return b.get(out, shape + (6,), F)
+
+
+class Sim:
+    """reference.Sim on the device."""
+
+    def __init__(self, sp, birth, suit, tab, nb: int, local=None):
+        self.b = b = Buffers()
+        sp = np.ascontiguousarray(sp, np.int32)
+        self.nz, self.nx = sp.shape
+        self.n = n = self.nx * self.nz
+        suit = np.ascontiguousarray(suit, F)
+        self.nsp = suit.shape[0]
+        self.local = local
+        self.local1 = None if local is None else (int(np.prod(local)),)
+        self.prg = program(nb=nb)
+        self.sp = b.arr(sp, True)
+        self.birth = b.arr(np.ascontiguousarray(birth, np.int32), True)
+        self.suit = b.arr(suit)
+        self.tab = b.arr(np.ascontiguousarray(tab, F))
+        self.mature = b.empty(self.nsp * n * 4)
+        self.tmp = b.empty(self.nsp * n * 4)
+        self.count = b.empty(self.nsp * n * 4)
+        self.rec = b.empty(n * 16)
+        self.st = [b.empty(n), b.empty(n)]
+        self.mark = b.empty(n)
+        self.cur = 0
+
+    def seed_counts(self, t):
+        b, p, n = self.b, self.prg, self.n
+        b.run(p.sim_sources, (n,), self.local1, self.sp, self.birth, np.int32(n), np.int32(t), self.tab,
+              np.int32(self.nsp), self.mature)
+        b.run(p.box_sum, (self.nx, self.nz), self.local, self.mature, np.int32(self.nx), np.int32(self.nz),
+              np.int32(0), self.tab, np.int32(self.nsp), self.tmp)
+        b.run(p.box_sum, (self.nx, self.nz), self.local, self.tmp, np.int32(self.nx), np.int32(self.nz),
+              np.int32(1), self.tab, np.int32(self.nsp), self.count)
+
+    def update(self, t, stress, key):
+        self.b.run(self.prg.sim_update, (self.n,), self.local1, self.sp, self.birth, self.suit, self.count,
+                   np.int32(self.n), np.int32(t), F(stress), np.uint32(key), self.tab, np.int32(self.nsp))
+
+    def thin_init(self, t):
+        self.cur = 0
+        self.b.run(self.prg.thin_init, (self.nx, self.nz), self.local, self.sp, self.birth, self.suit,
+                   np.int32(self.nx), np.int32(self.nz), np.int32(t), self.tab, self.rec, self.st[0])
+
+    def thin_round(self, t, rnd) -> int:
+        b, p = self.b, self.prg
+        st_in, st_out = self.st[self.cur], self.st[1 - self.cur]
+        b.run(p.thin_mark, (self.nx, self.nz), self.local, self.rec, st_in, np.int32(self.nx), np.int32(self.nz),
+              self.mark)
+        b.run(p.thin_resolve, (self.nx, self.nz), self.local, self.rec, st_in, self.mark, np.int32(self.nx),
+              np.int32(self.nz), np.int32(t), np.int32(rnd), self.tab, self.sp, st_out)
+        self.cur = 1 - self.cur
+        st = b.get(st_out, (self.n,), np.uint8)
+        return int(np.count_nonzero(st == 1))
+
+    def read(self):
+        return (self.b.get(self.sp, (self.nz, self.nx), np.int32),
+                self.b.get(self.birth, (self.nz, self.nx), np.int32))
+
+
+class Poisson:
+    """reference.Poisson on the device."""
+
+    def __init__(self, nx, nz, c, wdom, ddom, rad, dx, margin, obs_start, obs, onx, onz, oc, local=None):
+        self.b = b = Buffers()
+        self.nx, self.nz = nx, nz
+        self.local = local
+        self.prg = program()
+        rad = np.ascontiguousarray(rad, F)
+        self.rows, self.cols = rad.shape
+        self.pts = b.arr(np.zeros((nz * nx, 4), F), True)
+        self.rad = b.arr(rad)
+        self.obs_start = b.arr(np.ascontiguousarray(obs_start, np.int32))
+        self.obs = b.arr(np.ascontiguousarray(obs, F).reshape(-1, 4))
+        self.fixed = (F(c), F(wdom), F(ddom))
+        self.tail = (F(dx), F(margin), self.obs_start, self.obs, np.int32(onx), np.int32(onz), F(oc))
+
+    def phase(self, px, pz, pss, key):
+        P = ref.PN + 1
+        gx, gz = -(-(self.nx - px) // P), -(-(self.nz - pz) // P)
+        if gx <= 0 or gz <= 0:
+            return
+        c, w, d = self.fixed
+        self.b.run(self.prg.poisson_phase, (gx, gz), self.local, self.pts, np.int32(self.nx), np.int32(self.nz),
+                   c, w, d, np.int32(px), np.int32(pz), np.uint32(pss), np.uint32(key), self.rad,
+                   np.int32(self.rows), np.int32(self.cols), *self.tail)
+
+    def read(self):
+        return self.b.get(self.pts, (self.nz * self.nx, 4), F)
+
+
+def grass_tufts(dens, dx, nx, nz, sp, jitter, wdom, ddom, key, local=None):
+    b = Buffers()
+    dens = np.ascontiguousarray(dens, F)
+    rows, cols = dens.shape
+    out = b.empty(nx * nz * 16)
+    b.run(program().grass_tufts, (nx, nz), local, b.arr(dens), np.int32(rows), np.int32(cols), F(dx),
+          np.int32(nx), np.int32(nz), F(sp), F(jitter), F(wdom), F(ddom), np.uint32(key), out)
+    return b.get(out, (nz * nx, 4), F)

@@ -1,0 +1,378 @@
+"""The vegetation map stage: where each species grows on this terrain, placed
+without overlap, instanced in USD.
+
+1. Local attributes (attributes.py, kernel `attributes`): slope, aspect,
+   curvature, sky view and sunlight with terrain shadows; altitude; moisture
+   from hydrology (else erosion, else the topographic position); water
+   (lakes, rivers) blocks everything.
+2. Splat weights (kernels `moisture_filter`, `splat`): rock, scree, grass,
+   dry grass, mud, snow from slope, altitude, filtered moisture and water,
+   seed 004 with both defects fixed; they sum to 1.
+3. Suitability per species (kernel `suitability`): soft ranges of altitude,
+   slope, moisture, sunlight, curvature.
+4. Competition (ecosystem.py): the self-thinning simulation for `years`, on
+   a grid of sim_cell_m; each species' share of space.
+5. Targets and placement (placement.py): density maps = density x
+   suitability x relative yield x clumping; variable-radius Poisson disk by grid
+   phases, exact counts per block, trunk clearance between species.
+6. Grass (grass.py): density and height fields, jittered-grid tufts.
+7. The USD layer (usd_layer.py), a preview, maps and statistics.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline import exr
+from pipeline.contract import Artifact, Input, RunContext, Stage
+from pipeline.errors import InputError, StageError
+from pipeline.grid import Grid
+from pipeline.preview import hillshade
+
+from . import attributes as attrs
+from . import ecosystem, grass, placement, usd_layer
+from .params import NPREF_ORDER, VegetationParams
+
+TERRAIN_SOURCES = ("erosion.height", "heightmap.height")
+SPECIES_MAPS = "species.exr"
+ATTR_CHANNELS = ("attr.slope", "attr.aspect", "attr.curvature", "attr.sky_view", "attr.sunlight", "attr.moisture")
+SPLAT_CHANNELS = ("splat.rock", "splat.scree", "splat.grass", "splat.dry_grass", "splat.mud", "splat.snow")
+F = np.float32
+
+
+def backend_modules(use_opencl: bool = True):
+    if use_opencl:
+        from . import device
+
+        return device
+    from . import reference
+
+    return reference
+
+
+def preference_table(params: VegetationParams, names: list[str]) -> np.ndarray:
+    """(nsp, NPREF, 4) float32: min, max, 1 / edge (0: hard edge), 0."""
+    out = np.zeros((len(names), len(NPREF_ORDER), 4), F)
+    for s, name in enumerate(names):
+        e = params.species[name]
+        for k, key in enumerate(NPREF_ORDER):
+            p = getattr(e, key)
+            out[s, k] = (p.min, p.max, 1.0 / p.edge if p.edge > 0 else 0.0, 0.0)
+    return out
+
+
+def splat_table(p: VegetationParams) -> np.ndarray:
+    def ss(lo, hi):
+        return (lo, 1.0 / (hi - lo))
+    return np.array([
+        *ss(p.snow_min_m, p.snow_max_m), *ss(p.snow_slope_deg - 5.0, p.snow_slope_deg + 5.0), p.snow_melt,
+        *ss(p.rock_slope_min_deg, p.rock_slope_max_deg), *ss(p.rock_min_m, p.rock_max_m),
+        *ss(p.scree_slope_min_deg, p.scree_slope_max_deg),
+        *ss(p.mud_moisture - 0.05, p.mud_moisture + 0.05), *ss(0.5 * p.mud_slope_deg, p.mud_slope_deg),
+        *ss(p.dry_moisture - 0.1, p.dry_moisture + 0.1), *ss(p.alpine_min_m, p.alpine_max_m),
+    ], F)
+
+
+def _optional_channel(inputs: dict, role: str, channel: str, shape) -> np.ndarray | None:
+    g = inputs.get(role)
+    if g is None:
+        return None
+    a = g.channel(channel) if channel in g.channels else g.channel(g.channels[0])
+    if a.shape != shape:
+        raise InputError(f"vegetation: input {role} is {a.shape}, the terrain {shape}")
+    return np.nan_to_num(a.astype(np.float64), nan=0.0)
+
+
+def preview(height: Grid, splat: np.ndarray, gdens: np.ndarray, water: np.ndarray, sets: dict, dom, names) -> np.ndarray:
+    img = hillshade(height).astype(np.float32)
+    ground = (splat[..., 0:1] * np.array([120, 115, 110]) + splat[..., 1:2] * np.array([150, 140, 125])
+              + splat[..., 2:3] * np.array([90, 140, 60]) + splat[..., 3:4] * np.array([170, 160, 100])
+              + splat[..., 4:5] * np.array([100, 80, 60]) + splat[..., 5:6] * np.array([245, 245, 250]))
+    img = img * (0.35 + 0.65 * ground / 255.0)
+    img = np.where(water[..., None], 0.3 * img + 0.7 * np.array([40, 90, 170]), img)
+    rows, cols = gdens.shape
+    for k, name in enumerate(names):
+        inst = sets.get(name)
+        if inst is None or not len(inst):
+            continue
+        c = np.array(usd_layer.colour(name, k)) * 255.0
+        col = np.clip(((inst.positions[:, 0] - dom.origin_m[0]) / dom.dx).astype(np.int64), 0, cols - 1)
+        row = np.clip(((inst.positions[:, 2] - dom.origin_m[1]) / dom.dx).astype(np.int64), 0, rows - 1)
+        a = 0.35 if name == "grass" else 0.8
+        img[row, col] = (1 - a) * img[row, col] + a * c
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> dict[str, Any]:
+    from stages.world.terrain_mesh import build_terrain_mesh
+
+    T: dict[str, float] = {}
+    t_all = time.perf_counter()
+
+    def lap(name, t0):
+        T[name] = round(time.perf_counter() - t0, 4)
+
+    terrain: Grid = inputs["terrain"]
+    h_raw = terrain.channel(terrain.channels[0]).astype(F)
+    rows, cols = h_raw.shape
+    if rows < 2 or cols < 2:
+        raise InputError(f"vegetation: the terrain grid is {rows}x{cols}; at least 2x2 cells are needed")
+    nodata = ~np.isfinite(h_raw)
+    if nodata.all():
+        raise InputError("vegetation: the terrain has no finite height")
+    h = np.where(nodata, np.float32(np.nanmin(h_raw)), h_raw).astype(F)
+    dx = float(terrain.cell_size_m)
+    origin = tuple(terrain.origin_m)
+    be = backend_modules(True)
+    seed = int(ctx.seed)
+
+    ctx.progress(0.0, "attributes")
+    t0 = time.perf_counter()
+    a = attrs.compute(h, dx, params, be)
+    lap("attributes_s", t0)
+    moist = _optional_channel(inputs, "moisture", "moisture", h.shape)
+    source = "hydrology"
+    if moist is None:
+        moist = _optional_channel(inputs, "erosion_moisture", "moisture", h.shape)
+        source = "erosion"
+    if moist is None:
+        moist = attrs.fallback_moisture(h, dx, params.moisture_fallback_radius_m, params.moisture_fallback_scale_m)
+        source = "topographic position"
+    moist = np.clip(moist, 0.0, 1.0).astype(F)
+    lakes = _optional_channel(inputs, "lakes", "lake.depth", h.shape)
+    rivers = _optional_channel(inputs, "rivers", "river.mask", h.shape)
+    water = np.zeros(h.shape, bool)
+    if lakes is not None:
+        water |= lakes > 0
+    if rivers is not None:
+        water |= rivers > 0.5
+    blocked = (water | nodata).astype(np.uint8)
+
+    ctx.progress(0.05, "splat weights")
+    t0 = time.perf_counter()
+    from .reference import stream_key
+
+    mf = be.moisture_filter(moist, params.moisture_jitter_m / dx, stream_key(seed, "moisture-jitter"))
+    stab = splat_table(params)
+    splat = be.splat(h, a["slope"], a["grad"], mf, water.astype(np.uint8), stab)
+    sums = splat.astype(np.float64).sum(axis=-1)
+    if not (np.isfinite(splat).all() and splat.min() >= 0.0 and splat.max() <= 1.0 and np.abs(sums - 1).max() <= 1e-6):
+        raise StageError(f"vegetation: splat weights out of [0, 1] or not summing to 1 (max |sum - 1| = "
+                         f"{float(np.abs(sums - 1).max()):.3g})")
+    from .reference import seed004_sum
+
+    thesis_sum = seed004_sum(h, a["slope"], a["grad"], mf, stab)
+    lap("splat_s", t0)
+
+    ctx.progress(0.1, "suitability")
+    t0 = time.perf_counter()
+    plants = params.plant_species()
+    gname = params.grass_species()
+    grow = plants + ([gname] if gname else [])
+    suit_all = be.suitability(h, a["slope"], moist, a["sunlight"], a["curvature"], blocked,
+                              preference_table(params, grow)) if grow else np.zeros((0, rows, cols), F)
+    suit = suit_all[: len(plants)]
+    lap("suitability_s", t0)
+
+    ctx.progress(0.15, "ecosystem simulation")
+    t0 = time.perf_counter()
+    sim = None
+    if plants:
+        grid = ecosystem.sim_grid(cols, rows, dx, params.sim_cell_m)
+        suit_sim = ecosystem.to_sim_grid(suit, dx, grid)
+        sim = ecosystem.simulate(suit_sim, grid, params, plants, seed, be,
+                                 progress=lambda f, m: ctx.progress(0.15 + 0.25 * f, m))
+        ctx.progress(0.4, "ecosystem calibration (each species alone)")
+        alone = ecosystem.alone_density(params, plants, grid.g, seed, be)
+        share = ecosystem.relative_yield(sim, params, suit_sim, alone, dx, (rows, cols))
+        sim.stats["alone_plants_per_ha_at_full_suitability"] = {
+            n: float(alone[s, -1] * 1e4 / grid.g ** 2) for s, n in enumerate(plants)}
+    else:
+        share = np.zeros((0, rows, cols))
+    lap("ecosystem_s", t0)
+
+    ctx.progress(0.45, "placement")
+    t0 = time.perf_counter()
+    dom = placement.Domain(rows, cols, dx, origin)
+    n_t, cap_info = placement.target_density(params, plants, suit, share, dx, origin, seed)
+    placed = placement.place_species(params, plants, n_t, dom, seed, be,
+                                     progress=lambda f, m: ctx.progress(0.45 + 0.25 * f, m))
+    lap("placement_s", t0)
+
+    ctx.progress(0.7, "grass")
+    t0 = time.perf_counter()
+    cover = grass.canopy_cover(params, plants, n_t)
+    gsuit = suit_all[len(plants)] if gname else None
+    gdens, gheight = grass.grass_maps(params, gname, gsuit, splat, cover, mf, dx, origin, seed)
+    tufts, tuft_stats = grass.place_tufts(params, gname, gdens, dom, seed, be)
+    lap("grass_s", t0)
+
+    ctx.progress(0.75, "instances")
+    t0 = time.perf_counter()
+    mesh = build_terrain_mesh(Grid(h, dx, ("height",), origin), params.mesh_max_vertices)
+    sets: dict[str, placement.Instances] = {}
+    dropped = {}
+    for s, name in enumerate(plants):
+        inst = placement.instances(placed[name], s, params, dom, mesh, sim, seed)
+        sets[name], dropped[name] = placement.keep_allowed(inst, n_t[s] > 0, dom)
+    if tufts is not None:
+        inst = grass.tuft_instances(tufts, params, gheight, dom, mesh, seed)
+        sets[gname], dropped[gname] = placement.keep_allowed(inst, gdens > 0, dom)
+    lap("instances_s", t0)
+
+    ctx.progress(0.8, "USD layer")
+    t0 = time.perf_counter()
+    usd_path = ctx.path("vegetation.instances")
+    size = max(cols, rows) * dx
+    written = {n: s for n, s in sets.items() if len(s)}
+    ustats = usd_layer.write(usd_path, ctx.provenance, written, {n: params.species[n].height_m for n in written},
+                             {n: params.species[n].kind for n in written}, origin[0], origin[1], size,
+                             params.tile_max_instances, params.tile_min_size_m)
+    lap("usd_s", t0)
+    t0 = time.perf_counter()
+    from pipeline import usdio
+
+    errors = usdio.validate(usd_path)
+    if errors:
+        raise StageError("vegetation: the instances layer fails USD validation: " + "; ".join(errors[:10]))
+    lap("usd_validate_s", t0)
+
+    # maps
+    ctx.progress(0.9, "maps")
+    t0 = time.perf_counter()
+
+    def g(data, channels):
+        return Grid(np.ascontiguousarray(data, dtype=F), dx, channels, origin)
+
+    ha = 1e4
+    per_species_channels, per_species = [], []
+    for s, name in enumerate(plants):
+        counts = np.zeros((rows, cols))
+        if len(sets[name]):
+            np.add.at(counts, dom.world_cell(sets[name].positions), 1.0)
+        per_species += [suit[s], share[s], n_t[s] * ha, counts * ha / (dx * dx)]
+        per_species_channels += [f"suitability.{name}", f"yield.{name}", f"density.{name}", f"placed.{name}"]
+    if gname:
+        per_species += [gsuit, gdens]
+        per_species_channels += [f"suitability.{gname}", f"density.{gname}"]
+    if per_species:
+        exr.write_grid(Path(ctx.out_dir) / SPECIES_MAPS, g(np.stack(per_species, -1), tuple(per_species_channels)),
+                       ctx.provenance)
+    total_density = n_t.sum(axis=0) * ha if len(plants) else np.zeros((rows, cols))
+    lap("maps_s", t0)
+
+    # statistics and the species report
+    errors_by_species = {}
+    for s, name in enumerate(plants):
+        errors_by_species[name] = placement.density_error(placed[name].x, placed[name].z, n_t[s], dom)
+    species_report = {}
+    for name in params.grow:
+        e = params.species[name]
+        n = len(sets[name]) if name in sets else 0
+        rep = {"kind": e.kind, "instances": int(n), "placed": bool(n > 0)}
+        if e.kind == "plant":
+            rep.update(target_instances=round(placed[name].stats.get("target_plants", 0.0), 1),
+                       shortfall=int(placed[name].stats.get("shortfall_plants", 0)))
+        else:
+            rep.update(tuft_spacing_m=tuft_stats.get("tuft_spacing_m"))
+        species_report[name] = rep
+    placed_names = [n for n in params.grow if species_report[n]["placed"]]
+    unplaced = [n for n in params.grow if not species_report[n]["placed"]]
+    report = {
+        "placed": placed_names,
+        "unplaced": unplaced,
+        "species": species_report,
+        "prototypes": {n: f"/World/Vegetation/Prototypes/{n}" for n in placed_names},
+        "maps": {"file": SPECIES_MAPS, "channels": per_species_channels,
+                 "units": "suitability, yield (relative yield from the simulation): 1; density (target), placed: plants per ha; grass density: 1"},
+    }
+    stats = {
+        "moisture_source": source,
+        "cells": int(rows * cols), "cell_size_m": dx,
+        "splat_max_sum_error": float(np.abs(sums - 1).max()),
+        "seed004_unfixed_sum_max": float(thesis_sum.max()),
+        "seed004_unfixed_cells_over_1": float((thesis_sum > 1 + 1e-6).mean()),
+        "moisture_filter_mean_gain": float(mf.astype(np.float64).mean() / max(float(moist.astype(np.float64).mean()), 1e-12)),
+        "ecosystem": dict(sim.stats) if sim else {},
+        "ecosystem_history": sim.history if sim else [],
+        "placement": {n: {**placed[n].stats, **cap_info[n], "density_error": errors_by_species[n]} for n in plants},
+        "grass": tuft_stats,
+        "usd": ustats,
+        "instances": {n: int(len(s)) for n, s in sets.items()},
+        "dropped_at_cell_edges": dropped,
+        "timings": T,
+    }
+    stats["timings"]["total_s"] = round(time.perf_counter() - t_all, 4)
+    ctx.metrics.update({
+        "instances": stats["instances"], "unplaced": unplaced, "moisture_source": source,
+        "splat_max_sum_error": stats["splat_max_sum_error"],
+        "density_max_relative_error": {n: errors_by_species[n]["max_relative_error"] for n in plants},
+        "ecosystem_plateau_relative_change": stats["ecosystem"].get("plateau_relative_change"),
+        "ecosystem_species_shares": stats["ecosystem"].get("species_shares"),
+        "timings": T,
+    })
+    ctx.progress(1.0, "done")
+    return {
+        "vegetation.attributes": g(np.stack([a["slope"], a["aspect"], a["curvature"], a["sky_view"], a["sunlight"],
+                                             moist], -1), ATTR_CHANNELS),
+        "vegetation.splat": g(splat, SPLAT_CHANNELS),
+        "vegetation.grass": g(np.stack([gdens, gheight], -1), ("grass.density", "grass.height")),
+        "vegetation.canopy": g(np.stack([cover, total_density], -1), ("canopy.cover", "canopy.density")),
+        "vegetation.instances": usd_path,
+        "vegetation.species": report,
+        "vegetation.stats": stats,
+        "vegetation.preview": preview(Grid(h, dx, ("height",), origin), splat, gdens, water, sets, dom, grow),
+    }
+
+
+def _grid(name, file, channels, units, description):
+    return Artifact(name, kind="grid", file=file, channels=channels, units=units, description=description)
+
+
+STAGE = Stage(
+    name="vegetation",
+    version=1,
+    description="Vegetation map: local attributes and sunlight, per-species suitability, competition by an ecosystem "
+    "simulation (Deussen 1998 self-thinning), variable-radius Poisson-disk placement on the terrain mesh, grass "
+    "density and tufts, terrain splat weights (seed 004, fixed), and the instances as UsdGeom.PointInstancers in "
+    "quadtree tiles",
+    inputs=(
+        Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height"),
+        Input("moisture", one_of=("hydrology.moisture",), optional=True, description="moisture 0..1"),
+        Input("lakes", one_of=("hydrology.lakes",), optional=True, description="lake depth: nothing grows in lakes"),
+        Input("rivers", one_of=("hydrology.rivers",), optional=True, description="river mask: nothing grows in rivers"),
+        Input("erosion_moisture", one_of=("erosion.moisture",), optional=True,
+              description="moisture from the erosion storm, used when hydrology is off"),
+    ),
+    outputs=(
+        _grid("vegetation.attributes", "attributes.exr", ATTR_CHANNELS, "deg, deg, 1/m, 1, 1, 1",
+              "local attributes: slope, aspect (clockwise from north, the way the slope faces), curvature "
+              "(Laplacian, > 0 concave), sky view (0..1), sunlight (insolation relative to open flat ground), moisture"),
+        _grid("vegetation.splat", "splat.exr", SPLAT_CHANNELS, "1",
+              "terrain splat weights for the ground material, each in [0, 1], summing to 1"),
+        _grid("vegetation.grass", "grass.exr", ("grass.density", "grass.height"), "1, m",
+              "grass density (probability of a tuft, 0..1) and grass height (m)"),
+        _grid("vegetation.canopy", "canopy.exr", ("canopy.cover", "canopy.density"), "1, 1/ha",
+              "tree and shrub crown cover (0..1) and their total target density (plants per ha)"),
+        Artifact("vegetation.instances", kind="usd", file="instances.usdc", shape="any",
+                 description="/World/Vegetation: quadtree tiles of UsdGeom.PointInstancers, one per species per tile, "
+                 "whose prototypes inherit /World/Vegetation/Prototypes/<species> (placeholder cones until the plant "
+                 "assets are referenced there)"),
+        Artifact("vegetation.species", kind="json", file="species.json", shape="any",
+                 description="the placed species with instance counts (the plants stage builds only these), the "
+                 "unplaced ones, the prototype prim paths and the per-species maps in species.exr"),
+        Artifact("vegetation.stats", kind="json", file="stats.json", shape="any",
+                 description="ecosystem history and stability, placement and density errors, splat checks, timings"),
+        Artifact("vegetation.preview", kind="image", file="preview.png", dtype="uint8",
+                 description="the placement over the hillshade and ground colours, 8-bit RGB"),
+    ),
+    params=VegetationParams,
+    run=run,
+    source_dir=Path(__file__).resolve().parent,
+    uses_seed=True,
+    uses_opencl=True,
+    shared_params=("mesh_max_vertices",),
+)

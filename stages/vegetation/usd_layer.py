@@ -1,0 +1,179 @@
+"""The instances layer (instances.usdc):
+
+/World (assembly)
+  Vegetation (Xform, kind group)
+    Prototypes (class Scope: not drawn; one class prim per placed species)
+      <species> (Xform, kind component): Placeholder (Cone, purpose proxy,
+                 the species' height_m), customData asset hint
+    q (Xform, kind group): the quadtree root tile; children q0 (north-west),
+      q1 (north-east), q2 (south-west), q3 (south-east), q01 ... down to the
+      leaves, which hold
+      <species> (PointInstancer, kind group): positions, orientations (half
+                 quaternions), scales, protoIndices, ids, primvars age and
+                 random (per instance), extent
+        Prototypes (Scope, kind group)
+          <species> (Xform, kind component) inherits
+                    /World/Vegetation/Prototypes/<species>
+
+Every tile carries extentsHint and customData (bounds in metres, instance
+counts). The prototype of every instancer inherits one class prim per
+species, so a stronger layer that adds a reference to the plant asset on
+/World/Vegetation/Prototypes/<species> (and deactivates its Placeholder)
+swaps the asset into every tile at once.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .placement import Instances
+
+PALETTE = {  # displayColor of the placeholders and preview dots
+    "conifer": (0.04, 0.22, 0.16), "broadleaf": (0.45, 0.80, 0.12), "shrub": (0.80, 0.55, 0.20),
+    "grass": (0.60, 0.80, 0.35),
+}
+
+
+def colour(name: str, k: int) -> tuple[float, float, float]:
+    if name in PALETTE:
+        return PALETTE[name]
+    rng = np.random.default_rng(k + 17)
+    return tuple(float(v) for v in 0.2 + 0.6 * rng.random(3))
+
+
+@dataclass
+class Tile:
+    path: str  # quadtree digits after "q"
+    x0: float
+    z0: float
+    size: float
+    index: dict[str, np.ndarray] = field(default_factory=dict)  # species -> instance indices
+    children: list["Tile"] = field(default_factory=list)
+
+    @property
+    def count(self) -> int:
+        return sum(len(v) for v in self.index.values())
+
+
+def build_quadtree(sets: dict[str, Instances], x0: float, z0: float, size: float, max_instances: int,
+                   min_size: float) -> Tile:
+    """Split the square until a tile holds at most max_instances (or is at
+    min_size). Points on a split line go to the east / south tile."""
+    def split(tile: Tile) -> Tile:
+        if tile.count <= max_instances or tile.size / 2 < min_size:
+            return tile
+        h = tile.size / 2
+        for k, (ox, oz) in enumerate(((0, 0), (1, 0), (0, 1), (1, 1))):
+            cx, cz = tile.x0 + ox * h, tile.z0 + oz * h
+            idx = {}
+            for name, ii in tile.index.items():
+                p = sets[name].positions[ii]
+                east = p[:, 0] >= tile.x0 + h
+                south = p[:, 2] >= tile.z0 + h
+                m = (east == bool(ox)) & (south == bool(oz))
+                if m.any():
+                    idx[name] = ii[m]
+            if idx:
+                tile.children.append(split(Tile(tile.path + str(k), cx, cz, h, idx)))
+        tile.index = {}
+        return tile
+
+    root = Tile("", x0, z0, size, {n: np.arange(len(s)) for n, s in sets.items() if len(s)})
+    return split(root)
+
+
+def _extent(inst: Instances, ii: np.ndarray, bound: float) -> np.ndarray:
+    p = inst.positions[ii].astype(np.float64)
+    s = inst.scales[ii, 0].astype(np.float64)[:, None] * bound
+    return np.stack([(p - s).min(axis=0), (p + s).max(axis=0)]).astype(np.float32)
+
+
+def write(path: Path, provenance: dict, sets: dict[str, Instances], heights: dict[str, float], kinds: dict[str, str],
+          x0: float, z0: float, size: float, max_instances: int, min_size: float) -> dict:
+    """Write the layer; `sets` holds only species with instances."""
+    from pxr import Gf, Kind, Sdf, Usd, UsdGeom, Vt
+
+    from pipeline import usdio
+
+    stage, _ = usdio.create_stage(path, provenance)
+    veg = UsdGeom.Xform.Define(stage, "/World/Vegetation")
+    Usd.ModelAPI(veg).SetKind(Kind.Tokens.group)
+    protos = stage.DefinePrim("/World/Vegetation/Prototypes", "Scope")
+    protos.SetSpecifier(Sdf.SpecifierClass)
+    names = [n for n in sets if len(sets[n])]
+    bounds = {}
+    for k, name in enumerate(names):
+        h = float(heights[name])
+        cls = UsdGeom.Xform.Define(stage, f"/World/Vegetation/Prototypes/{name}")
+        Usd.ModelAPI(cls).SetKind(Kind.Tokens.component)
+        cls.GetPrim().SetCustomDataByKey("worldbake:asset", {"layer": "plants.usda", "prim": f"/Plants/{name}"})
+        cone = UsdGeom.Cone.Define(stage, f"/World/Vegetation/Prototypes/{name}/Placeholder")
+        radius = (0.45 if kinds[name] == "grass" else 0.3) * h
+        cone.CreateHeightAttr(h)
+        cone.CreateRadiusAttr(radius)
+        cone.CreateAxisAttr(UsdGeom.Tokens.y)
+        cone.CreatePurposeAttr(UsdGeom.Tokens.proxy)
+        cone.CreateDisplayColorAttr(Vt.Vec3fArray([Gf.Vec3f(*colour(name, k))]))
+        cone.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-radius, -h / 2, -radius), Gf.Vec3f(radius, h / 2, radius)]))
+        UsdGeom.XformCommonAPI(cone).SetTranslate(Gf.Vec3d(0.0, h / 2, 0.0))
+        # a plant of height h and width at most h, at any orientation, lies within 1.25 h of its origin
+        bounds[name] = 1.25 * h
+
+    root = build_quadtree({n: sets[n] for n in names}, x0, z0, size, max_instances, min_size)
+    stats = {"tiles": 0, "leaf_tiles": 0, "instancers": 0, "max_depth": 0}
+
+    def emit(tile: Tile, parent: str) -> np.ndarray | None:
+        prim_path = f"{parent}/q{tile.path}"
+        x = UsdGeom.Xform.Define(stage, prim_path)
+        Usd.ModelAPI(x).SetKind(Kind.Tokens.group)
+        stats["tiles"] += 1
+        stats["max_depth"] = max(stats["max_depth"], len(tile.path))
+        ext = []
+        count = 0
+        if tile.children:
+            for child in tile.children:
+                e = emit(child, prim_path)
+                if e is not None:
+                    ext.append(e)
+        else:
+            stats["leaf_tiles"] += 1
+            for name, ii in tile.index.items():
+                inst = sets[name]
+                ipath = f"{prim_path}/{name}"
+                pi = UsdGeom.PointInstancer.Define(stage, ipath)
+                Usd.ModelAPI(pi).SetKind(Kind.Tokens.group)
+                scope = UsdGeom.Scope.Define(stage, f"{ipath}/Prototypes")
+                Usd.ModelAPI(scope).SetKind(Kind.Tokens.group)
+                proto = UsdGeom.Xform.Define(stage, f"{ipath}/Prototypes/{name}")
+                proto.GetPrim().GetInherits().AddInherit(f"/World/Vegetation/Prototypes/{name}")
+                pi.CreatePrototypesRel().SetTargets([proto.GetPath()])
+                n = len(ii)
+                pi.CreatePositionsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(inst.positions[ii])))
+                pi.CreateOrientationsAttr(Vt.QuathArray.FromNumpy(np.ascontiguousarray(inst.orientations[ii])))
+                pi.CreateScalesAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(inst.scales[ii])))
+                pi.CreateProtoIndicesAttr(Vt.IntArray.FromNumpy(np.zeros(n, np.int32)))
+                pi.CreateIdsAttr(Vt.Int64Array.FromNumpy(np.ascontiguousarray(inst.ids[ii])))
+                pv = UsdGeom.PrimvarsAPI(pi)
+                pv.CreatePrimvar("age", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
+                    Vt.FloatArray.FromNumpy(np.ascontiguousarray(inst.age[ii])))
+                pv.CreatePrimvar("random", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
+                    Vt.FloatArray.FromNumpy(np.ascontiguousarray(inst.random[ii])))
+                e = _extent(inst, ii, bounds[name])
+                pi.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, e[0])), Gf.Vec3f(*map(float, e[1]))]))
+                ext.append(e)
+                count += n
+                stats["instancers"] += 1
+        if not ext:
+            return None
+        e = np.stack([np.min([a[0] for a in ext], axis=0), np.max([a[1] for a in ext], axis=0)])
+        UsdGeom.ModelAPI(x).SetExtentsHint(Vt.Vec3fArray([Gf.Vec3f(*map(float, e[0])), Gf.Vec3f(*map(float, e[1]))]))
+        x.GetPrim().SetCustomDataByKey("worldbake:bounds_xz_m", Vt.DoubleArray(
+            [tile.x0, tile.z0, tile.x0 + tile.size, tile.z0 + tile.size]))
+        return e
+
+    if names:
+        emit(root, "/World/Vegetation")
+    stage.GetRootLayer().Save()
+    return stats
