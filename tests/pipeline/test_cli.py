@@ -247,3 +247,13 @@ def test_world_instancers_use_the_plant_assets(project):
             seen.add(species)
     assert seen == set(placed)
     assert usdio.validate(project / "build" / "worlds" / "default" / "world.usda") == []
+
+
+def test_with_only_heightmap_and_world_a_heightmap_change_reruns_just_those(project):
+    only = ["--set", "erosion.enabled=false", "--set", "hydrology.enabled=false",
+            "--set", "vegetation.enabled=false", "--set", "plants.enabled=false"]
+    first = bake_json(project, *only)
+    assert set(first) == {"heightmap", "world"}
+    assert plan_json(project, *only, "--set", "heightmap.octaves=6") == {"heightmap": "will run", "world": "will run"}
+    assert plan_json(project, *only, "--set", "world.roughness=0.2") == {"heightmap": "cached", "world": "will run"}
+    assert usdio.validate(project / "build" / "worlds" / "default" / "world.usda") == []
