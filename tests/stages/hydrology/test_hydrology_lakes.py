@@ -80,3 +80,42 @@ def test_no_depressions():
     yy, xx = np.mgrid[0:10, 0:12]
     res, h, F = solve((xx + yy).astype(np.float32), 1.0)
     assert res.stats["lakes"] == 0 and (res.depth == 0).all()
+
+
+def test_hack_exponent_matches_brute_force():
+    """Mainstream length = longest upstream path, by explicit walks; main
+    stems traced from the outlets by the longest donor."""
+    from stages.hydrology import reference as ref
+    from stages.hydrology.rivers import hack_exponent
+
+    rng = np.random.default_rng(3)
+    h = ref.canonical(rng.random((30, 34)) * 50 + np.linspace(0, 40, 34)[None, :])
+    kind = ref.cell_kinds(h)
+    code = ref.d8(ref.priority_flood(h, eps=True, kind=kind), kind, 5.0)
+    rcv = ref.receivers(code)
+    A = ref.accumulate(code).astype(np.float64).ravel() * 25.0
+    step = np.where(np.clip(code.ravel(), 0, 7) % 2 == 1, 5.0 * np.sqrt(2.0), 5.0)
+    L = np.zeros(rcv.size)
+    for s in range(rcv.size):  # walk down from every cell, the path length so far reaches each cell below
+        c, d = s, 0.0
+        while rcv[c] >= 0:
+            d += step[c]
+            c = rcv[c]
+            L[c] = max(L[c], d)
+    amin = 500.0
+    sel = (A >= amin) & (L > 0)
+    h_all = np.polyfit(np.log(A[sel]), np.log(L[sel]), 1)[0]
+    stem = []
+    for o in np.flatnonzero((code.ravel() == ref.OUTLET) & (A >= amin)):
+        c = o
+        while c >= 0 and A[c] >= amin and L[c] > 0:
+            stem.append(c)
+            don = np.flatnonzero(rcv == c)
+            c = don[np.argmax(L[don] + step[don])] if don.size else -1
+    stem = np.array(stem)
+    h_stem = np.polyfit(np.log(A[stem]), np.log(L[stem]), 1)[0]
+    got = hack_exponent(code, A.reshape(code.shape), 5.0, amin)
+    assert got["hack_cells"] == sel.sum() and got["hack_mainstem_cells"] == stem.size
+    assert got["hack_exponent"] == pytest.approx(h_all, abs=1e-9)
+    assert got["hack_exponent_mainstem"] == pytest.approx(h_stem, abs=1e-9)
+    assert got["longest_flow_path_m"] == pytest.approx(L.max())
