@@ -63,6 +63,12 @@ def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def deep_merge(base: dict, override: dict) -> dict:
+    """A new dict: `override` merged into `base`, tables recursively; neither
+    input is modified. Stages use it for presets overridden by config tables."""
+    return _merge(base, override, {}, "")
+
+
 def _merge(base: dict, override: dict, origin: dict[str, str], source: str, prefix: str = "") -> dict:
     """Deep merge; `origin` records which file each leaf key came from."""
     out = copy.deepcopy(base)

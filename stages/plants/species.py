@@ -24,6 +24,7 @@ from typing import Any, Literal, Optional
 import pydantic
 
 from pipeline.contract import Param
+from pipeline.config import deep_merge
 
 PRESET_DIR = Path(__file__).resolve().parents[2] / "configs" / "species"
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
@@ -167,16 +168,6 @@ class SpeciesShape(Spec):
         return self
 
 
-def _deep_merge(base: dict, over: dict) -> dict:
-    out = copy.deepcopy(base)
-    for k, v in over.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = _deep_merge(out[k], v)
-        else:
-            out[k] = copy.deepcopy(v)
-    return out
-
-
 def preset_tables(directory: Path = PRESET_DIR) -> dict[str, dict]:
     """The raw tables of configs/species/*.toml, by file stem."""
     out = {}
@@ -205,6 +196,6 @@ def resolve_species(given: dict[str, Any] | None, presets: dict[str, dict]) -> d
         if base is not None:
             if base not in presets:
                 raise ValueError(f"species {name!r}: preset {base!r} not found (presets: {', '.join(sorted(presets))})")
-            table = _deep_merge(presets[base], table)
+            table = deep_merge(presets[base], table)
         out[name] = table
     return out

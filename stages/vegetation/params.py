@@ -22,6 +22,7 @@ from typing import Any, Literal
 import pydantic
 
 from pipeline.contract import Param, Params
+from pipeline.config import deep_merge
 
 # The Poisson-disk sampler's saturation constant: after the default 6 passes
 # a set of constant radius r holds at least KAPPA / r^2 points per m^2 (0.606
@@ -159,16 +160,6 @@ DEFAULT_SPECIES: dict[str, dict[str, Any]] = {
 }
 
 
-def _deep_merge(base: dict, over: dict) -> dict:
-    out = copy.deepcopy(base)
-    for k, v in over.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = _deep_merge(out[k], v)
-        else:
-            out[k] = copy.deepcopy(v)
-    return out
-
-
 def resolve_species(tables: Any) -> Any:
     """The config's species tables merged over the defaults (a default
     species' table needs only the keys that change)."""
@@ -182,7 +173,7 @@ def resolve_species(tables: Any) -> Any:
         if not isinstance(table, dict):
             out[name] = table  # pydantic reports the type error
             continue
-        out[name] = _deep_merge(DEFAULT_SPECIES[name], table) if name in DEFAULT_SPECIES else table
+        out[name] = deep_merge(DEFAULT_SPECIES[name], table) if name in DEFAULT_SPECIES else table
     return out
 
 
