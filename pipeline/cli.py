@@ -22,6 +22,7 @@ from .bake import plan_bake
 from .executors import bake_worlds
 from .config import list_variants, load_config
 from .errors import InputError, StageError
+from .opencl import OpenCLError
 from .graph import build_graph
 from .registry import all_stages
 from .store import Store
@@ -149,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
                 "describe": _cmd_describe}
     try:
         return handlers[args.command](args)
-    except InputError as e:
+    except (InputError, OpenCLError) as e:  # a bad config, input file or device choice
         print(f"worldbake: error: {e}", file=sys.stderr)
         return 2
     except StageError as e:

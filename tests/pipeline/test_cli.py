@@ -257,3 +257,11 @@ def test_with_only_heightmap_and_world_a_heightmap_change_reruns_just_those(proj
     assert plan_json(project, *only, "--set", "heightmap.octaves=6") == {"heightmap": "will run", "world": "will run"}
     assert plan_json(project, *only, "--set", "world.roughness=0.2") == {"heightmap": "cached", "world": "will run"}
     assert usdio.validate(project / "build" / "worlds" / "default" / "world.usda") == []
+
+
+def test_unknown_opencl_device_is_a_clear_error(project):
+    cmd = [sys.executable, "-m", "pipeline.cli", "plan", "configs/default.toml"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=project, timeout=120,
+                          env={**os.environ, "WORLDBAKE_CL_DEVICE": "no-such-gpu"})
+    assert proc.returncode == 2 and "WORLDBAKE_CL_DEVICE='no-such-gpu' matches no device" in proc.stderr
+    assert "Traceback" not in proc.stderr
