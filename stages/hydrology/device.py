@@ -8,7 +8,6 @@ size (`local`) only changes scheduling, never a bit of the result.
 """
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np

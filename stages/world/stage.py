@@ -12,7 +12,6 @@ For now it reads the latest terrain height and writes
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
@@ -20,7 +19,7 @@ from pipeline import exr, usdio
 from pipeline.contract import Artifact, Input, Param, Params, RunContext, Stage
 from pipeline.grid import Grid
 
-from .terrain_mesh import bilinear, build_terrain_mesh, lattice_coordinates
+from .terrain_mesh import bilinear, build_terrain_mesh
 
 TERRAIN_SOURCES = ("erosion.height", "heightmap.height")
 # Upstream USD layers composed into the world, strongest first; absent when

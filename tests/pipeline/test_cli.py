@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import exr, usdio
+from pipeline import usdio
 
 REPO = Path(__file__).resolve().parents[2]
 # A small world: 96^2 cells, and only the grass asset (the tree presets take seconds each; tests/stages/plants covers them)
