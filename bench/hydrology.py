@@ -11,7 +11,7 @@ erosion stage's run (through a RunContext) with the default world's settings
 DEMs above --erode-max (1024) are eroded at 1024^2 and resampled by cubic
 spline ("eroded1024up"); the erosion time is printed, not in the table.
 
-For each DEM it times, best of --repeat (after a warm-up on a small grid that
+For each DEM it times, best of --repeat at every size (after a warm-up on a small grid that
 builds our programs and numba-compiles pysheds), host arrays in and out:
 - fill: ours = dev.fill (Priority-Flood by relaxation on the device, no
   epsilon) vs pysheds sGrid.fill_depressions;
@@ -20,7 +20,8 @@ builds our programs and numba-compiles pysheds), host arrays in and out:
 - accumulation: D8 accumulation of our directions (ours exact in integers)
   vs pysheds sGrid.accumulation of the same directions;
 and checks equality: fill bit-exact, flowdir agreement fraction, accumulation
-equal. Needs `pip install pysheds affine`; pysheds 0.5 calls np.in1d, shimmed.
+equal. Breaching (no pysheds counterpart) is timed against our pure-Python
+reference, with a bit-exactness check. Needs `pip install pysheds affine`; pysheds 0.5 calls np.in1d, shimmed.
 """
 from __future__ import annotations
 
@@ -98,6 +99,8 @@ def main() -> None:
                     help="largest size eroded by the erosion stage (4096^2 takes ~40 min on 2 cores); larger "
                     "DEMs are eroded at this size and resampled")
     ap.add_argument("--no-eroded", action="store_true")
+    ap.add_argument("--breach-ref-max", type=int, default=1024,
+                    help="largest size at which the pure-Python breaching reference is timed (4096^2: ~80 s)")
     args = ap.parse_args()
     sizes = args.sizes or ([512, 1024] if args.quick else [1024, 4096])
 
@@ -124,9 +127,10 @@ def main() -> None:
     R = dev.fill(w, k, True)
     c = dev.d8(R, k, 8.0)
     dev.accumulate(c)
+    dev.breach(w, k)
     g.accumulation(g.flowdir(g.fill_depressions(Raster(w.astype(np.float64), viewfinder=vf))))
 
-    rows = []
+    rows, breaches = [], []
     for n in sizes:
         cases = [("raw", dem(n))]
         if not args.no_eroded:
@@ -140,7 +144,7 @@ def main() -> None:
             kind = ref.cell_kinds(h)
             g, vf = ps_grid(h, dx)
             cells = h.size
-            r = args.repeat if n <= 1024 else 1
+            r = args.repeat
             t_ours_fill, F = best_of(lambda: dev.fill(h, kind, False), r)
             t_ps_fill, PF = best_of(lambda: g.fill_depressions(Raster(h.astype(np.float64), viewfinder=vf)), r)
             fill_equal = bool(np.array_equal(F, np.asarray(PF).astype(np.float32)))
@@ -156,6 +160,14 @@ def main() -> None:
             t_ps_acc, PA = best_of(lambda: g.accumulation(fd_r), r)
             PA = np.asarray(PA)
             acc_equal = bool(np.array_equal(PA[inter], A[inter].astype(np.float64)))
+            # breaching has no pysheds counterpart: the serial kernel against the Python reference
+            t_ours_br, B = best_of(lambda: dev.breach(h, kind), r)
+            if n <= args.breach_ref_max:
+                t_ref_br, RB = best_of(lambda: ref.breach(h, kind), 1)
+                breaches.append((f"{n}^2 {label}", cells / t_ours_br / 1e6, cells / t_ref_br / 1e6,
+                                 t_ref_br / t_ours_br, bool(np.array_equal(B, RB, equal_nan=True))))
+            else:
+                breaches.append((f"{n}^2 {label}", cells / t_ours_br / 1e6, float("nan"), float("nan"), None))
             for op, to, tp, check in (("fill", t_ours_fill, t_ps_fill, f"bit-exact={fill_equal}"),
                                       ("flowdir", t_ours_fd, t_ps_fd, f"agree={agree:.6f}"),
                                       ("accumulation", t_ours_acc, t_ps_acc, f"equal={acc_equal}")):
@@ -166,6 +178,11 @@ def main() -> None:
     print(f"{'DEM':20s} {'operation':13s} {'ours Mcell/s':>13s} {'pysheds Mcell/s':>16s} {'ratio':>7s}  check")
     for dem_name, op, o, p, ratio, check in rows:
         print(f"{dem_name:20s} {op:13s} {o:13.1f} {p:16.2f} {ratio:7.2f}  {check}")
+    print()
+    print("complete breaching (serial priority queue): our kernel vs the pure-Python reference (heapq)")
+    print(f"{'DEM':20s} {'ours Mcell/s':>13s} {'Python Mcell/s':>15s} {'ratio':>7s}  bit-exact")
+    for dem_name, o, p, ratio, same in breaches:
+        print(f"{dem_name:20s} {o:13.2f} {p:15.3f} {ratio:7.1f}  {same}")
 
 
 if __name__ == "__main__":

@@ -17,12 +17,13 @@ from . import reference as ref
 KERNELS = Path(__file__).with_name("kernels.cl")
 FILL_TILE = 64
 ACC_TILE = 64
+ACC_TILE_MAX = 128  # the tile's scratch lives in private memory: about 19 B per cell
 
 
-def _program(acc_type: str = "uint"):
+def _program(acc_type: str = "uint", extra: tuple[str, ...] = ()):
     from pipeline.opencl import load_program
 
-    return load_program(KERNELS, (f"-DACC_T={acc_type}",))
+    return load_program(KERNELS, (f"-DACC_T={acc_type}", *extra))
 
 
 def _env():
@@ -36,7 +37,12 @@ def _buf(a: np.ndarray, write: bool = False):
 
     env = _env()
     mf = cl.mem_flags
-    return cl.Buffer(env.ctx, (mf.READ_WRITE if write else mf.READ_ONLY) | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(a))
+    a = np.ascontiguousarray(a)
+    if write:
+        return cl.Buffer(env.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=a)
+    # read-only inputs are used in place (no copy on a CPU device); the
+    # buffer keeps a reference to the array, which nobody writes meanwhile
+    return cl.Buffer(env.ctx, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=a)
 
 
 def _ceil(n: int, local: int | None) -> tuple[int, ...]:
@@ -98,6 +104,31 @@ def fill(h: np.ndarray, kind: np.ndarray, eps: bool, tile: int = FILL_TILE, loca
     return W
 
 
+def breach(h: np.ndarray, kind: np.ndarray) -> np.ndarray:
+    """Complete breaching (reference.breach, bit for bit) as one serial
+    work-item: the priority queue is inherently serial, and compiled it runs
+    about 50x faster than the pure-Python heap. No-data cells come back NaN."""
+    import pyopencl as cl
+
+    env = _env()
+    prg = _program()
+    rows, cols = h.shape
+    n = rows * cols
+    h = np.ascontiguousarray(h, np.float32)
+    pit = ref.pits(h, kind)
+    mf = cl.mem_flags
+    d_z = _buf(h, True)
+    scratch = [cl.Buffer(env.ctx, mf.READ_WRITE, n * size) for size in (4, 1, 4, 4)]  # back, done, heap keys, ids
+    d_kind, d_pit = _buf(kind), _buf(pit.astype(np.uint8))  # held until the kernel has run
+    k = cl.Kernel(prg, "breach_serial")
+    k.set_args(d_z, d_kind, d_pit, *scratch, np.int32(rows), np.int32(cols))
+    cl.enqueue_nd_range_kernel(env.queue, k, (1,), None)
+    out = np.empty_like(h)
+    cl.enqueue_copy(env.queue, out, d_z)
+    out[kind == ref.NODATA] = np.nan
+    return out
+
+
 def d8(z: np.ndarray, kind: np.ndarray, dx: float, local: tuple[int, int] | None = None) -> np.ndarray:
     """D8 codes of a surface (see kernels.cl)."""
     import pyopencl as cl
@@ -120,44 +151,52 @@ def d8(z: np.ndarray, kind: np.ndarray, dx: float, local: tuple[int, int] | None
 def accumulate(code: np.ndarray, weights: np.ndarray | None = None, tile: int = ACC_TILE,
                local: int | None = None) -> np.ndarray:
     """Exact D8 accumulation: uint32 cell counts (weights None) or int64 sums
-    of integer weights. Cells whose receiver graph is not a forest (cycles)
-    cannot occur for codes from d8 (receivers are strictly lower)."""
+    of integer weights. Codes < 0 end a path (outlet, no-data, pit); the
+    receiver graph must be a forest, which codes from d8 are (receivers are
+    strictly lower)."""
     import pyopencl as cl
 
+    if not 1 <= tile <= ACC_TILE_MAX:
+        raise ValueError(f"accumulation tile {tile} outside 1..{ACC_TILE_MAX}")
     env = _env()
     unit = weights is None
     dtype = np.uint32 if unit else np.int64
-    prg = _program("uint" if unit else "long")
+    prg = _program("uint" if unit else "long", (f"-DACC_TILE={tile}",))
     rows, cols = code.shape
-    n = rows * cols
     tiles_x, tiles_y = -(-cols // tile), -(-rows // tile)
     nt = tiles_x * tiles_y
+    slots = nt * 4 * tile  # PMAX per tile
     mf = cl.mem_flags
-    d_code = _buf(np.ascontiguousarray(code, np.int8))
+    code = np.ascontiguousarray(code, np.int8)
+    d_code = _buf(code)
     d_w = _buf(np.ascontiguousarray(weights, dtype)) if not unit else cl.Buffer(env.ctx, mf.READ_ONLY, 8)
     isz = np.dtype(dtype).itemsize
-    d_L = cl.Buffer(env.ctx, mf.READ_WRITE, n * isz)
-    d_in = cl.Buffer(env.ctx, mf.READ_WRITE, n * isz)
-    d_A = cl.Buffer(env.ctx, mf.READ_WRITE, n * isz)
-    d_exit = cl.Buffer(env.ctx, mf.READ_WRITE, n * 4)
-    d_gdeg = cl.Buffer(env.ctx, mf.READ_WRITE, n * 4)
-    d_ord = cl.Buffer(env.ctx, mf.READ_WRITE, nt * tile * tile * 4)
-    d_deg = cl.Buffer(env.ctx, mf.READ_WRITE, n)
-    cl.enqueue_fill_buffer(env.queue, d_in, np.zeros(1, dtype), 0, n * isz)
+    d_exit = cl.Buffer(env.ctx, mf.READ_WRITE, slots * 4)
+    d_sum = cl.Buffer(env.ctx, mf.READ_WRITE, slots * isz)
+    d_in = cl.Buffer(env.ctx, mf.READ_WRITE, slots * isz)
+    d_entry = cl.Buffer(env.ctx, mf.READ_WRITE, slots * 4)
+    d_gdeg = cl.Buffer(env.ctx, mf.READ_WRITE, slots * 4)
+    out = np.empty((rows, cols), dtype)
+    d_A = cl.Buffer(env.ctx, mf.WRITE_ONLY, out.nbytes)
+    cl.enqueue_fill_buffer(env.queue, d_in, np.zeros(1, dtype), 0, slots * isz)
     i32 = np.int32
-    geo = (i32(rows), i32(cols), i32(tile), i32(tiles_x), i32(nt))
+    geo = (i32(rows), i32(cols), i32(tiles_x), i32(nt))
+    # one tile per work-group unless asked otherwise: PoCL may keep the
+    # private scratch of every work-item of a group alive at once
+    local = local or 1
+    if local > 16:
+        raise ValueError(f"accumulation work-group size {local} above 16 (each work-item holds a tile's scratch)")
     g = _ceil(nt, local)
-    lw = (local,) if local else None
+    lw = (local,)
     k1 = cl.Kernel(prg, "acc_local")
-    k1.set_args(d_code, d_w, d_L, d_exit, d_ord, d_deg, *geo, i32(unit))
+    k1.set_args(d_code, d_w, d_exit, d_sum, *geo, i32(unit))
     cl.enqueue_nd_range_kernel(env.queue, k1, g, lw)
     k2 = cl.Kernel(prg, "acc_global")
-    k2.set_args(d_code, d_exit, d_L, d_in, d_gdeg, *geo)
+    k2.set_args(d_code, d_exit, d_sum, d_in, d_entry, d_gdeg, *geo)
     cl.enqueue_nd_range_kernel(env.queue, k2, (1,), None)
     k3 = cl.Kernel(prg, "acc_final")
-    k3.set_args(d_code, d_w, d_in, d_A, d_ord, *geo, i32(unit))
+    k3.set_args(d_code, d_w, d_in, d_A, *geo, i32(unit))
     cl.enqueue_nd_range_kernel(env.queue, k3, g, lw)
-    out = np.empty((rows, cols), dtype)
     cl.enqueue_copy(env.queue, out, d_A)
     return out
 

@@ -91,23 +91,32 @@ __kernel void publish_tiles(__global const float* W, __global float* Wpub, __glo
 }
 
 // D8 steepest descent, one work-item per cell: the first neighbour (pysheds
-// order) with the largest drop / distance, computed in float32.
+// order) with the largest drop / distance, computed in float32. Written
+// without early returns or neighbour loops (indices clamped at the map
+// border, where every cell is an edge cell whose code does not look at its
+// neighbours) so that the compiler vectorises across work-items.
+#define D8_TRY(K, ZN, D) { float s_ = (zc - (ZN)) / (D); int b_ = s_ > best; best = b_ ? s_ : best; bk = b_ ? (K) : bk; }
 __kernel void d8(__global const float* z, __global const uchar* kind, __global char* code,
                  int rows, int cols, float dcard, float ddiag)
 {
     int c = get_global_id(0), r = get_global_id(1);
     if (r >= rows || c >= cols) return;
     int idx = r * cols + c;
-    uchar kd = kind[idx];
-    if (kd != 0) { code[idx] = kd == 1 ? (char)-1 : (char)-2; return; }
+    int up = r > 0 ? -cols : 0, down = r < rows - 1 ? cols : 0;
+    int left = c > 0 ? -1 : 0, right = c < cols - 1 ? 1 : 0;
     float zc = z[idx];
     float best = 0.0f;
     int bk = -3;
-    for (int k = 0; k < 8; ++k) {
-        float s = (zc - z[(r + DR[k]) * cols + c + DC[k]]) / ((k & 1) ? ddiag : dcard);
-        if (s > best) { best = s; bk = k; }
-    }
-    code[idx] = (char)bk;
+    D8_TRY(0, z[idx + up], dcard);
+    D8_TRY(1, z[idx + up + right], ddiag);
+    D8_TRY(2, z[idx + right], dcard);
+    D8_TRY(3, z[idx + down + right], ddiag);
+    D8_TRY(4, z[idx + down], dcard);
+    D8_TRY(5, z[idx + down + left], ddiag);
+    D8_TRY(6, z[idx + left], dcard);
+    D8_TRY(7, z[idx + up + left], ddiag);
+    uchar kd = kind[idx];
+    code[idx] = (char)(kd == 0 ? bk : (kd == 1 ? -1 : -2));
 }
 
 inline int receiver(int idx, char k, int cols)
@@ -116,145 +125,214 @@ inline int receiver(int idx, char k, int cols)
 }
 
 // ---- D8 flow accumulation in three exact phases (Barnes 2016's idea) ----
-// Tiles of T x T cells, one work-item each. Sums are integers (cell counts or
-// fixed-point weights), so the result does not depend on any order.
+// Tiles of ACC_TILE x ACC_TILE cells, one work-item each, with the tile's
+// scratch in private memory (on a CPU device: the work-item's stack, in
+// cache), so the only global traffic is the codes, the weights, the result
+// and a few numbers per tile perimeter cell ("slots", PMAX per tile). Sums
+// are integers (cell counts or fixed-point weights), so the result does not
+// depend on any order.
 
-// Phase 1: local accumulation inside the tile (in-tile donors only), the
-// tile's topological order, and for every cell the exit cell (last cell in
-// the tile on its flow path, -1 if the path ends in the tile).
-__kernel void acc_local(__global const char* code, __global const ACC_T* w, __global ACC_T* L,
-                        __global int* exitof, __global int* ord, __global uchar* deg,
-                        int rows, int cols, int T, int tiles_x, int ntiles, int unit)
-{
-    int t = get_global_id(0);
-    if (t >= ntiles) return;
-    int r0 = (t / tiles_x) * T, c0 = (t % tiles_x) * T;
-    int r1 = min(r0 + T, rows), c1 = min(c0 + T, cols);
-    for (int r = r0; r < r1; ++r)
-        for (int c = c0; c < c1; ++c) {
-            int idx = r * cols + c;
-            deg[idx] = 0;
-            L[idx] = unit ? (ACC_T)(code[idx] != -2) : w[idx];
-        }
-    for (int r = r0; r < r1; ++r)
-        for (int c = c0; c < c1; ++c) {
-            int idx = r * cols + c;
-            char k = code[idx];
-            if (k < 0) continue;
-            int rr = r + DR[(int)k], cc = c + DC[(int)k];
-            if (rr >= r0 && rr < r1 && cc >= c0 && cc < c1) deg[rr * cols + cc]++;
-        }
-    int base = t * T * T, n = 0;
-    for (int r = r0; r < r1; ++r)
-        for (int c = c0; c < c1; ++c) {
-            int idx = r * cols + c;
-            if (deg[idx] != 0) continue;
-            int cr = r, cc = c, ci = idx;
-            for (;;) {
-                ord[base + n++] = ci;
-                char k = code[ci];
-                if (k < 0) break;
-                int rr = cr + DR[(int)k], c2 = cc + DC[(int)k];
-                if (!(rr >= r0 && rr < r1 && c2 >= c0 && c2 < c1)) break;
-                int ri = rr * cols + c2;
-                L[ri] += L[ci];
-                if (--deg[ri] != 0) break;
-                deg[ri] = 255;  /* visited marker: never a start cell again */
-                cr = rr; cc = c2; ci = ri;
-            }
-        }
-    for (int i = n - 1; i >= 0; --i) {
-        int ci = ord[base + i];
-        char k = code[ci];
-        if (k < 0) { exitof[ci] = -1; continue; }
-        int cr = ci / cols, cc = ci - cr * cols;
-        int rr = cr + DR[(int)k], c2 = cc + DC[(int)k];
-        exitof[ci] = (rr >= r0 && rr < r1 && c2 >= c0 && c2 < c1) ? exitof[rr * cols + c2] : ci;
-    }
-}
+#ifndef ACC_TILE
+#define ACC_TILE 64
+#endif
+#define ACC_CELLS (ACC_TILE * ACC_TILE)
+#define PMAX (4 * ACC_TILE)
+#define LEAVES (-2)  // in-tile receiver code: the flow leaves the tile
 
-// Phase 2 (one work-item): accumulate over the graph of exit cells
-// (next(x) = exit of the cell x flows into) and write the inflow I(e) that
-// each entry cell e receives from other tiles. L holds the local sums; it is
-// overwritten at exit cells by their global sums. gdeg is scratch.
 inline int perimeter_count(int nr, int nc)
 {
     return (nr <= 2 || nc <= 2) ? nr * nc : 2 * nc + 2 * (nr - 2);
 }
 
-// The p-th perimeter cell of a tile, each cell once: top row, bottom row,
-// then the left and right columns between them (tiles of 1 or 2 rows or
-// columns: every cell, in raster order).
-inline int perimeter_cell(int p, int r0, int c0, int nr, int nc, int cols)
+// The tile-local index (row * nc + col) of the p-th perimeter cell, each
+// cell once: top row, bottom row, then the left and right columns between
+// them (tiles of 1 or 2 rows or columns: every cell, in raster order).
+inline int perimeter_local(int p, int nr, int nc)
 {
-    if (nr <= 2 || nc <= 2) return (r0 + p / nc) * cols + c0 + p % nc;
-    if (p < nc) return r0 * cols + c0 + p;
+    if (nr <= 2 || nc <= 2) return p;
+    if (p < nc) return p;
     p -= nc;
-    if (p < nc) return (r0 + nr - 1) * cols + c0 + p;
+    if (p < nc) return (nr - 1) * nc + p;
     p -= nc;
-    if (p < nr - 2) return (r0 + 1 + p) * cols + c0;
+    if (p < nr - 2) return (1 + p) * nc;
     p -= nr - 2;
-    return (r0 + 1 + p) * cols + c0 + nc - 1;
+    return (1 + p) * nc + nc - 1;
 }
 
-__kernel void acc_global(__global const char* code, __global const int* exitof, __global ACC_T* L,
-                         __global ACC_T* inflow, __global int* gdeg,
-                         int rows, int cols, int T, int tiles_x, int ntiles)
+// The inverse: the perimeter position of tile-local cell (lr, lc), -1 inside.
+inline int perimeter_slot(int lr, int lc, int nr, int nc)
+{
+    if (nr <= 2 || nc <= 2) return lr * nc + lc;
+    if (lr == 0) return lc;
+    if (lr == nr - 1) return nc + lc;
+    if (lc == 0) return 2 * nc + lr - 1;
+    if (lc == nc - 1) return 2 * nc + (nr - 2) + lr - 1;
+    return -1;
+}
+
+inline void tile_geometry(int t, int rows, int cols, int tiles_x, int* r0, int* c0, int* nr, int* nc)
+{
+    *r0 = (t / tiles_x) * ACC_TILE;
+    *c0 = (t % tiles_x) * ACC_TILE;
+    *nr = min(ACC_TILE, rows - *r0);
+    *nc = min(ACC_TILE, cols - *c0);
+}
+
+// In-tile receivers (local index, -1 where the path ends: outlet, no-data or
+// pit, LEAVES where it leaves the tile) and in-tile donor counts.
+inline void tile_receivers(__global const char* code, int r0, int c0, int nr, int nc, int cols,
+                           int* rl, uchar* deg)
+{
+    for (int i = 0; i < nr * nc; ++i) deg[i] = 0;
+    for (int lr = 0; lr < nr; ++lr)
+        for (int lc = 0; lc < nc; ++lc) {
+            char k = code[(r0 + lr) * cols + c0 + lc];
+            int j = -1;
+            if (k >= 0) {
+                int rr = lr + DR[(int)k], cc = lc + DC[(int)k];
+                j = (rr >= 0 && rr < nr && cc >= 0 && cc < nc) ? rr * nc + cc : LEAVES;
+            }
+            rl[lr * nc + lc] = j;
+            if (j >= 0) deg[j]++;
+        }
+}
+
+// Accumulate acc downstream inside the tile (Kahn's order by walking
+// chains from cells without in-tile donors); ord gets the topological order.
+inline int tile_accumulate(const int* rl, uchar* deg, ACC_T* acc, ushort* ord, int m)
+{
+    int n = 0;
+    for (int i = 0; i < m; ++i) {
+        if (deg[i] != 0) continue;
+        int ci = i;
+        for (;;) {
+            ord[n++] = (ushort)ci;
+            int j = rl[ci];
+            if (j < 0) break;
+            acc[j] += acc[ci];
+            if (--deg[j] != 0) break;
+            deg[j] = 255;  // visited: never a start cell again
+            ci = j;
+        }
+    }
+    return n;
+}
+
+inline ACC_T cell_weight(__global const char* code, __global const ACC_T* w, int idx, int unit)
+{
+    return unit ? (ACC_T)(code[idx] != -2) : w[idx];
+}
+
+// Phase 1: local sums inside each tile; for every perimeter slot, the slot
+// of its exit cell (the last cell of its path in the tile, -1 if the path
+// ends in the tile) and its local sum.
+__kernel void acc_local(__global const char* code, __global const ACC_T* w, __global int* exit_slot,
+                        __global ACC_T* local_sum, int rows, int cols, int tiles_x, int ntiles, int unit)
+{
+    int t = get_global_id(0);
+    if (t >= ntiles) return;
+    int rl[ACC_CELLS];
+    uchar deg[ACC_CELLS];
+    ACC_T acc[ACC_CELLS];
+    ushort ord[ACC_CELLS];
+    int r0, c0, nr, nc;
+    tile_geometry(t, rows, cols, tiles_x, &r0, &c0, &nr, &nc);
+    tile_receivers(code, r0, c0, nr, nc, cols, rl, deg);
+    for (int lr = 0; lr < nr; ++lr)
+        for (int lc = 0; lc < nc; ++lc) acc[lr * nc + lc] = cell_weight(code, w, (r0 + lr) * cols + c0 + lc, unit);
+    int n = tile_accumulate(rl, deg, acc, ord, nr * nc);
+    // exits, receivers before donors (reverse order), in place of rl
+    for (int q = n - 1; q >= 0; --q) {
+        int ci = ord[q];
+        int j = rl[ci];
+        rl[ci] = j >= 0 ? rl[j] : (j == LEAVES ? ci : -1);
+    }
+    int base = t * PMAX, np = perimeter_count(nr, nc);
+    for (int p = 0; p < np; ++p) {
+        int li = perimeter_local(p, nr, nc);
+        int e = rl[li];
+        exit_slot[base + p] = e < 0 ? -1 : base + perimeter_slot(e / nc, e % nc, nr, nc);
+        local_sum[base + p] = acc[li];
+    }
+}
+
+// Phase 2 (one work-item): accumulate over the graph of exit slots
+// (next(x) = exit slot of the entry cell that x flows into) and write the
+// inflow each entry slot receives from other tiles. local_sum is turned
+// into global sums at exit slots; entry and gdeg are scratch.
+__kernel void acc_global(__global const char* code, __global const int* exit_slot, __global ACC_T* local_sum,
+                         __global ACC_T* inflow, __global int* entry, __global int* gdeg,
+                         int rows, int cols, int tiles_x, int ntiles)
 {
     if (get_global_id(0) != 0) return;
-    for (int pass = 0; pass < 3; ++pass) {
-        for (int t = 0; t < ntiles; ++t) {
-            int r0 = (t / tiles_x) * T, c0 = (t % tiles_x) * T;
-            int nr = min(r0 + T, rows) - r0, nc = min(c0 + T, cols) - c0;
-            int np = perimeter_count(nr, nc);
-            for (int p = 0; p < np; ++p) {
-                int x = perimeter_cell(p, r0, c0, nr, nc, cols);
-                char k = code[x];
-                if (k < 0 || exitof[x] != x) continue;
-                if (pass == 0) { gdeg[x] = 0; continue; }
-                int nx = exitof[receiver(x, k, cols)];
-                if (pass == 1) { if (nx >= 0) gdeg[nx]++; continue; }
-                if (gdeg[x] != 0) continue;
-                int ci = x;
-                for (;;) {
-                    int ec = receiver(ci, code[ci], cols);
-                    inflow[ec] += L[ci];
-                    int nn = exitof[ec];
-                    if (nn < 0) break;
-                    L[nn] += L[ci];
-                    if (--gdeg[nn] != 0) break;
-                    gdeg[nn] = -1;
-                    ci = nn;
-                }
+    for (int t = 0; t < ntiles; ++t) {  // entry slot of each exit slot's receiver, in-degrees
+        int r0, c0, nr, nc;
+        tile_geometry(t, rows, cols, tiles_x, &r0, &c0, &nr, &nc);
+        int np = perimeter_count(nr, nc);
+        for (int p = 0; p < np; ++p) gdeg[t * PMAX + p] = 0;
+    }
+    for (int t = 0; t < ntiles; ++t) {
+        int r0, c0, nr, nc;
+        tile_geometry(t, rows, cols, tiles_x, &r0, &c0, &nr, &nc);
+        int np = perimeter_count(nr, nc);
+        for (int p = 0; p < np; ++p) {
+            int s = t * PMAX + p;
+            if (exit_slot[s] != s) continue;
+            int li = perimeter_local(p, nr, nc);
+            int x = (r0 + li / nc) * cols + c0 + li % nc;
+            int y = receiver(x, code[x], cols);
+            int yr = y / cols, yc = y - yr * cols;
+            int ty = (yr / ACC_TILE) * tiles_x + yc / ACC_TILE;
+            int yr0, yc0, ynr, ync;
+            tile_geometry(ty, rows, cols, tiles_x, &yr0, &yc0, &ynr, &ync);
+            int sy = ty * PMAX + perimeter_slot(yr - yr0, yc - yc0, ynr, ync);
+            entry[s] = sy;
+            int nx = exit_slot[sy];
+            if (nx >= 0) gdeg[nx]++;
+        }
+    }
+    for (int t = 0; t < ntiles; ++t) {
+        int r0, c0, nr, nc;
+        tile_geometry(t, rows, cols, tiles_x, &r0, &c0, &nr, &nc);
+        int np = perimeter_count(nr, nc);
+        for (int p = 0; p < np; ++p) {
+            int s = t * PMAX + p;
+            if (exit_slot[s] != s || gdeg[s] != 0) continue;
+            int ci = s;
+            for (;;) {
+                int sy = entry[ci];
+                inflow[sy] += local_sum[ci];
+                int nn = exit_slot[sy];
+                if (nn < 0) break;
+                local_sum[nn] += local_sum[ci];
+                if (--gdeg[nn] != 0) break;
+                gdeg[nn] = -1;
+                ci = nn;
             }
         }
     }
 }
 
-// Phase 3: final accumulation = local accumulation of w + inflow along the
-// order found in phase 1.
+// Phase 3: final accumulation = local accumulation of (weight + inflow).
 __kernel void acc_final(__global const char* code, __global const ACC_T* w, __global const ACC_T* inflow,
-                        __global ACC_T* A, __global const int* ord,
-                        int rows, int cols, int T, int tiles_x, int ntiles, int unit)
+                        __global ACC_T* A, int rows, int cols, int tiles_x, int ntiles, int unit)
 {
     int t = get_global_id(0);
     if (t >= ntiles) return;
-    int r0 = (t / tiles_x) * T, c0 = (t % tiles_x) * T;
-    int r1 = min(r0 + T, rows), c1 = min(c0 + T, cols);
-    for (int r = r0; r < r1; ++r)
-        for (int c = c0; c < c1; ++c) {
-            int idx = r * cols + c;
-            A[idx] = (unit ? (ACC_T)(code[idx] != -2) : w[idx]) + inflow[idx];
-        }
-    int base = t * T * T, n = (r1 - r0) * (c1 - c0);
-    for (int i = 0; i < n; ++i) {
-        int ci = ord[base + i];
-        char k = code[ci];
-        if (k < 0) continue;
-        int cr = ci / cols, cc = ci - cr * cols;
-        int rr = cr + DR[(int)k], c2 = cc + DC[(int)k];
-        if (rr >= r0 && rr < r1 && c2 >= c0 && c2 < c1) A[rr * cols + c2] += A[ci];
-    }
+    int rl[ACC_CELLS];
+    uchar deg[ACC_CELLS];
+    ACC_T acc[ACC_CELLS];
+    ushort ord[ACC_CELLS];
+    int r0, c0, nr, nc;
+    tile_geometry(t, rows, cols, tiles_x, &r0, &c0, &nr, &nc);
+    tile_receivers(code, r0, c0, nr, nc, cols, rl, deg);
+    for (int lr = 0; lr < nr; ++lr)
+        for (int lc = 0; lc < nc; ++lc) acc[lr * nc + lc] = cell_weight(code, w, (r0 + lr) * cols + c0 + lc, unit);
+    int base = t * PMAX, np = perimeter_count(nr, nc);
+    for (int p = 0; p < np; ++p) acc[perimeter_local(p, nr, nc)] += inflow[base + p];
+    tile_accumulate(rl, deg, acc, ord, nr * nc);
+    for (int lr = 0; lr < nr; ++lr)
+        for (int lc = 0; lc < nc; ++lc) A[(r0 + lr) * cols + c0 + lc] = acc[lr * nc + lc];
 }
 
 // Wetness index ln(a / tan b) and moisture, one work-item per cell.
@@ -288,4 +366,90 @@ __kernel void wetness(__global const float* h, __global const uchar* kind, __glo
     float m = clamp((t - twi_dry) / (twi_wet - twi_dry), 0.0f, 1.0f);
     float mo = 1.0f - (1.0f - m) * (1.0f - water[idx]) * (1.0f - ext[idx]);
     moist[idx] = mo;
+}
+
+// ---- Complete breaching (Lindsay 2016), serial: one work-item ----
+// The same algorithm as reference.breach, step for step: Priority-Flood from
+// the edge cells in order of (height, cell index) with a binary heap; when a
+// pit is popped, the cells on the path that flooded it are lowered, back
+// toward the edge, to one float32 step below the previous one until a cell is
+// already low enough. The (height, index) order is total, so the pops and the
+// result are those of the Python reference exactly.
+
+inline int heap_less(float ka, int ia, float kb, int ib)
+{
+    return ka < kb || (ka == kb && ia < ib);
+}
+
+inline void heap_push(__global float* hk, __global int* hi, int* size, float k, int i)
+{
+    int pos = (*size)++;
+    while (pos > 0) {
+        int parent = (pos - 1) >> 1;
+        if (!heap_less(k, i, hk[parent], hi[parent])) break;
+        hk[pos] = hk[parent];
+        hi[pos] = hi[parent];
+        pos = parent;
+    }
+    hk[pos] = k;
+    hi[pos] = i;
+}
+
+inline int heap_pop(__global float* hk, __global int* hi, int* size)
+{
+    int top = hi[0];
+    int n = --(*size);
+    float k = hk[n];
+    int i = hi[n];
+    int pos = 0;
+    for (;;) {
+        int child = 2 * pos + 1;
+        if (child >= n) break;
+        if (child + 1 < n && heap_less(hk[child + 1], hi[child + 1], hk[child], hi[child])) child++;
+        if (!heap_less(hk[child], hi[child], k, i)) break;
+        hk[pos] = hk[child];
+        hi[pos] = hi[child];
+        pos = child;
+    }
+    if (n > 0) {
+        hk[pos] = k;
+        hi[pos] = i;
+    }
+    return top;
+}
+
+__kernel void breach_serial(__global float* z, __global const uchar* kind, __global const uchar* pit,
+                            __global int* back, __global uchar* done, __global float* hk, __global int* hi,
+                            int rows, int cols)
+{
+    if (get_global_id(0) != 0) return;
+    int n = rows * cols, size = 0;
+    for (int i = 0; i < n; ++i) {
+        back[i] = -1;
+        done[i] = kind[i] != 0;
+    }
+    for (int i = 0; i < n; ++i)
+        if (kind[i] == 1) heap_push(hk, hi, &size, z[i], i);
+    while (size > 0) {
+        int c = heap_pop(hk, hi, &size);
+        if (pit[c]) {
+            int cc = back[c];
+            float target = z[c];
+            while (cc >= 0 && z[cc] > target) {
+                z[cc] = target;
+                cc = back[cc];
+                target = nextafter(target, -INFINITY);
+            }
+        }
+        int r = c / cols, col = c - r * cols;
+        for (int k = 0; k < 8; ++k) {
+            int rr = r + DR[k], c2 = col + DC[k];
+            if (rr < 0 || rr >= rows || c2 < 0 || c2 >= cols) continue;
+            int j = rr * cols + c2;
+            if (done[j]) continue;
+            done[j] = 1;
+            back[j] = c;
+            heap_push(hk, hi, &size, z[j], j);
+        }
+    }
 }

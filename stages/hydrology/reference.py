@@ -166,6 +166,16 @@ def wetness(h, kind, acc_m2, water, ext, dx, tan_min, twi_dry, twi_wet):
     return t, mo
 
 
+def pits(h: np.ndarray, kind: np.ndarray) -> np.ndarray:
+    """Interior cells with no strictly lower neighbour (no-data is never lower)."""
+    rows, cols = h.shape
+    hp = np.pad(np.where(np.isfinite(h), h, np.inf), 1, constant_values=np.inf)
+    lower = np.zeros((rows, cols), bool)
+    for dr, dc in zip(DR, DC):
+        lower |= hp[1 + dr:1 + dr + rows, 1 + dc:1 + dc + cols] < h
+    return (kind == INTERIOR) & ~lower
+
+
 def breach(h: np.ndarray, kind: np.ndarray | None = None) -> np.ndarray:
     """Complete breaching (Lindsay 2016, as in RichDEM's Priority-Flood
     breaching): flood from the edges in height order; when a pit (a cell
@@ -178,11 +188,7 @@ def breach(h: np.ndarray, kind: np.ndarray | None = None) -> np.ndarray:
     rows, cols = h.shape
     n = rows * cols
     z = h.ravel().astype(np.float32).copy()
-    hp = np.pad(np.where(np.isfinite(h), h, np.inf), 1, constant_values=np.inf)
-    lower = np.zeros((rows, cols), bool)
-    for dr, dc in zip(DR, DC):
-        lower |= hp[1 + dr:1 + dr + rows, 1 + dc:1 + dc + cols] < h
-    pit = ((kind == INTERIOR) & ~lower).ravel()
+    pit = pits(h, kind).ravel()
     back = np.full(n, -1, np.int64)
     done = (kind != INTERIOR).ravel().copy()
     heap = [(float(z[i]), int(i)) for i in np.flatnonzero(kind.ravel() == EDGE)]

@@ -1,9 +1,10 @@
 """The hydrology stage: depressions, flow, rivers, lakes and moisture.
 
 Pipeline (every step exact against reference.py, see the tests):
-1. Depression handling: Priority-Flood fill (Barnes 2014) by minimax
-   relaxation on the OpenCL device (kernels.cl fill_tiles), or complete
-   breaching (serial, reference.breach); then Priority-Flood+epsilon
+1. Depression handling: complete breaching (Lindsay 2016, the default;
+   one serial work-item, kernels.cl breach_serial, bit-exact against
+   reference.breach) or Priority-Flood fill (Barnes 2014) by minimax
+   relaxation on the OpenCL device (kernels.cl fill_tiles); then Priority-Flood+epsilon
    (a float32-safe step: one ulp where |h| >= 1 m, 2^-23 m below) so every
    cell has a strictly descending path to an edge: the routing surface.
 2. D8 steepest descent on the routing surface (kernel d8, pysheds order).
@@ -45,8 +46,9 @@ TERRAIN_SOURCES = ("erosion.height", "heightmap.height")
 
 class HydrologyParams(Params):
     depression: Literal["fill", "breach"] = Param(
-        "fill", description="depression handling for flow routing: fill (Priority-Flood, parallel) or breach "
-        "(complete breaching, serial); lakes always use the filled levels of the real terrain")
+        "breach", description="depression handling for flow routing: breach (complete breaching, Lindsay 2016: "
+        "water runs downhill into each pit and out along a carved path; serial) or fill (Priority-Flood, parallel: "
+        "water crosses the filled flats in straight lines); lakes always use the filled levels of the real terrain")
     flow: Literal["d8", "mfd"] = Param(
         "d8", description="accumulation for the wetness index: d8 (single direction) or mfd (Quinn 1991 multiple "
         "flow directions); rivers always follow the D8 tree")
@@ -79,7 +81,10 @@ class HydrologyParams(Params):
     wetness_wet: float = Param(12.0, units="ln(m)", description="wetness index mapped to moisture 1", ge=-50.0, le=50.0)
     moisture_water_distance_m: float = Param(
         40.0, units="m", description="moisture from open water decays as exp(-distance / this)", gt=0.0, le=1e5)
-    hack_min_area_m2: float = Param(1.0e5, units="m^2", description="smallest drainage area in the Hack's law fit", gt=0.0, le=1e12)
+    hack_min_area_m2: float = Param(
+        4.0e5, units="m^2", description="smallest drainage area in the Hack's law fit: Hack's law is a law of the "
+        "channel network, so the default is the channel-initiation area (river_threshold_m2's default)",
+        gt=0.0, le=1e12)
 
     @property
     def uniform_rain(self) -> bool:
@@ -120,7 +125,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
     F = dev.fill(h, kind, eps=False, stats=fstats)
     lap("fill_s", t0)
     t0 = time.perf_counter()
-    cond = ref.breach(h, kind) if params.depression == "breach" else h
+    cond = dev.breach(h, kind) if params.depression == "breach" else h
     lap("breach_s", t0)
     t0 = time.perf_counter()
     R = dev.fill(cond, kind, eps=True)

@@ -51,7 +51,7 @@ def small_world(n=96):
 
 def test_run_end_to_end(tmp_path):
     h = small_world()
-    out, m = bake(tmp_path, h, river_threshold_m2=2e4, lake_min_area_m2=0.0)
+    out, m = bake(tmp_path, h, river_threshold_m2=2e4, lake_min_area_m2=0.0, hack_min_area_m2=2e4)
     for name, art in ((a.name, a) for a in STAGE.outputs):
         assert name in out, name
         if art.kind == "grid":
