@@ -148,3 +148,16 @@ def test_erosion_moisture_input(tmp_path):
     dry = STAGE.run(ctx, {"terrain": Grid(h, 8.0)}, HydrologyParams())["hydrology.moisture"].data
     mixed = STAGE.run(ctx, {"terrain": Grid(h, 8.0), "erosion_moisture": half}, HydrologyParams())["hydrology.moisture"].data
     assert (mixed >= dry - 1e-6).all() and (mixed > dry + 1e-3).any()  # wetter where the storm left water
+
+
+def test_hack_law_on_the_default_terrain(tmp_path):
+    """Drainage-network sanity (issue 4, point 6) on the default world's
+    terrain (8192 m, default heightmap and seed) at 256^2: the stage's Hack's
+    law fits over the channel network lie in 0.5..0.7. The 1024^2 default
+    bake reports its own figures in stats.json (0.511 / 0.545 measured)."""
+    from stages.heightmap.stage import HeightmapParams, heights
+
+    h, _ = heights(HeightmapParams(resolution=256), 20261123)
+    _, m = bake(tmp_path, h, dx=8192.0 / 256)
+    assert 0.5 <= m["hack_exponent"] <= 0.7, m["hack_exponent"]
+    assert 0.5 <= m["hack_exponent_mainstem"] <= 0.7, m["hack_exponent_mainstem"]
