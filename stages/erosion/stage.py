@@ -1,7 +1,9 @@
-"""The erosion stage: thermal weathering (talus slopes and scree, seed 003,
-Olsen's multi-neighbour rule) followed by a storm of hydraulic erosion on the
-virtual-pipe shallow-water model (seed 004; Mei et al. 2007, Stava et al.
-2008) with sediment moved in flux form so terrain + sediment is conserved.
+"""The erosion stage: optionally geological time first (stream-power river
+incision with uplift, Braun and Willett 2013: stream_power.py), then thermal
+weathering (talus slopes and scree, seed 003, Olsen's multi-neighbour rule)
+and a storm of hydraulic erosion on the virtual-pipe shallow-water model
+(seed 004; Mei et al. 2007, Stava et al. 2008) with sediment moved in flux
+form so terrain + sediment is conserved.
 
 Every parameter is physical (mm/h, degrees, hours, years, s/m, 1/s) and means
 the same at any resolution. The whole state stays on the OpenCL device; only
@@ -25,6 +27,7 @@ from .physics import THERMAL_C, Physics
 
 MAX_THERMAL_ITERATIONS = 200_000
 MAX_STEPS = 2_000_000
+MAX_GEOLOGICAL_STEPS = 10_000
 SLOPE_TOLERANCE_DEG = 0.5  # reported: cells steeper than talus + this after thermal weathering
 
 
@@ -74,6 +77,21 @@ class ErosionParams(Params):
         0.01, units="m", description="water depth that counts as fully wet in the moisture map (shallower: "
         "proportionally), and that bank slumping needs in the receiving cell",
         gt=0.0, le=100.0)
+    # geological time: stream-power fluvial erosion (Braun and Willett 2013), before the talus rule and the storm
+    geological_years: float = Param(
+        0.0, units="years", description="duration of stream-power river incision with uplift (implicit Braun-Willett "
+        "scheme, no time-step limit; the map edges are base level whatever the boundary); 0 skips it", ge=0.0, le=1e9)
+    geological_step_years: float = Param(
+        1.0e4, units="years", description="time step of the stream-power solve (stable at any size; smaller is more "
+        "accurate)", ge=1.0, le=1e9)
+    stream_power_k: float = Param(
+        2.0e-5, units="m^(1-2m)/year", description="erodibility K of dh/dt = U - K A^m S^n (A drainage area in m^2)",
+        gt=0.0, le=1e9)
+    stream_power_m: float = Param(0.45, units="", description="drainage-area exponent m", ge=0.0, le=2.0)
+    stream_power_n: float = Param(1.0, units="", description="slope exponent n (1 is closed form; else Newton)",
+                                  ge=0.25, le=10.0)
+    uplift_mm_per_year: float = Param(
+        0.0, units="mm/year", description="uniform rock uplift U of every cell but the base-level edges", ge=0.0, le=1e5)
     # time stepping
     cfl: float = Param(
         0.5, units="", description="Courant number of the adaptive time step dt = cfl dx / max(|u| + sqrt(g h))",
@@ -128,6 +146,11 @@ def plan_for(params: ErosionParams, dx: float, ph: Physics) -> simulate.Plan:
             f"erosion: thermal_years = {params.thermal_years:g} at scree_diffusivity_m2_per_year = "
             f"{params.scree_diffusivity_m2_per_year:g} needs {n_th} iterations of the talus rule on {dx:g} m cells "
             f"(at most {MAX_THERMAL_ITERATIONS}); lower one of them")
+    if params.geological_years > 0 and params.geological_years / params.geological_step_years > MAX_GEOLOGICAL_STEPS:
+        raise InputError(
+            f"erosion: geological_years = {params.geological_years:g} at geological_step_years = "
+            f"{params.geological_step_years:g} is {params.geological_years / params.geological_step_years:.3g} steps "
+            f"(at most {MAX_GEOLOGICAL_STEPS}); raise geological_step_years")
     if params.dt_s is not None:
         # the least the flow can do is a 1 m/s wave: a step beyond that limit can never run
         limit = ph.cfl_limit * dx / ph.min_wave_speed
@@ -188,23 +211,40 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[
     dx = float(grid.cell_size_m)
     ph = physics_for(params, dx)
     plan = plan_for(params, dx, ph)
-    ctx.progress(0.0, f"erosion {h.shape[1]}x{h.shape[0]} cells of {dx:g} m: {plan.thermal_iterations} talus "
-                      f"iterations, {params.storm_hours:g} h storm")
+    h_in = h
+    geology: dict[str, Any] = {}
+    progress = ctx.progress
+    if params.geological_years > 0:
+        from . import stream_power
+
+        share = 0.3  # of the progress bar
+        res = stream_power.run(h.astype(np.float64), dx, params.geological_years, params.geological_step_years,
+                               params.stream_power_k, params.stream_power_m, params.stream_power_n,
+                               params.uplift_mm_per_year / 1000.0, progress=lambda f, m: ctx.progress(share * f, m))
+        if res.budget_relative_error > 1e-9:
+            raise StageError(f"erosion: stream power lost {res.budget_relative_error:.2e} of the eroded volume "
+                             f"on its way to base level")
+        h = res.height.astype(np.float32)
+        geology = res.stats
+        progress = lambda f, m: ctx.progress(share + (1 - share) * f, m)  # noqa: E731
+    progress(0.0, f"erosion {h.shape[1]}x{h.shape[0]} cells of {dx:g} m: {plan.thermal_iterations} talus "
+                  f"iterations, {params.storm_hours:g} h storm")
     sim = DeviceSim(h, ph)
     after_thermal = {}
 
     def on_thermal_done(fields: dict[str, np.ndarray]) -> None:
         after_thermal.update(slope_excess(h + fields["dT"], dx, params.talus_angle_deg, params.boundary == "periodic"))
 
-    metrics = simulate.run(sim, ph, plan, progress=ctx.progress, after_thermal=on_thermal_done)
-    ctx.progress(0.96, "reading the maps back")
+    metrics = simulate.run(sim, ph, plan, progress=progress, after_thermal=on_thermal_done)
+    metrics.update(geology)
+    progress(0.96, "reading the maps back")
     f = sim.fields()
     height = (h + f["dT"]).astype(np.float32)
     for name, arr in (("height", height), ("water", f["W"]), ("sediment", f["S"])):
         if not np.isfinite(arr).all():
             raise StageError(f"erosion: non-finite {name} in the final state (step {metrics['steps']})")
     speed = np.sqrt(f["vx"].astype(np.float64) ** 2 + f["vz"].astype(np.float64) ** 2).astype(np.float32)
-    change = f["dT"]
+    change = (height.astype(np.float64) - h_in).astype(np.float32)  # geology, talus and storm together
     out_grid = lambda data, ch: Grid(np.ascontiguousarray(data, np.float32), cell_size_m=dx, channels=ch,  # noqa: E731
                                      origin_m=grid.origin_m)
     outputs = {
@@ -241,7 +281,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[
 STAGE = Stage(
     name="erosion",
     version=1,
-    description="Thermal weathering (talus angle, Olsen's rule) and hydraulic erosion on the virtual-pipe "
+    description="Optional geological time (stream-power incision with uplift, implicit Braun-Willett scheme), "
+    "thermal weathering (talus angle, Olsen's rule) and hydraulic erosion on the virtual-pipe "
     "shallow-water model with mass-conserving sediment transport, on the OpenCL device",
     inputs=(Input("height", one_of=("heightmap.height",), description="the terrain to erode"),),
     outputs=(

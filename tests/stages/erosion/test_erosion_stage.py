@@ -88,3 +88,27 @@ def test_a_disabled_storm_and_thermal_change_nothing(tmp_path):
     h, dx = world(32)
     out, m, _ = run_stage(h, dx, tmp_path, storm_hours=0.0, thermal_years=0.0)
     assert np.array_equal(out["erosion.height"].data, h) and m["steps"] == 0
+
+
+def test_geological_time_runs_before_talus_and_storm(tmp_path):
+    """The stream-power mode through the stage: rivers incise (wear), the
+    eroded volume reaches base level, progress stays monotonic, and the
+    change map holds geology, talus and storm together."""
+    h, dx = world(48)
+    out, m, progress = run_stage(h, dx, tmp_path, geological_years=2e5, geological_step_years=2e4,
+                                 uplift_mm_per_year=0.5, storm_hours=0.01)
+    calls = [f for f, _ in progress]
+    assert m["stream_power_steps"] == 10 and m["stream_power_eroded_m3"] > 0
+    assert m["stream_power_budget_relative_error"] <= 1e-12
+    assert m["stream_power_volume_budget_relative_error"] <= 1e-9
+    net = out["erosion.change"].data[..., 0].astype(np.float64)
+    np.testing.assert_allclose(net, out["erosion.height"].data.astype(np.float64) - h, atol=1e-3)
+    assert calls == sorted(calls) and calls[-1] == 1.0
+
+
+def test_geological_time_refuses_too_many_steps(tmp_path):
+    from pipeline.errors import InputError
+
+    h, dx = world(16)
+    with pytest.raises(InputError, match="geological_step_years"):
+        run_stage(h, dx, tmp_path, geological_years=1e9, geological_step_years=1.0)
