@@ -15,6 +15,8 @@ from .state import Diag
 
 KERNELS = Path(__file__).parent / "kernels.cl"
 KERNEL_NAMES = ("flux", "update", "boundary_out", "halo", "thermal_send", "thermal_apply", "diag_rows", "velocity", "copy4")
+X0 = 16  # padded column of cell column 0 (the west halo at X0 - 1): rows of cells start on 64 bytes
+ALIGN = 16  # the pitch is a multiple of this many floats (64 bytes)
 VW_THERMAL = 8  # cells per work-item of the talus rule (float8: fastest measured on PoCL/AVX-512)
 DEFAULT_LOCAL = (8, 1)  # work-items per work-group: fastest measured on PoCL; results do not depend on it
 
@@ -26,19 +28,22 @@ def step_vector_width(device) -> int:
 
 # bytes each kernel must move per cell (compulsory traffic: every array read and written once)
 BYTES_PER_CELL = {"flux": 4 * (3 + 4 + 4), "update": 4 * (4 + 4 + 2 + 5), "thermal": 4 * (3 + 2) + 4 * (5 + 1)}
+# distinct arrays one storm step (flux + update) touches: Tb, dT, W, S, QE, QS, QW, QN, M, EA
+# and the new dT, W, S; the roofline copy's buffers add up to as many padded arrays
+WORKING_SET_ARRAYS = 13
 
 
 def program(boundary_code: int, vw: int):
-    return load_program(KERNELS, (f"-DBOUNDARY={boundary_code}", f"-DVW={vw}"))
+    return load_program(KERNELS, (f"-DBOUNDARY={boundary_code}", f"-DVW={vw}", f"-DX0={X0}"))
 
 
 def pad(a: np.ndarray, periodic: bool, shape: tuple[int, int]) -> np.ndarray:
-    """The array in the padded layout of `shape`: the cells at [1:rows+1, 1:cols+1],
+    """The array in the padded layout of `shape`: the cells at [1:rows+1, X0:X0+cols],
     the halo ring around them wrapped for periodic grids, zeros elsewhere."""
     a = np.asarray(a, np.float32)
     out = np.zeros(shape, np.float32)
     rows, cols = a.shape
-    out[: rows + 2, : cols + 2] = np.pad(a, 1, mode="wrap" if periodic else "constant")
+    out[: rows + 2, X0 - 1: X0 + cols + 1] = np.pad(a, 1, mode="wrap" if periodic else "constant")
     return out
 
 
@@ -65,8 +70,9 @@ class DeviceSim:
         # whole work-groups of work-items, each handling vw cells of a row
         self.gsize = global_size((-(-self.cols // self.vw), self.rows), self.local)
         self.gsize_th = global_size((-(-self.cols // self.vw_thermal), self.rows), self.local)
-        # padded layout: every lane of every work-item of both has its cell and its halo
-        self.pitch = max(self.gsize[0] * self.vw, self.gsize_th[0] * self.vw_thermal) + 2
+        # padded layout: every lane of every work-item of both has its cell and its halo,
+        # and every row of cells starts on 64 bytes (see kernels.cl)
+        self.pitch = -(-(X0 + max(self.gsize[0] * self.vw, self.gsize_th[0] * self.vw_thermal) + 1) // ALIGN) * ALIGN
         self.prows = self.gsize[1] + 2
         self.gsize1 = global_size((self.cols, self.rows), (16, 1))  # scalar 2-D kernels (guarded)
         prg = program(ph.boundary_code, self.vw)
@@ -165,12 +171,16 @@ class DeviceSim:
     def finish(self) -> None:
         self.queue.finish()
 
+    def index(self, r: int, c: int) -> int:
+        """Position of cell (r, c) in a padded buffer (floats)."""
+        return (r + 1) * self.pitch + X0 + c
+
     def _read(self, b) -> np.ndarray:
         import pyopencl as cl
 
         arr = np.empty(self.npad, np.float32)
         cl.enqueue_copy(self.queue, arr, b)
-        return arr.reshape(self.prows, self.pitch)[1:self.rows + 1, 1:self.cols + 1].copy()
+        return arr.reshape(self.prows, self.pitch)[1:self.rows + 1, X0:X0 + self.cols].copy()
 
     def fields(self) -> dict[str, np.ndarray]:
         import pyopencl as cl
@@ -186,10 +196,19 @@ class DeviceSim:
         return out
 
     # -- measurement (bench) ---------------------------------------------------
-    def profile(self, k: StepConstants, reps: int = 10) -> dict[str, float]:
-        """Seconds per launch of each per-step kernel, and of a copy kernel moving
-        as many bytes as one step must, measured back to back (the roofline).
-        Runs on scratch copies of the state: the simulation is not advanced."""
+    def profile(self, k: StepConstants, reps: int = 10, rounds: int = 5) -> dict[str, float | list[float]]:
+        """Seconds per launch of each per-step kernel, and of the roofline copy
+        kernel, measured back to back in interleaved rounds (a load spike from
+        another process hits all of them alike); each entry is the best round,
+        and `rounds_<name>` holds every round. Runs on scratch copies of the
+        state: the simulation is not advanced.
+
+        The copy reads one buffer and writes another whose sizes add up to the
+        step's working set (WORKING_SET_ARRAYS padded arrays), so the copy runs
+        from the same level of the memory hierarchy as flux + update (both from
+        the 32 MB L3 at 512^2, both from DRAM at 1024^2 and above). Its source
+        is written first, so its reads are real memory (never-written pages all
+        map to one zero page and would read from cache)."""
         import time
 
         import pyopencl as cl
@@ -198,15 +217,20 @@ class DeviceSim:
         R, C, P = self.R, self.C, self.P
         d, w = self.cd, self.cw
         ctx = self.cl.ctx
-        scratch = [cl.Buffer(ctx, cl.mem_flags.READ_WRITE, 4 * self.npad) for _ in range(3)]
-        n4 = max(1, (BYTES_PER_CELL["flux"] + BYTES_PER_CELL["update"]) * self.n // 32)
-        ca = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, 16 * n4)
-        cb = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, 16 * n4)
-        Qs = [cl.Buffer(ctx, cl.mem_flags.READ_WRITE, 4 * self.npad) for _ in range(4)]
+        mf = cl.mem_flags
+        scratch = [cl.Buffer(ctx, mf.READ_WRITE, 4 * self.npad) for _ in range(3)]
+        for b in scratch:
+            cl.enqueue_fill_buffer(q, b, np.float32(0), 0, 4 * self.npad)
+        n4 = WORKING_SET_ARRAYS * self.npad // 8  # float4 per buffer: the two together hold the working set
+        ca = cl.Buffer(ctx, mf.READ_WRITE, 16 * n4)
+        cb = cl.Buffer(ctx, mf.READ_WRITE, 16 * n4)
+        cl.enqueue_fill_buffer(q, ca, np.float32(1), 0, 16 * n4)
+        cl.enqueue_fill_buffer(q, cb, np.float32(0), 0, 16 * n4)
+        Qs = [cl.Buffer(ctx, mf.READ_WRITE, 4 * self.npad) for _ in range(4)]
         for src, dst in zip(self.Q, Qs):
             cl.enqueue_copy(q, dst, src)
-        M2 = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, 4 * self.npad)
-        EA2 = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, 4 * self.npad)
+        M2 = cl.Buffer(ctx, mf.READ_WRITE, 4 * self.npad)
+        EA2 = cl.Buffer(ctx, mf.READ_WRITE, 4 * self.npad)
         cl.enqueue_copy(q, M2, self.M)
         cl.enqueue_copy(q, EA2, self.EA)
         launches = {
@@ -221,17 +245,18 @@ class DeviceSim:
             "thermal_apply": lambda: self._run("thermal_apply", self.Tb, self.dT[d], self.W[w], scratch[0], scratch[1],
                                                scratch[2], R, C, P, self.t_ax, self.t_dg, np.float32(-1)),
         }
-        out = {name: float("inf") for name in launches}
+        times: dict[str, list[float]] = {name: [] for name in launches}
         for name, f in launches.items():  # warm up (build, first touch)
             f()
         q.finish()
-        for _ in range(3):  # best of three rounds of `reps`, interleaved so load spikes hit all alike
+        for _ in range(rounds):  # rounds of `reps` launches each, interleaved
             for name, f in launches.items():
                 t = time.perf_counter()
                 for _ in range(reps):
                     f()
                 q.finish()
-                out[name] = min(out[name], (time.perf_counter() - t) / reps)
+                times[name].append((time.perf_counter() - t) / reps)
+        out: dict[str, float | list[float]] = {name: min(v) for name, v in times.items()}
+        out.update({f"rounds_{name}": v for name, v in times.items()})
         out["copy_bytes"] = 32.0 * n4
         return out
-

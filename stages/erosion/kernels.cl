@@ -19,7 +19,10 @@
  *
  * Layout: every per-cell array has a one-cell halo ring and is padded so the
  * NDRange is a whole number of work-groups: cell (r, c) sits at
- * i = (r+1)*P + (c+1) with the pitch P >= (work-items along a row) * VW + 2
+ * i = AT(r, c) = (r+1)*P + X0 + c, with X0 = 16 (the west halo at X0 - 1) and
+ * the pitch P a multiple of 16 floats, so every row of cells starts on a 64-byte
+ * boundary and a work-item's own vectors are aligned loads and stores (the
+ * buffers are at least 128-byte aligned); P >= X0 + (work-items along a row) * VW + 1
  * (of every kernel) and (rows rounded up to the work-group) + 2 rows, so
  * neighbours are i+-1 and i+-P
  * without index clamping (clamped indices are gathers) and no bounds guard is
@@ -27,6 +30,11 @@
  * never read. Closed and open grids mask the ring out by the cell position;
  * periodic grids fill it with the wrapped values (kernel `halo`) after every
  * kernel that writes a field. Row r runs north to south, column c west to east.
+ *
+ * Interior work-items (all their cells and neighbours inside the grid) run
+ * the same code with the neighbour masks known to be all true at compile time
+ * (no selects); the masks only change which value a lane takes where a
+ * neighbour is missing, so both paths give the same bits.
  *
  * Pipes: QE, QS, QW, QN hold each cell's outflow through its east, south,
  * west and north face per unit face width (m^2/s), never negative.
@@ -51,6 +59,10 @@
 #ifndef VW
 #define VW 8
 #endif
+#ifndef X0
+#define X0 16
+#endif
+#define AT(r, c) (((r) + 1) * P + X0 + (c))
 
 #define CAT_(a, b) a##b
 #define CAT(a, b) CAT_(a, b)
@@ -91,8 +103,11 @@ typedef floatV __attribute__((aligned(4))) floatV_u;
 #endif
 #define CELLS                                                    \
     const int c0 = get_global_id(0) * VW, r = get_global_id(1);  \
-    const int i = (r + 1) * P + (c0 + 1);                        \
+    const int i = AT(r, c0);                                     \
     MASKS
+/* every cell of the work-item and all its neighbours inside the grid */
+#define INNER ((c0 > 0) & (c0 + VW < cols) & (r > 0) & (r + 1 < rows))
+#define ALL ((intV)(-1))
 
 /* Square root from basic IEEE operations, without division: a bit-level
  * first guess of 1/sqrt(x) and three Newton steps y <- y (1.5 - 0.5 x y^2),
@@ -140,18 +155,22 @@ inline floatV face_q(floatV q, floatV hi, floatV wi, floatV hj, floatV wj, intV 
     return qn;
 }
 
-__kernel void flux(__global const float *restrict Tb, __global const float *restrict dT,
-                   __global const float *restrict W,
-                   __global float *restrict QE, __global float *restrict QS,
-                   __global float *restrict QW, __global float *restrict QN,
-                   __global float *restrict wave, /* when want_wave: max over faces of q/hf + sqrt(g hf) */
-                   const int rows, const int cols, const int P,
-                   const float g_dt_dx,    /* g dt / dx */
-                   const float fric_dt,    /* (f/8) dt (s) */
-                   const float dx_dt,      /* (1 - eps) dx / dt (m/s) */
-                   const int want_wave, const float g)
+#define FLUX_ARGS                                                                            \
+    __global const float *restrict Tb, __global const float *restrict dT,                    \
+    __global const float *restrict W,                                                        \
+    __global float *restrict QE, __global float *restrict QS,                                \
+    __global float *restrict QW, __global float *restrict QN,                                \
+    __global float *restrict wave, /* when want_wave: max over faces of q/hf + sqrt(g hf) */  \
+    const int rows, const int cols, const int P,                                             \
+    const float g_dt_dx,    /* g dt / dx */                                                  \
+    const float fric_dt,    /* (f/8) dt (s) */                                               \
+    const float dx_dt,      /* (1 - eps) dx / dt (m/s) */                                    \
+    const int want_wave, const float g
+#define FLUX_PASS Tb, dT, W, QE, QS, QW, QN, wave, rows, cols, P, g_dt_dx, fric_dt, dx_dt, want_wave, g
+
+__attribute__((always_inline))
+inline void flux_cells(FLUX_ARGS, const int i, const intV exE, const intV exS, const intV exW, const intV exN)
 {
-    CELLS
     floatV hi = LD(Tb, i) + LD(dT, i), wi = LD(W, i);
     floatV hfE, hfS, hfW, hfN;
     floatV qE = face_q(LD(QE, i), hi, wi, LD(Tb, i + 1) + LD(dT, i + 1), LD(W, i + 1), exE, g_dt_dx, fric_dt, &hfE);
@@ -171,6 +190,19 @@ __kernel void flux(__global const float *restrict Tb, __global const float *rest
         sp = qN > 0.0f ? MAX(sp, qN / MAX(hfN, F(HMIN)) + sqrt_n(g * hfN)) : sp;
         ST(sp, wave, i);
     }
+}
+
+__kernel void flux(FLUX_ARGS)
+{
+    CELLS
+#if BOUNDARY == 2
+    flux_cells(FLUX_PASS, i, exE, exS, exW, exN);
+#else
+    if (INNER)
+        flux_cells(FLUX_PASS, i, ALL, ALL, ALL, ALL);
+    else
+        flux_cells(FLUX_PASS, i, exE, exS, exW, exN);
+#endif
 }
 
 /* Sediment that leaves a cell with its water through one face in one step,
@@ -199,23 +231,28 @@ inline floatV sed_out(floatV S, floatV q, float c, floatV rden)
  * Rain/evap: W += rain dt; evaporate min(W, E dt); water gone -> sediment settles.
  * Moisture:  M += am (min(W/wet, 1) - M), am = 1 - exp(-dt/tau).
  * ------------------------------------------------------------------------- */
-__kernel void update(__global const float *restrict Tb, __global const float *restrict dT,
-                     __global const float *restrict W, __global const float *restrict S,
-                     __global const float *restrict QE, __global const float *restrict QS,
-                     __global const float *restrict QW, __global const float *restrict QN,
-                     __global float *restrict M, __global float *restrict EA,
-                     __global float *restrict dT_out, __global float *restrict W_out,
-                     __global float *restrict S_out,
-                     const int rows, const int cols, const int P,
-                     const float cc,                   /* dt/dx */
-                     const float kc,                   /* capacity, s/m */
-                     const float sin_min2,             /* sin(a_min)^2 */
-                     const float ks_f, const float kd_f,
-                     const float rain_dt, const float evap_dt,
-                     const float inv_wet, const float am,
-                     const float inv_2dx)
+#define UPDATE_ARGS                                                                  \
+    __global const float *restrict Tb, __global const float *restrict dT,            \
+    __global const float *restrict W, __global const float *restrict S,              \
+    __global const float *restrict QE, __global const float *restrict QS,            \
+    __global const float *restrict QW, __global const float *restrict QN,            \
+    __global float *restrict M, __global float *restrict EA,                         \
+    __global float *restrict dT_out, __global float *restrict W_out,                 \
+    __global float *restrict S_out,                                                  \
+    const int rows, const int cols, const int P,                                     \
+    const float cc,                   /* dt/dx */                                    \
+    const float kc,                   /* capacity, s/m */                            \
+    const float sin_min2,             /* sin(a_min)^2 */                             \
+    const float ks_f, const float kd_f,                                              \
+    const float rain_dt, const float evap_dt,                                        \
+    const float inv_wet, const float am,                                             \
+    const float inv_2dx
+#define UPDATE_PASS Tb, dT, W, S, QE, QS, QW, QN, M, EA, dT_out, W_out, S_out, rows, cols, P, \
+    cc, kc, sin_min2, ks_f, kd_f, rain_dt, evap_dt, inv_wet, am, inv_2dx
+
+__attribute__((always_inline))
+inline void update_cells(UPDATE_ARGS, const int i, const intV exE, const intV exS, const intV exW, const intV exN)
 {
-    CELLS
     const int iE = i + 1, iS = i + P, iW = i - 1, iN = i - P;
     floatV wi = LD(W, i), si = LD(S, i), dti = LD(dT, i);
     floatV hi = LD(Tb, i) + dti;
@@ -289,6 +326,19 @@ __kernel void update(__global const float *restrict Tb, __global const float *re
     ST(w3, W_out, i);
     ST(s2, S_out, i);
     ST(dt1, dT_out, i);
+}
+
+__kernel void update(UPDATE_ARGS)
+{
+    CELLS
+#if BOUNDARY == 2
+    update_cells(UPDATE_PASS, i, exE, exS, exW, exN);
+#else
+    if (INNER)
+        update_cells(UPDATE_PASS, i, ALL, ALL, ALL, ALL);
+    else
+        update_cells(UPDATE_PASS, i, exE, exS, exW, exN);
+#endif
 }
 
 /* ---------------------------------------------------------------------------
@@ -384,7 +434,7 @@ __kernel void boundary_out(__global const float *restrict W, __global const floa
     else if (f < rows + cols) { c = f - rows; r = rows - 1; }
     else if (f < 2 * rows + cols) { r = f - rows - cols; c = 0; }
     else { c = f - 2 * rows - cols; r = 0; }
-    int i = (r + 1) * P + c + 1;
+    int i = AT(r, c);
     float q = f < rows ? QE[i] : f < rows + cols ? QS[i] : f < 2 * rows + cols ? QW[i] : QN[i];
     float sumqc = (((QE[i] + QS[i]) + QW[i]) + QN[i]) * cc;
     float den = W[i] > sumqc ? W[i] : sumqc;
@@ -400,14 +450,13 @@ __kernel void boundary_out(__global const float *restrict W, __global const floa
 inline void wrap1(__global float *a, int k, int rows, int cols, int P)
 {
     if (k < rows) {
-        int row = (k + 1) * P;
-        a[row] = a[row + cols];
-        a[row + cols + 1] = a[row + 1];
+        a[AT(k, -1)] = a[AT(k, cols - 1)];
+        a[AT(k, cols)] = a[AT(k, 0)];
     } else {
-        int pcol = k - rows;
-        int src = pcol == 0 ? cols : (pcol == cols + 1 ? 1 : pcol);
-        a[pcol] = a[rows * P + src];
-        a[(rows + 1) * P + pcol] = a[P + src];
+        int c = k - rows - 1;  /* -1 .. cols: the ghost rows with their corners */
+        int src = c < 0 ? cols - 1 : (c == cols ? 0 : c);
+        a[AT(-1, c)] = a[AT(rows - 1, src)];
+        a[AT(rows, c)] = a[AT(0, src)];
     }
 }
 
@@ -439,7 +488,7 @@ __kernel void diag_rows(__global const float *restrict dT, __global const float 
     double sw = 0.0, sd = 0.0, ss = 0.0, se = 0.0, sa = 0.0;
     float wave = 0.0f, wmin = INFINITY, smin = INFINITY, bad = 0.0f, wmax = 0.0f;
     for (int c = 0; c < cols; c++) {
-        int i = (r + 1) * P + c + 1;
+        int i = AT(r, c);
         float w = W[i], d = dT[i], s = S[i], e = EA[i];
         if (!isfinite(w) || !isfinite(d) || !isfinite(s) || !isfinite(e) || !isfinite(QE[i]) ||
             !isfinite(QS[i]) || !isfinite(QW[i]) || !isfinite(QN[i])) {
@@ -464,7 +513,7 @@ __kernel void velocity(__global const float *restrict QE, __global const float *
 {
     int c = get_global_id(0), r = get_global_id(1);
     if (c >= cols || r >= rows) return;
-    int i = (r + 1) * P + c + 1;
+    int i = AT(r, c);
 #if BOUNDARY == 2
     int exE = 1, exS = 1, exW = 1, exN = 1;
 #else

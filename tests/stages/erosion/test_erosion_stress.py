@@ -157,7 +157,7 @@ class _Sabotaged:
         self.n += 1
         if self.n == self.at:
             buf = self.sim.W[self.sim.cw] if self.what == "nan_water" else self.sim.dT[self.sim.cd]
-            i = (5 + 1) * self.sim.pitch + 7 + 1
+            i = self.sim.index(5, 7)
             bad = np.array([50.0 if self.what == "mass" else np.nan], np.float32)
             cl.enqueue_copy(self.sim.queue, buf, bad, dst_offset=4 * i)
 
