@@ -453,3 +453,86 @@ __kernel void breach_serial(__global float* z, __global const uchar* kind, __glo
         }
     }
 }
+
+// ---- The lakes' merge tree: union-find sweep, serial (one work-item) ----
+// lakes.merge_tree_reference step for step: cells in increasing (height,
+// index); each joins the components of its already swept 8-neighbours (it is
+// an interior cell, so every neighbour is on the map), which merge pairwise
+// in node order at its height. Path compression as in the reference, so the
+// tree is the same whatever the machine.
+
+inline int uf_find(__global int* uf, int x)
+{
+    int root = x;
+    while (uf[root] != root) root = uf[root];
+    while (uf[x] != root) {
+        int next = uf[x];
+        uf[x] = root;
+        x = next;
+    }
+    return root;
+}
+
+__kernel void merge_sweep(__global const int* cells, int ncells, __global const float* h, __global const int* term,
+                          __global int* uf, __global int* comp_node, __global int* cell_node,
+                          __global int* parent, __global int* child_a, __global int* child_b, __global float* birth,
+                          __global int* entry_a, __global int* entry_b, __global int* node_count, int n, int cols)
+{
+    if (get_global_id(0) != 0) return;
+    for (int i = 0; i < n; ++i) {
+        uf[i] = -1;
+        cell_node[i] = -1;
+    }
+    int nodes = 0;
+    for (int q = 0; q < ncells; ++q) {
+        int c = cells[q];
+        float hc = h[c];
+        int roots[8], low[8], nroots = 0;
+        for (int k = 0; k < 8; ++k) {
+            int nb = c + DR[k] * cols + DC[k];
+            if (uf[nb] < 0) continue;
+            int root = uf_find(uf, nb);
+            int j = 0;
+            while (j < nroots && roots[j] != root) ++j;
+            if (j == nroots) {
+                roots[nroots] = root;
+                low[nroots++] = nb;
+            } else if (h[nb] < h[low[j]] || (h[nb] == h[low[j]] && nb < low[j])) {
+                low[j] = nb;
+            }
+        }
+        uf[c] = c;
+        int node;
+        if (nroots == 0) {
+            node = nodes++;
+            parent[node] = -1; child_a[node] = -1; child_b[node] = -1;
+            birth[node] = hc; entry_a[node] = -1; entry_b[node] = -1;
+        } else {
+            for (int a = 1; a < nroots; ++a) {  // insertion sort by node id (stable)
+                int rr = roots[a], ll = low[a], key = comp_node[rr], b = a - 1;
+                while (b >= 0 && comp_node[roots[b]] > key) {
+                    roots[b + 1] = roots[b];
+                    low[b + 1] = low[b];
+                    --b;
+                }
+                roots[b + 1] = rr;
+                low[b + 1] = ll;
+            }
+            node = comp_node[roots[0]];
+            for (int j = 1; j < nroots; ++j) {
+                int other = comp_node[roots[j]];
+                int p = nodes++;
+                parent[p] = -1; child_a[p] = node; child_b[p] = other; birth[p] = hc;
+                entry_a[p] = cell_node[term[low[0]]];
+                entry_b[p] = cell_node[term[low[j]]];
+                parent[node] = p;
+                parent[other] = p;
+                node = p;
+            }
+            for (int j = 0; j < nroots; ++j) uf[roots[j]] = c;
+        }
+        comp_node[c] = node;
+        cell_node[c] = node;
+    }
+    node_count[0] = nodes;
+}

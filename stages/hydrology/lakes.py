@@ -52,12 +52,102 @@ def terminals(rcv: np.ndarray) -> np.ndarray:
         t = nt
 
 
+@dataclass
+class MergeTree:
+    """The depression merge tree: nodes in creation order (children before
+    parents); leaves are pits, an inner node is born at a saddle."""
+    parent: np.ndarray  # int64, -1 at roots
+    child_a: np.ndarray  # int64, -1 at leaves (the child with the smaller id)
+    child_b: np.ndarray
+    birth: np.ndarray  # float64 height at which the node is born
+    entry_a: np.ndarray  # int64 node where spill water from b enters a's side (-1 at leaves)
+    entry_b: np.ndarray  # int64 node where spill water from a enters b's side
+    cell_node: np.ndarray  # int64 per cell: the node it joined, -1 outside depressions
+
+
+def merge_tree_reference(cells: np.ndarray, h: np.ndarray, term: np.ndarray, cols: int) -> MergeTree:
+    """The union-find sweep in pure Python: cells (depression cells, interior
+    only) in increasing (height, index); a cell joins the components of its
+    already swept 8-neighbours, merging them pairwise in node order at its
+    height; spill water between two merged basins enters each at the node of
+    the pit that the lowest neighbour of the saddle cell drains to (term)."""
+    hl = np.asarray(h, np.float64).ravel().tolist()
+    n = len(hl)
+    uf = {}
+    comp_node = {}
+    parent_n, child_a, child_b, birth, entry_a, entry_b = [], [], [], [], [], []
+    cell_node_l = {}
+
+    def find(x):
+        root = x
+        while uf[root] != root:
+            root = uf[root]
+        while uf[x] != root:
+            uf[x], x = root, uf[x]
+        return root
+
+    def new_node(a, b, lev, ea, eb):
+        parent_n.append(-1)
+        child_a.append(a)
+        child_b.append(b)
+        birth.append(lev)
+        entry_a.append(ea)
+        entry_b.append(eb)
+        return len(parent_n) - 1
+
+    offs = [(int(dr), int(dc)) for dr, dc in zip(ref.DR, ref.DC)]
+    for c in cells.tolist():
+        r, cc = divmod(c, cols)
+        hc = hl[c]
+        roots = []
+        low = {}  # per neighbouring component: its lowest neighbour of c (entry for spill water)
+        for dr, dc in offs:
+            nb = (r + dr) * cols + cc + dc
+            if nb in uf:
+                k = find(nb)
+                if k not in low:
+                    roots.append(k)
+                    low[k] = nb
+                elif (hl[nb], nb) < (hl[low[k]], low[k]):
+                    low[k] = nb
+        uf[c] = c
+        if not roots:
+            node = new_node(-1, -1, hc, -1, -1)
+        else:
+            roots.sort(key=lambda k: comp_node[k])
+            k0 = roots[0]
+            node = comp_node[k0]
+            for k in roots[1:]:
+                other = comp_node[k]
+                ea = cell_node_l[int(term[low[k0]])]
+                eb = cell_node_l[int(term[low[k]])]
+                p = new_node(node, other, hc, ea, eb)
+                parent_n[node] = p
+                parent_n[other] = p
+                node = p
+            for k in roots:
+                uf[k] = c
+            uf[c] = c
+        comp_node[find(c)] = node
+        cell_node_l[c] = node
+    cell_node = np.full(n, -1, np.int64)
+    if cell_node_l:
+        cell_node[np.fromiter(cell_node_l.keys(), np.int64, len(cell_node_l))] = np.fromiter(
+            cell_node_l.values(), np.int64, len(cell_node_l))
+    def i64(x):
+        return np.array(x, np.int64)
+
+    return MergeTree(i64(parent_n), i64(child_a), i64(child_b), np.array(birth, np.float64), i64(entry_a),
+                     i64(entry_b), cell_node)
+
+
 def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.ndarray, code_raw: np.ndarray,
-                runoff_m3: np.ndarray, cell_area: float, accumulate) -> LakeResult:
+                runoff_m3: np.ndarray, cell_area: float, accumulate, merge_sweep=None) -> LakeResult:
     """h canonical float32 heights; F pure fill; code_main D8 on the routing
     surface; code_raw D8 on h; runoff_m3 water each cell sends to the basins
-    (m^3); accumulate(code, int64 weights) -> int64 sums (the device or the
-    reference)."""
+    (m^3); accumulate(code, int64 weights) -> int64 sums and merge_sweep(cells,
+    h, term, cols) -> MergeTree: the device's or the references (default:
+    merge_tree_reference)."""
     from scipy import ndimage
 
     rows, cols = h.shape
@@ -91,88 +181,26 @@ def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.nd
         if np.array_equal(nn, nxt):
             break
         nxt = nn
-    region, nreg = ndimage.label(D, structure=np.ones((3, 3), bool))
-    region = region.ravel()
 
     # 3. union-find sweep in increasing height (stable by cell index)
     cells = np.flatnonzero(Df)
     cells = cells[np.lexsort((cells, h64.ravel()[cells]))]
-    hl = h64.ravel().tolist()
-    uf = {}
-    comp_node = {}
-    parent_n, child_a, child_b, birth, entry_a, entry_b = [], [], [], [], [], []
-    own_cells: list[list[int]] = []
-    cell_node = np.full(n, -1, np.int64)
-    cell_node_l = {}
-    term_l = term
+    tree = (merge_sweep or merge_tree_reference)(cells, h, term, cols)
+    parent_n, child_a, child_b = tree.parent, tree.child_a, tree.child_b
+    birth, entry_a, entry_b, cell_node = tree.birth, tree.entry_a, tree.entry_b, tree.cell_node
+    nn_ = parent_n.size
+    # each node's own cells, grouped in sweep order (so ascending in height)
+    own_node = cell_node[cells]
+    perm = np.argsort(own_node, kind="stable")
+    own_sorted = cells[perm]
+    own_start = np.searchsorted(own_node[perm], np.arange(nn_ + 1))
 
-    def find(x):
-        root = x
-        while uf[root] != root:
-            root = uf[root]
-        while uf[x] != root:
-            uf[x], x = root, uf[x]
-        return root
-
-    def new_node(a, b, lev, ea, eb):
-        parent_n.append(-1)
-        child_a.append(a)
-        child_b.append(b)
-        birth.append(lev)
-        entry_a.append(ea)
-        entry_b.append(eb)
-        own_cells.append([])
-        return len(parent_n) - 1
-
-    offs = [(int(dr), int(dc)) for dr, dc in zip(ref.DR, ref.DC)]
-    for c in cells.tolist():
-        r, cc = divmod(c, cols)
-        hc = hl[c]
-        roots = []
-        low = {}  # per neighbouring component: its lowest neighbour of c (entry for spill water)
-        for dr, dc in offs:
-            nb = (r + dr) * cols + cc + dc
-            if nb in uf:
-                k = find(nb)
-                if k not in low:
-                    roots.append(k)
-                    low[k] = nb
-                elif (hl[nb], nb) < (hl[low[k]], low[k]):
-                    low[k] = nb
-        uf[c] = c
-        if not roots:
-            node = new_node(-1, -1, hc, -1, -1)
-        else:
-            roots.sort(key=lambda k: comp_node[k])
-            k0 = roots[0]
-            node = comp_node[k0]
-            for k in roots[1:]:
-                other = comp_node[k]
-                ea = cell_node_l[int(term_l[low[k0]])]
-                eb = cell_node_l[int(term_l[low[k]])]
-                p = new_node(node, other, hc, ea, eb)
-                parent_n[node] = p
-                parent_n[other] = p
-                node = p
-            for k in roots:
-                uf[k] = c
-            uf[c] = c
-            k0 = c
-        comp_node[find(c)] = node
-        own_cells[node].append(c)
-        cell_node_l[c] = node
-        low.clear()
-
-    nn_ = len(parent_n)
-    parent_n = np.array(parent_n, np.int64)
-    child_a = np.array(child_a, np.int64)
-    child_b = np.array(child_b, np.int64)
-    birth = np.array(birth)
-    cell_node[np.fromiter(cell_node_l.keys(), np.int64, len(cell_node_l))] = np.fromiter(cell_node_l.values(), np.int64, len(cell_node_l))
+    def own_cells(nd: int) -> np.ndarray:
+        return own_sorted[own_start[nd]:own_start[nd + 1]]
 
     # per node: count and sum of heights of its subtree cells, top level L
-    own_cnt = np.array([len(o) for o in own_cells], np.float64)
-    own_sum = np.array([float(np.sum(h64.ravel()[o])) for o in own_cells])
+    own_cnt = np.diff(own_start).astype(np.float64)
+    own_sum = np.bincount(own_node, weights=h64.ravel()[cells], minlength=nn_)
     cnt = own_cnt.copy()
     ssum = own_sum.copy()
     for nd in range(nn_):  # children have smaller ids than parents
@@ -186,8 +214,10 @@ def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.nd
     roots_idx = np.flatnonzero(~has_parent)
     # a root's level is its depression's fill level
     rep_cell = np.empty(nn_, np.int64)  # any cell of the subtree (its first own cell, or a child's)
-    for nd in range(nn_):
-        rep_cell[nd] = own_cells[nd][0] if own_cells[nd] else rep_cell[child_a[nd]]
+    has_own = own_cnt > 0
+    rep_cell[has_own] = own_sorted[own_start[:-1][has_own]]
+    for nd in np.flatnonzero(~has_own).tolist():  # inner merge nodes of a saddle joining 3+ basins
+        rep_cell[nd] = rep_cell[child_a[nd]]
     top[roots_idx] = F.ravel()[rep_cell[roots_idx]].astype(np.float64)
     cap = cell_area * (cnt * top - ssum)
     # Euler intervals for "is e in the subtree of N"
@@ -255,7 +285,7 @@ def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.nd
         """Flat level holding `water` over the subtree of nd, nd's children full."""
         oh = own_h[nd]
         if oh is None:
-            oh = own_h[nd] = np.sort(h64.ravel()[own_cells[nd]])
+            oh = own_h[nd] = h64.ravel()[own_cells(nd)]  # ascending: sweep order
         if child_a[nd] >= 0:
             c0, s0, base = cnt[child_a[nd]] + cnt[child_b[nd]], ssum[child_a[nd]] + ssum[child_b[nd]], birth[nd]
         else:

@@ -169,7 +169,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
         code_raw = dev.d8(np.where(data, h, np.float32(0)), kind, dx)
         mean_rain = float(rain[data].mean()) if rain[data].mean() > 0 else 1.0
         lake_in = params.lake_runoff_depth_m * cell_area * rain / mean_rain
-        lk = lakes_mod.solve_lakes(h, kind, F, code, code_raw, lake_in, cell_area, dev.accumulate)
+        lk = lakes_mod.solve_lakes(h, kind, F, code, code_raw, lake_in, cell_area, dev.accumulate, dev.merge_sweep)
         lake_depth, lake_level, lake_id, lstats = lk.depth, lk.level, lk.lake_id, lk.stats
         if lstats["budget_relative_error"] > 1e-6:
             raise StageError(f"hydrology: lake volume budget off by {lstats['budget_relative_error']:.2e} (relative)")

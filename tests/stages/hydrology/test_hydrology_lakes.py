@@ -7,7 +7,7 @@ from stages.hydrology import lakes
 from stages.hydrology import reference as ref
 
 
-def solve(h, depth_m, area=4.0, accumulate=dev.accumulate):
+def solve(h, depth_m, area=4.0, accumulate=dev.accumulate, merge_sweep=dev.merge_sweep):
     h = ref.canonical(h)
     kind = ref.cell_kinds(h)
     raw = np.nan_to_num(h, nan=0.0)
@@ -15,7 +15,7 @@ def solve(h, depth_m, area=4.0, accumulate=dev.accumulate):
     code = dev.d8(np.nan_to_num(dev.fill(h, kind, True), nan=0.0), kind, 2.0)
     code_raw = dev.d8(raw, kind, 2.0)
     runoff = np.where(np.isfinite(h), depth_m * area, 0.0)
-    return lakes.solve_lakes(h, kind, F, code, code_raw, runoff, area, accumulate), h, F
+    return lakes.solve_lakes(h, kind, F, code, code_raw, runoff, area, accumulate, merge_sweep), h, F
 
 
 def two_basins():
@@ -119,3 +119,41 @@ def test_hack_exponent_matches_brute_force():
     assert got["hack_exponent"] == pytest.approx(h_all, abs=1e-9)
     assert got["hack_exponent_mainstem"] == pytest.approx(h_stem, abs=1e-9)
     assert got["longest_flow_path_m"] == pytest.approx(L.max())
+
+
+def merge_inputs(h):
+    h = ref.canonical(h)
+    kind = ref.cell_kinds(h)
+    F = dev.fill(h, kind, False)
+    D = (kind == ref.INTERIOR) & (F > h)
+    code = dev.d8(np.nan_to_num(dev.fill(h, kind, True), nan=0.0), kind, 2.0)
+    code_lake = np.where(D, dev.d8(np.nan_to_num(h, nan=0.0), kind, 2.0), code).astype(np.int8)
+    term = lakes.terminals(ref.receivers(code_lake))
+    cells = np.flatnonzero(D.ravel())
+    cells = cells[np.lexsort((cells, h.astype(np.float64).ravel()[cells]))]
+    return cells, h, term, h.shape[1]
+
+
+def merge_cases():
+    rng = np.random.default_rng(11)
+    yield "two_basins", two_basins()
+    yield "noise", (rng.random((45, 38)) * 20).astype(np.float32)
+    nested = np.full((33, 33), 10.0, np.float32)
+    for k in range(1, 16):
+        nested[k:-k, k:-k] = 10.0 - k * (0.5 if k % 2 else -0.3)
+    yield "nested", nested
+    plateau = np.round(rng.random((40, 40)) * 3).astype(np.float32)  # many equal heights: ties by index
+    yield "ties", plateau
+    yield "flat", np.zeros((10, 12), np.float32)
+
+
+@pytest.mark.parametrize("name,h", list(merge_cases()), ids=[c[0] for c in merge_cases()])
+def test_merge_sweep_kernel_equals_reference(name, h):
+    args = merge_inputs(h)
+    want = lakes.merge_tree_reference(*args)
+    got = dev.merge_sweep(*args)
+    for f in ("parent", "child_a", "child_b", "birth", "entry_a", "entry_b", "cell_node"):
+        np.testing.assert_array_equal(getattr(got, f), getattr(want, f), err_msg=f)
+    res_dev, _, _ = solve(h, 0.5)
+    res_ref, _, _ = solve(h, 0.5, merge_sweep=lakes.merge_tree_reference)
+    np.testing.assert_array_equal(res_dev.depth, res_ref.depth)
