@@ -17,7 +17,6 @@ not bit-equal).
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 

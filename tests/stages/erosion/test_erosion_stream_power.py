@@ -1,7 +1,6 @@
 """Stream-power erosion (Braun and Willett 2013): the kernel against its
 pure-Python reference, and fastscapelib's test protocol (test_spl.cpp):
 steady-state slopes, mass balance at base level, extreme K and dt."""
-import math
 
 import numpy as np
 import pytest
