@@ -25,33 +25,34 @@ from pipeline.errors import InputError
 _ROW_CHUNK = 256  # output rows per resampling step (bounds temporary memory)
 
 
-def read_dem(path: str | Path, dem_min_m: float | None = None, dem_max_m: float | None = None) -> np.ndarray:
-    """The DEM's first channel in metres, float64 (height, width)."""
+def read_dem(path: str | Path, dem_min_m: float | None = None, dem_max_m: float | None = None,
+             label: str = "DEM file") -> np.ndarray:
+    """The DEM's first channel in metres, float64 (height, width). `label`
+    names the file in errors (other rasters read with it: "rain map")."""
     import OpenImageIO as oiio
 
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"DEM file {path} does not exist or is not a file")
+        raise InputError(f"{label} {path} does not exist or is not a file")
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise InputError(f"DEM file {path} cannot be read as an image: {oiio.geterror() or 'unknown format'}")
+        raise InputError(f"{label} {path} cannot be read as an image: {oiio.geterror() or 'unknown format'}")
     try:
         spec = inp.spec()
         if spec.width < 1 or spec.height < 1 or spec.nchannels < 1:
-            raise InputError(f"DEM file {path} is empty ({spec.width}x{spec.height}, {spec.nchannels} channels)")
+            raise InputError(f"{label} {path} is empty ({spec.width}x{spec.height}, {spec.nchannels} channels)")
         raw = inp.read_image(0, 0, 0, 1, spec.format)  # first channel, in the file's own pixel type
         if raw is None or inp.has_error:
-            raise InputError(f"DEM file {path} is corrupt: {inp.geterror() or oiio.geterror() or 'read failed'}")
+            raise InputError(f"{label} {path} is corrupt: {inp.geterror() or oiio.geterror() or 'read failed'}")
     finally:
         inp.close()
     raw = np.asarray(raw).reshape(spec.height, spec.width)
     scaled = dem_min_m is not None and dem_max_m is not None
     if np.issubdtype(raw.dtype, np.integer):
         if not scaled:
-            raise InputError(
-                f"DEM file {path} holds {raw.dtype} integers: set dem_min_m and dem_max_m (the heights in metres "
-                f"of the smallest and largest {raw.dtype} values)"
-            )
+            hint = ("set dem_min_m and dem_max_m (the heights in metres of the smallest and largest "
+                    f"{raw.dtype} values)") if label == "DEM file" else "save it with float values"
+            raise InputError(f"{label} {path} holds {raw.dtype} integers: {hint}")
         info = np.iinfo(raw.dtype)
         t = (raw.astype(np.float64) - float(info.min)) / (float(info.max) - float(info.min))
         return dem_min_m + t * (dem_max_m - dem_min_m)
@@ -60,14 +61,14 @@ def read_dem(path: str | Path, dem_min_m: float | None = None, dem_max_m: float 
     if bad.any():
         r, c = np.argwhere(bad)[0]
         raise InputError(
-            f"DEM file {path} contains {int(bad.sum())} NaN or infinite value(s), the first at row {r}, column {c}"
+            f"{label} {path} contains {int(bad.sum())} NaN or infinite value(s), the first at row {r}, column {c}"
         )
     if scaled:
         values = dem_min_m + values * (dem_max_m - dem_min_m)
     return values
 
 
-def _taps(n_out: int, n_src: int, first: int, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def sample_taps(n_out: int, n_src: int, first: int, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Source indices and weight for output cells [first, first+count) of n_out
     cells spanning the same extent as n_src source pixels (centre to centre)."""
     idx = np.arange(first, first + count, dtype=np.float64)
@@ -83,11 +84,11 @@ def resample(src: np.ndarray, resolution: int, window: tuple[int, int, int, int]
     window = (col0, row0, cols, rows) of a resolution x resolution grid."""
     col0, row0, cols, rows = window
     h, w = src.shape
-    x0, x1, wx = _taps(resolution, w, col0, cols)
+    x0, x1, wx = sample_taps(resolution, w, col0, cols)
     out = np.empty((rows, cols), np.float32)
     for r in range(0, rows, _ROW_CHUNK):
         n = min(_ROW_CHUNK, rows - r)
-        z0, z1, wz = _taps(resolution, h, row0 + r, n)
+        z0, z1, wz = sample_taps(resolution, h, row0 + r, n)
         wz = wz[:, None]
         top = src[z0][:, x0] * (1.0 - wx) + src[z0][:, x1] * wx
         bottom = src[z1][:, x0] * (1.0 - wx) + src[z1][:, x1] * wx

@@ -25,11 +25,11 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Optional
 
 import numpy as np
 
-from pipeline.contract import Artifact, Input, Param, Params, RunContext, Stage
+from pipeline.contract import Artifact, Input, Param, Params, ProjectPath, RunContext, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
 from pipeline.preview import hillshade
@@ -57,6 +57,9 @@ class HydrologyParams(Params):
     rain_lapse_mm_per_year_per_100m: float = Param(
         0.0, units="mm/year per 100 m", description="orographic rain: extra rain per 100 m above the lowest point "
         "(0 = uniform rain)", ge=-2000.0, le=2000.0)
+    rain_map_path: Optional[ProjectPath] = Param(
+        None, units="path", description="a rain map instead of rain_mm_per_year and the lapse: an image file (EXR, "
+        "TIFF; first channel, float) of yearly rain in mm/year, stretched over the terrain and resampled bilinearly")
     runoff_coefficient: float = Param(0.5, units="", description="share of rain that runs off into rivers", ge=0.0, le=1.0)
     river_threshold_m2: float = Param(
         4.0e5, units="m^2", description="drainage area at which a channel (river) starts", gt=0.0, le=1e12)
@@ -88,7 +91,30 @@ class HydrologyParams(Params):
 
     @property
     def uniform_rain(self) -> bool:
-        return self.rain_lapse_mm_per_year_per_100m == 0.0
+        return self.rain_lapse_mm_per_year_per_100m == 0.0 and self.rain_map_path is None
+
+
+def rain_from_map(path: Path, rows: int, cols: int) -> np.ndarray:
+    """Yearly rain (mm/year, float64) from an image file, stretched over the
+    rows x cols terrain (cell-centred bilinear); clear errors for a missing,
+    corrupt, integer, non-finite or negative map."""
+    from stages.heightmap.dem import read_dem, sample_taps
+
+    try:
+        src = read_dem(path, label="rain map")
+    except InputError as e:
+        raise InputError(f"hydrology: {e}") from None
+    if (src < 0).any():
+        r, c = np.argwhere(src < 0)[0]
+        raise InputError(f"hydrology: rain map {path} has negative rain ({float(src[r, c]):g} mm/year at row {r}, "
+                         f"column {c})")
+    h, w = src.shape
+    x0, x1, wx = sample_taps(cols, w, 0, cols)
+    z0, z1, wz = sample_taps(rows, h, 0, rows)
+    wz = wz[:, None]
+    top = src[z0][:, x0] * (1.0 - wx) + src[z0][:, x1] * wx
+    bottom = src[z1][:, x0] * (1.0 - wx) + src[z1][:, x1] * wx
+    return top * (1.0 - wz) + bottom * wz
 
 
 def _preview(h: Grid, lake_depth: np.ndarray, river: np.ndarray) -> np.ndarray:
@@ -146,8 +172,13 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
 
     # rain and runoff (m/year); discharge in m^3/s
     hmin = float(np.nanmin(h))
-    rain = np.where(data, params.rain_mm_per_year + params.rain_lapse_mm_per_year_per_100m * (np.nan_to_num(h, nan=hmin) - hmin) / 100.0, 0.0)
-    rain = np.maximum(rain, 0.0) / 1000.0
+    if params.rain_map_path is not None:
+        rain = np.where(data, rain_from_map(ctx.resolve(params.rain_map_path), rows, cols), 0.0) / 1000.0
+        ctx.metrics["rain_map_mean_mm_per_year"] = float(rain[data].mean() * 1000.0)
+    else:
+        rain = np.where(data, params.rain_mm_per_year + params.rain_lapse_mm_per_year_per_100m
+                        * (np.nan_to_num(h, nan=hmin) - hmin) / 100.0, 0.0)
+        rain = np.maximum(rain, 0.0) / 1000.0
     runoff = rain * params.runoff_coefficient
     t0 = time.perf_counter()
     if params.uniform_rain:

@@ -161,3 +161,41 @@ def test_hack_law_on_the_default_terrain(tmp_path):
     _, m = bake(tmp_path, h, dx=8192.0 / 256)
     assert 0.5 <= m["hack_exponent"] <= 0.7, m["hack_exponent"]
     assert 0.5 <= m["hack_exponent_mainstem"] <= 0.7, m["hack_exponent_mainstem"]
+
+
+def _write_image(path, data):
+    import OpenImageIO as oiio
+
+    data = np.ascontiguousarray(data)
+    fmt = oiio.FLOAT if data.dtype == np.float32 else oiio.UINT16
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), oiio.ImageSpec(data.shape[1], data.shape[0], 1, fmt))
+    out.write_image(data)
+    out.close()
+
+
+def test_rain_map(tmp_path):
+    """A rain map (mm/year) replaces the uniform rain: the discharge leaving
+    the map equals the map's runoff, summed in float64; bad maps are refused
+    with the file named."""
+    from pipeline.errors import InputError
+    from stages.hydrology.stage import SECONDS_PER_YEAR, rain_from_map
+
+    h = small_world()
+    rain = np.zeros((4, 4), np.float32)
+    rain[:, :2] = 2000.0  # wet west, dry east
+    _write_image(tmp_path / "rain.exr", rain)
+    out, m = bake(tmp_path, h, rain_map_path="rain.exr", runoff_coefficient=0.5)
+    want = rain_from_map(tmp_path / "rain.exr", *h.shape) / 1000.0 * 0.5 * 64.0 / SECONDS_PER_YEAR
+    assert m["discharge_out_m3_s"] == pytest.approx(float(want.sum()), rel=1e-9)
+    q = out["hydrology.accumulation"].channel("flow.discharge")
+    assert q[:, -1].max() < q[:, 0].max()  # the dry east edge carries less than the wet west edge
+    assert m["rain_map_mean_mm_per_year"] == pytest.approx(1000.0, rel=0.05)
+    _write_image(tmp_path / "neg.exr", rain - 1.0)
+    with pytest.raises(InputError, match="rain map .*neg.exr.* negative"):
+        bake(tmp_path, h, rain_map_path="neg.exr")
+    _write_image(tmp_path / "int.tif", np.zeros((4, 4), np.uint16))
+    with pytest.raises(InputError, match="rain map .*int.tif.* float values"):
+        bake(tmp_path, h, rain_map_path="int.tif")
+    with pytest.raises(InputError, match="rain map .*missing.exr"):
+        bake(tmp_path, h, rain_map_path="missing.exr")
