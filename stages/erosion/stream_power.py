@@ -176,9 +176,11 @@ def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, 
     cell_area = dx * dx
     eroded = uplifted = out_total = 0.0
     worst_newton = 0
+    uplift_step = np.where(base, 0.0, uplift_m_per_year * dt)  # m per step, 0 at base level
+    uplift_step_m3 = float(uplift_step.sum()) * cell_area
     for s in range(steps):
-        h_up = h + np.where(base, 0.0, uplift_m_per_year * dt)
-        uplifted += float(np.where(base, 0.0, uplift_m_per_year * dt).sum()) * cell_area
+        h_up = h + uplift_step
+        uplifted += uplift_step_m3
         R = flow.fill(flowref.canonical(h_up.astype(np.float32)), kind, eps=True)
         code = flow.d8(R, kind, dx)
         area = flow.accumulate(code).astype(np.float64) * cell_area

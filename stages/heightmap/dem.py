@@ -68,7 +68,7 @@ def read_dem(path: str | Path, dem_min_m: float | None = None, dem_max_m: float 
     return values
 
 
-def sample_taps(n_out: int, n_src: int, first: int, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _taps(n_out: int, n_src: int, first: int, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Source indices and weight for output cells [first, first+count) of n_out
     cells spanning the same extent as n_src source pixels (centre to centre)."""
     idx = np.arange(first, first + count, dtype=np.float64)
@@ -79,16 +79,18 @@ def sample_taps(n_out: int, n_src: int, first: int, count: int) -> tuple[np.ndar
     return i0, i1, s - i0
 
 
-def resample(src: np.ndarray, resolution: int, window: tuple[int, int, int, int]) -> np.ndarray:
+def resample(src: np.ndarray, resolution: int | tuple[int, int], window: tuple[int, int, int, int]) -> np.ndarray:
     """Bilinear, cell-centred resampling of src (h, w) onto the cells
-    window = (col0, row0, cols, rows) of a resolution x resolution grid."""
+    window = (col0, row0, cols, rows) of a resolution x resolution grid (or
+    of a (grid rows, grid cols) grid)."""
     col0, row0, cols, rows = window
+    res_r, res_c = (resolution, resolution) if isinstance(resolution, int) else resolution
     h, w = src.shape
-    x0, x1, wx = sample_taps(resolution, w, col0, cols)
+    x0, x1, wx = _taps(res_c, w, col0, cols)
     out = np.empty((rows, cols), np.float32)
     for r in range(0, rows, _ROW_CHUNK):
         n = min(_ROW_CHUNK, rows - r)
-        z0, z1, wz = sample_taps(resolution, h, row0 + r, n)
+        z0, z1, wz = _taps(res_r, h, row0 + r, n)
         wz = wz[:, None]
         top = src[z0][:, x0] * (1.0 - wx) + src[z0][:, x1] * wx
         bottom = src[z1][:, x0] * (1.0 - wx) + src[z1][:, x1] * wx

@@ -178,21 +178,24 @@ inline void tile_geometry(int t, int rows, int cols, int tiles_x, int* r0, int* 
     *nc = min(ACC_TILE, cols - *c0);
 }
 
-// In-tile receivers (local index, -1 where the path ends: outlet, no-data or
-// pit, LEAVES where it leaves the tile) and in-tile donor counts.
-inline void tile_receivers(__global const char* code, int r0, int c0, int nr, int nc, int cols,
-                           int* rl, uchar* deg)
+// A tile's in-tile receivers (local index, -1 where the path ends: outlet,
+// no-data or pit, LEAVES where it leaves the tile), in-tile donor counts and
+// cell weights (1 per data cell when unit, else w).
+inline void tile_load(__global const char* code, __global const ACC_T* w, int unit, int r0, int c0, int nr,
+                      int nc, int cols, int* rl, uchar* deg, ACC_T* acc)
 {
     for (int i = 0; i < nr * nc; ++i) deg[i] = 0;
     for (int lr = 0; lr < nr; ++lr)
         for (int lc = 0; lc < nc; ++lc) {
-            char k = code[(r0 + lr) * cols + c0 + lc];
+            int idx = (r0 + lr) * cols + c0 + lc;
+            char k = code[idx];
             int j = -1;
             if (k >= 0) {
                 int rr = lr + DR[(int)k], cc = lc + DC[(int)k];
                 j = (rr >= 0 && rr < nr && cc >= 0 && cc < nc) ? rr * nc + cc : LEAVES;
             }
             rl[lr * nc + lc] = j;
+            acc[lr * nc + lc] = unit ? (ACC_T)(k != -2) : w[idx];
             if (j >= 0) deg[j]++;
         }
 }
@@ -218,11 +221,6 @@ inline int tile_accumulate(const int* rl, uchar* deg, ACC_T* acc, ushort* ord, i
     return n;
 }
 
-inline ACC_T cell_weight(__global const char* code, __global const ACC_T* w, int idx, int unit)
-{
-    return unit ? (ACC_T)(code[idx] != -2) : w[idx];
-}
-
 // Phase 1: local sums inside each tile; for every perimeter slot, the slot
 // of its exit cell (the last cell of its path in the tile, -1 if the path
 // ends in the tile) and its local sum.
@@ -237,9 +235,7 @@ __kernel void acc_local(__global const char* code, __global const ACC_T* w, __gl
     ushort ord[ACC_CELLS];
     int r0, c0, nr, nc;
     tile_geometry(t, rows, cols, tiles_x, &r0, &c0, &nr, &nc);
-    tile_receivers(code, r0, c0, nr, nc, cols, rl, deg);
-    for (int lr = 0; lr < nr; ++lr)
-        for (int lc = 0; lc < nc; ++lc) acc[lr * nc + lc] = cell_weight(code, w, (r0 + lr) * cols + c0 + lc, unit);
+    tile_load(code, w, unit, r0, c0, nr, nc, cols, rl, deg, acc);
     int n = tile_accumulate(rl, deg, acc, ord, nr * nc);
     // exits, receivers before donors (reverse order), in place of rl
     for (int q = n - 1; q >= 0; --q) {
@@ -325,9 +321,7 @@ __kernel void acc_final(__global const char* code, __global const ACC_T* w, __gl
     ushort ord[ACC_CELLS];
     int r0, c0, nr, nc;
     tile_geometry(t, rows, cols, tiles_x, &r0, &c0, &nr, &nc);
-    tile_receivers(code, r0, c0, nr, nc, cols, rl, deg);
-    for (int lr = 0; lr < nr; ++lr)
-        for (int lc = 0; lc < nc; ++lc) acc[lr * nc + lc] = cell_weight(code, w, (r0 + lr) * cols + c0 + lc, unit);
+    tile_load(code, w, unit, r0, c0, nr, nc, cols, rl, deg, acc);
     int base = t * PMAX, np = perimeter_count(nr, nc);
     for (int p = 0; p < np; ++p) acc[perimeter_local(p, nr, nc)] += inflow[base + p];
     tile_accumulate(rl, deg, acc, ord, nr * nc);

@@ -98,7 +98,7 @@ def rain_from_map(path: Path, rows: int, cols: int) -> np.ndarray:
     """Yearly rain (mm/year, float64) from an image file, stretched over the
     rows x cols terrain (cell-centred bilinear); clear errors for a missing,
     corrupt, integer, non-finite or negative map."""
-    from stages.heightmap.dem import read_dem, sample_taps
+    from stages.heightmap.dem import read_dem, resample
 
     try:
         src = read_dem(path, label="rain map")
@@ -108,13 +108,7 @@ def rain_from_map(path: Path, rows: int, cols: int) -> np.ndarray:
         r, c = np.argwhere(src < 0)[0]
         raise InputError(f"hydrology: rain map {path} has negative rain ({float(src[r, c]):g} mm/year at row {r}, "
                          f"column {c})")
-    h, w = src.shape
-    x0, x1, wx = sample_taps(cols, w, 0, cols)
-    z0, z1, wz = sample_taps(rows, h, 0, rows)
-    wz = wz[:, None]
-    top = src[z0][:, x0] * (1.0 - wx) + src[z0][:, x1] * wx
-    bottom = src[z1][:, x0] * (1.0 - wx) + src[z1][:, x1] * wx
-    return top * (1.0 - wz) + bottom * wz
+    return resample(src, (rows, cols), (0, 0, cols, rows)).astype(np.float64)
 
 
 def _preview(h: Grid, lake_depth: np.ndarray, river: np.ndarray) -> np.ndarray:
