@@ -471,10 +471,37 @@ __kernel void halo(__global float *a, __global float *b, __global float *c_, __g
     if (n > 3) wrap1(d, k, rows, cols, P);
 }
 
-/* Diagnostics, one work-item per row, summed left to right in float64:
- * sums[r] = (sum W, sum dT, sum S, sum EA, sum |dT|), then EA is reset;
- * mx[r] = (max CFL speed from the last flux pass that measured it, min W,
- * min S, count of non-finite values, max W). */
+/* Diagnostics, one work-item per row, 8 cells at a time: each lane sums
+ * its columns (c = lane, lane + 8, ...) in float64, then the lanes are added in
+ * a fixed tree order, so the sums do not depend on the device or the
+ * work-group size. sums[r] = (sum W, sum dT, sum S, sum EA, sum |dT|), then EA
+ * is reset; mx[r] = (max CFL speed from the last flux pass that measured it,
+ * min W, min S, count of non-finite values, max W). A cell with any
+ * non-finite value is counted and left out of the sums (the stage stops on
+ * it). x - x is 0 exactly when x is finite (isfinite is a library call). */
+typedef float8 __attribute__((aligned(4))) float8_u;
+#define LD8(p, k) (*(__global const float8_u *)((p) + (k)))
+#define ST8(v, p, k) (*(__global float8_u *)((p) + (k)) = (v))
+
+inline double hsum8(double8 v)
+{
+    return ((v.s0 + v.s1) + (v.s2 + v.s3)) + ((v.s4 + v.s5) + (v.s6 + v.s7));
+}
+
+inline float hmin8(float8 v)
+{
+    float4 a = MIN(v.lo, v.hi);
+    float2 b = MIN(a.lo, a.hi);
+    return MIN(b.lo, b.hi);
+}
+
+inline float hmax8(float8 v)
+{
+    float4 a = MAX(v.lo, v.hi);
+    float2 b = MAX(a.lo, a.hi);
+    return MAX(b.lo, b.hi);
+}
+
 __kernel void diag_rows(__global const float *restrict dT, __global const float *restrict W,
                         __global const float *restrict S, __global const float *restrict QE,
                         __global const float *restrict QS, __global const float *restrict QW,
@@ -485,23 +512,37 @@ __kernel void diag_rows(__global const float *restrict dT, __global const float 
 {
     int r = get_global_id(0);
     if (r >= rows) return;
-    double sw = 0.0, sd = 0.0, ss = 0.0, se = 0.0, sa = 0.0;
-    float wave = 0.0f, wmin = INFINITY, smin = INFINITY, bad = 0.0f, wmax = 0.0f;
-    for (int c = 0; c < cols; c++) {
+    const int8 lane = (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    const float8 z8 = (float8)(0.0f);
+    double8 sw = (double8)(0.0), sd = sw, ss = sw, se = sw, sa = sw;
+    float8 wave = z8, wmax = z8, wmin = (float8)(INFINITY), smin = wmin;
+    int8 bad = (int8)(0);
+    for (int c = 0; c < cols; c += 8) {  /* rows are padded: lanes past cols read padding */
         int i = AT(r, c);
-        float w = W[i], d = dT[i], s = S[i], e = EA[i];
-        if (!isfinite(w) || !isfinite(d) || !isfinite(s) || !isfinite(e) || !isfinite(QE[i]) ||
-            !isfinite(QS[i]) || !isfinite(QW[i]) || !isfinite(QN[i])) {
-            bad += 1.0f;
-            continue;
-        }
-        sw += (double)w; sd += (double)d; ss += (double)s; se += (double)e; sa += (double)fabs(d);
-        EA[i] = 0.0f;
-        wmin = fmin(wmin, w); smin = fmin(smin, s); wmax = fmax(wmax, w);
-        wave = fmax(wave, wavebuf[i]);
+        float8 w = LD8(W, i), d = LD8(dT, i), s = LD8(S, i), e = LD8(EA, i);
+        float8 qe = LD8(QE, i), qs = LD8(QS, i), qw = LD8(QW, i), qn = LD8(QN, i);
+        float8 zero_if_finite = (((w - w) + (d - d)) + ((s - s) + (e - e))) +
+                                (((qe - qe) + (qs - qs)) + ((qw - qw) + (qn - qn)));
+        int8 in = lane + c < cols;
+        int8 ok = in & (zero_if_finite == 0.0f);
+        bad -= in & ~ok;  /* true is -1 */
+        sw += convert_double8(ok ? w : z8);
+        sd += convert_double8(ok ? d : z8);
+        ss += convert_double8(ok ? s : z8);
+        se += convert_double8(ok ? e : z8);
+        sa += convert_double8(ok ? (d < 0.0f ? -d : d) : z8);
+        ST8(ok ? z8 : e, EA, i);
+        wmin = ok ? MIN(wmin, w) : wmin;
+        smin = ok ? MIN(smin, s) : smin;
+        wmax = ok ? MAX(wmax, w) : wmax;
+        wave = ok ? MAX(wave, LD8(wavebuf, i)) : wave;
     }
-    sums[5 * r + 0] = sw; sums[5 * r + 1] = sd; sums[5 * r + 2] = ss; sums[5 * r + 3] = se; sums[5 * r + 4] = sa;
-    mx[5 * r + 0] = wave; mx[5 * r + 1] = wmin; mx[5 * r + 2] = smin; mx[5 * r + 3] = bad; mx[5 * r + 4] = wmax;
+    sums[5 * r + 0] = hsum8(sw); sums[5 * r + 1] = hsum8(sd); sums[5 * r + 2] = hsum8(ss);
+    sums[5 * r + 3] = hsum8(se); sums[5 * r + 4] = hsum8(sa);
+    int4 b4 = bad.lo + bad.hi;
+    int2 b2 = b4.lo + b4.hi;
+    mx[5 * r + 0] = hmax8(wave); mx[5 * r + 1] = hmin8(wmin); mx[5 * r + 2] = hmin8(smin);
+    mx[5 * r + 3] = (float)(b2.lo + b2.hi); mx[5 * r + 4] = hmax8(wmax);
 }
 
 /* Velocity (m/s) of every cell for the output maps: (vx east, vz south),

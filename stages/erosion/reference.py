@@ -252,10 +252,14 @@ class ReferenceSim:
         ok &= np.all(np.isfinite(self.F), axis=-1)
         z = lambda a: np.where(ok, a, 0).astype(np.float64)
         sums = np.stack([z(self.W), z(self.dT), z(self.S), z(self.EA), z(np.abs(self.dT))], axis=-1)
-        # the kernel sums each row left to right in float64
-        rows = np.zeros((self.rows, 5))
-        for c in range(self.cols):
-            rows += sums[:, c, :]
+        # the kernel: lane l of a row sums columns l, l + 8, ... left to right in
+        # float64, then the 8 lanes are added in a fixed tree
+        lanes = np.zeros((self.rows, 8, 5))
+        for c0 in range(0, self.cols, 8):
+            block = sums[:, c0:c0 + 8, :]
+            lanes[:, :block.shape[1], :] += block
+        L = [lanes[:, k, :] for k in range(8)]
+        rows = ((L[0] + L[1]) + (L[2] + L[3])) + ((L[4] + L[5]) + (L[6] + L[7]))
         self.EA = np.where(ok, f32(0), self.EA)
         inf = f32(np.inf)
         mx = np.stack([
