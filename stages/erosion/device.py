@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.opencl import get_cl, global_size, load_program
+from pipeline.opencl import CachedKernel, get_cl, global_size, load_program
 
 from .physics import G, THERMAL_C, Physics, StepConstants, talus_thresholds
 from .state import Diag
@@ -77,9 +77,8 @@ class DeviceSim:
         self.gsize1 = global_size((self.cols, self.rows), (16, 1))  # scalar 2-D kernels (guarded)
         prg = program(ph.boundary_code, self.vw)
         prg_th = program(ph.boundary_code, self.vw_thermal)
-        self.k = {name: cl.Kernel(prg, name) for name in KERNEL_NAMES}
-        for name in ("thermal_send", "thermal_apply"):
-            self.k[name] = cl.Kernel(prg_th, name)
+        # launched thousands of times with mostly the same arguments: set only what changed
+        self.k = {name: CachedKernel(prg_th if name.startswith("thermal") else prg, name) for name in KERNEL_NAMES}
         ctx = self.cl.ctx
         self.queue = self.cl.queue
         mf = cl.mem_flags
