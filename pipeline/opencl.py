@@ -1,4 +1,5 @@
-"""One OpenCL context and queue per process, and a program cache.
+"""One OpenCL context and queue per process, a program cache, and
+`CachedKernel` for kernels launched many times in a time loop.
 
 The device is PoCL on the CPU by default (installed from PyPI with pyopencl);
 `WORLDBAKE_CL_DEVICE` picks another: an index "P:D" (platform:device) or a
