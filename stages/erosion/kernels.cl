@@ -108,6 +108,17 @@ typedef floatV __attribute__((aligned(4))) floatV_u;
 /* every cell of the work-item and all its neighbours inside the grid */
 #define INNER ((c0 > 0) & (c0 + VW < cols) & (r > 0) & (r + 1 < rows))
 #define ALL ((intV)(-1))
+/* Call fn(args..., i, exE, exS, exW, exN) for the cells of this work-item:
+ * with masks known to be all true (no selects) for interior work-items. */
+#if BOUNDARY == 2
+#define DISPATCH(fn, ...) fn(__VA_ARGS__, i, exE, exS, exW, exN)
+#else
+#define DISPATCH(fn, ...)                                   \
+    if (INNER)                                              \
+        fn(__VA_ARGS__, i, ALL, ALL, ALL, ALL);             \
+    else                                                    \
+        fn(__VA_ARGS__, i, exE, exS, exW, exN)
+#endif
 
 /* Square root from basic IEEE operations, without division: a bit-level
  * first guess of 1/sqrt(x) and three Newton steps y <- y (1.5 - 0.5 x y^2),
@@ -195,14 +206,7 @@ inline void flux_cells(FLUX_ARGS, const int i, const intV exE, const intV exS, c
 __kernel void flux(FLUX_ARGS)
 {
     CELLS
-#if BOUNDARY == 2
-    flux_cells(FLUX_PASS, i, exE, exS, exW, exN);
-#else
-    if (INNER)
-        flux_cells(FLUX_PASS, i, ALL, ALL, ALL, ALL);
-    else
-        flux_cells(FLUX_PASS, i, exE, exS, exW, exN);
-#endif
+    DISPATCH(flux_cells, FLUX_PASS);
 }
 
 /* Sediment that leaves a cell with its water through one face in one step,
@@ -331,14 +335,7 @@ inline void update_cells(UPDATE_ARGS, const int i, const intV exE, const intV ex
 __kernel void update(UPDATE_ARGS)
 {
     CELLS
-#if BOUNDARY == 2
-    update_cells(UPDATE_PASS, i, exE, exS, exW, exN);
-#else
-    if (INNER)
-        update_cells(UPDATE_PASS, i, ALL, ALL, ALL, ALL);
-    else
-        update_cells(UPDATE_PASS, i, exE, exS, exW, exN);
-#endif
+    DISPATCH(update_cells, UPDATE_PASS);
 }
 
 /* ---------------------------------------------------------------------------
