@@ -43,9 +43,9 @@
  * the accumulated change. dT is small, so erosion steps far below one ulp of
  * a 2000 m height are still represented; the mass budget sums dT + S.
  *
- * Only + - * / and compare-select in the per-step kernels: PoCL's fmax, fmin,
- * fabs and sqrt builtins are scalar library calls, and basic IEEE operations
- * give the same bits at every vector width and on every device.
+ * Only + - * / sqrt and compare-select in the per-step kernels: PoCL's fmax,
+ * fmin and fabs builtins are scalar library calls, and correctly rounded IEEE
+ * operations give the same bits at every vector width and on every device.
  *
  * Compile-time: BOUNDARY 0 closed, 1 open (free outfall), 2 periodic;
  * VW vector width (8 or 16).
@@ -120,19 +120,25 @@ typedef floatV __attribute__((aligned(4))) floatV_u;
         fn(__VA_ARGS__, i, exE, exS, exW, exN)
 #endif
 
-/* Square root from basic IEEE operations, without division: a bit-level
- * first guess of 1/sqrt(x) and three Newton steps y <- y (1.5 - 0.5 x y^2),
- * then sqrt(x) = x y (relative error below 3e-7). Deterministic at any vector
- * width and reproduced exactly by numpy. */
-inline floatV sqrt_n(floatV x)
+/* Square root, correctly rounded (IEEE): the same bits as numpy's np.sqrt on
+ * every device. load_program builds with -cl-fp32-correctly-rounded-divide-sqrt,
+ * so the builtin sqrt is exact everywhere; on x86 PoCL turns a float16 sqrt
+ * into an LLVM crash and a float8 one into library calls, so there the AVX
+ * instruction itself (vsqrtps, also exact) is called, 8 lanes at a time. */
+#if defined(__x86_64__) && defined(__AVX__)
+typedef float v8sf_ __attribute__((vector_size(32)));
+inline float8 sqrt8_avx(float8 x)
 {
-    floatV y = as_floatV(0x5f3759df - (as_intV(x) >> 1));
-    floatV hx = 0.5f * x;
-    y = y * (1.5f - hx * (y * y));
-    y = y * (1.5f - hx * (y * y));
-    y = y * (1.5f - hx * (y * y));
-    return x > 0.0f ? x * y : ZERO;
+    return __builtin_astype(__builtin_ia32_sqrtps256(__builtin_astype(x, v8sf_)), float8);
 }
+#if VW == 8
+inline floatV sqrt_v(floatV x) { return sqrt8_avx(x); }
+#elif VW == 16
+inline floatV sqrt_v(floatV x) { return (floatV)(sqrt8_avx(x.lo), sqrt8_avx(x.hi)); }
+#endif
+#else
+inline floatV sqrt_v(floatV x) { return sqrt(x); }
+#endif
 
 /* ---------------------------------------------------------------------------
  * 1. Pipe fluxes: Mei et al. 2007 virtual pipes whose cross-section is the flow
@@ -190,15 +196,16 @@ inline void flux_cells(FLUX_ARGS, const int i, const intV exE, const intV exS, c
     floatV qN = face_q(LD(QN, i), hi, wi, LD(Tb, i - P) + LD(dT, i - P), LD(W, i - P), exN, g_dt_dx, fric_dt, &hfN);
     floatV sum = ((qE + qS) + qW) + qN;
     floatV k = sum > 0.0f ? MIN(F(1.0f), (wi * dx_dt) / MAX(sum, F(TINY))) : F(1.0f);
+    k = wi > TINY ? k : ZERO;  /* subnormal water: W dx/dt has too few bits to bound sum q */
     qE *= k; qS *= k; qW *= k; qN *= k;
     ST(qE, QE, i); ST(qS, QS, i); ST(qW, QW, i); ST(qN, QN, i);
     if (want_wave) {
         /* the CFL speed where water moves: face velocity q/hf plus the gravity wave */
-        floatV sp = sqrt_n(g * wi);
-        sp = qE > 0.0f ? MAX(sp, qE / MAX(hfE, F(HMIN)) + sqrt_n(g * hfE)) : sp;
-        sp = qS > 0.0f ? MAX(sp, qS / MAX(hfS, F(HMIN)) + sqrt_n(g * hfS)) : sp;
-        sp = qW > 0.0f ? MAX(sp, qW / MAX(hfW, F(HMIN)) + sqrt_n(g * hfW)) : sp;
-        sp = qN > 0.0f ? MAX(sp, qN / MAX(hfN, F(HMIN)) + sqrt_n(g * hfN)) : sp;
+        floatV sp = sqrt_v(g * wi);
+        sp = qE > 0.0f ? MAX(sp, qE / MAX(hfE, F(HMIN)) + sqrt_v(g * hfE)) : sp;
+        sp = qS > 0.0f ? MAX(sp, qS / MAX(hfS, F(HMIN)) + sqrt_v(g * hfS)) : sp;
+        sp = qW > 0.0f ? MAX(sp, qW / MAX(hfW, F(HMIN)) + sqrt_v(g * hfW)) : sp;
+        sp = qN > 0.0f ? MAX(sp, qN / MAX(hfN, F(HMIN)) + sqrt_v(g * hfN)) : sp;
         ST(sp, wave, i);
     }
 }
@@ -210,13 +217,16 @@ __kernel void flux(FLUX_ARGS)
 }
 
 /* Sediment that leaves a cell with its water through one face in one step,
- * S (q c) / max(W, sum q c), written S * ((q c) * rden) with the cell's
- * rden = 1 / max(W, sum q c) (one division per cell, not per face). The
- * sender and the receiver evaluate it from the same stored floats, so both get
- * the same bits (a dry cell has q = 0). */
-inline floatV sed_rden(floatV W, floatV sumqc)
+ * S (q c) / W, written S * ((q c) * rden) with the cell's rden = 1 / W (one
+ * division per cell, not per face). The outflow scaling in `flux` leaves every
+ * cell at least LIMITER_EPS = 2^-20 of its water, far more than the roundings
+ * of q and of sum q c (about 10 * 2^-24), so sum q c < W and the faces never
+ * carry off more than S; cells holding TINY or less send nothing. The sender
+ * and the receiver evaluate it from the same stored floats, so both get the
+ * same bits. */
+inline floatV sed_rden(floatV W)
 {
-    return 1.0f / MAX(MAX(W, sumqc), F(TINY));
+    return 1.0f / MAX(W, F(TINY));
 }
 
 inline floatV sed_out(floatV S, floatV q, float c, floatV rden)
@@ -261,18 +271,17 @@ inline void update_cells(UPDATE_ARGS, const int i, const intV exE, const intV ex
     floatV wi = LD(W, i), si = LD(S, i), dti = LD(dT, i);
     floatV hi = LD(Tb, i) + dti;
     floatV oE = LD(QE, i), oS = LD(QS, i), oW = LD(QW, i), oN = LD(QN, i);
-    floatV sumqc_i = (((oE + oS) + oW) + oN) * cc;
     /* inflow: the neighbour on each side sends through its opposite face */
     floatV iqE = exE ? LD(QW, iE) : ZERO;
     floatV iqS = exS ? LD(QN, iS) : ZERO;
     floatV iqW = exW ? LD(QE, iW) : ZERO;
     floatV iqN = exN ? LD(QS, iN) : ZERO;
-    floatV rden_i = sed_rden(wi, sumqc_i);
+    floatV rden_i = sed_rden(wi);
     floatV soE = sed_out(si, oE, cc, rden_i);
     floatV soS = sed_out(si, oS, cc, rden_i);
     floatV soW = sed_out(si, oW, cc, rden_i);
     floatV soN = sed_out(si, oN, cc, rden_i);
-#define RDEN(j) sed_rden(LD(W, j), (((LD(QE, j) + LD(QS, j)) + LD(QW, j)) + LD(QN, j)) * cc)
+#define RDEN(j) sed_rden(LD(W, j))
     floatV siE = exE ? sed_out(LD(S, iE), iqE, cc, RDEN(iE)) : ZERO;
     floatV siS = exS ? sed_out(LD(S, iS), iqS, cc, RDEN(iS)) : ZERO;
     floatV siW = exW ? sed_out(LD(S, iW), iqW, cc, RDEN(iW)) : ZERO;
@@ -298,7 +307,7 @@ inline void update_cells(UPDATE_ARGS, const int i, const intV exE, const intV ex
     floatV gy = (hS - hN) * inv_2dx;
     floatV g2 = gx * gx + gy * gy;
     floatV sin2 = g2 / (1.0f + g2);
-    floatV cap = kc * sqrt_n((qx * qx + qy * qy) * MAX(sin2, F(sin_min2)));
+    floatV cap = kc * sqrt_v((qx * qx + qy * qy) * MAX(sin2, F(sin_min2)));
 
     /* erosion never takes a cell below its lowest neighbour: no pits are dug
      * (a pit would fill with deep water whose flow digs it deeper) */
@@ -433,10 +442,7 @@ __kernel void boundary_out(__global const float *restrict W, __global const floa
     else { c = f - 2 * rows - cols; r = 0; }
     int i = AT(r, c);
     float q = f < rows ? QE[i] : f < rows + cols ? QS[i] : f < 2 * rows + cols ? QW[i] : QN[i];
-    float sumqc = (((QE[i] + QS[i]) + QW[i]) + QN[i]) * cc;
-    float den = W[i] > sumqc ? W[i] : sumqc;
-    den = den > TINY ? den : TINY;
-    float rden = 1.0f / den;
+    float rden = 1.0f / (W[i] > TINY ? W[i] : TINY);  /* as sed_rden */
     bnd[f] += (double)(q * cc);
     bnd[nf + f] += (double)(S[i] * ((q * cc) * rden));
 }

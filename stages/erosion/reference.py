@@ -29,15 +29,10 @@ def MIN(a, b):
     return np.where(a < b, a, b)
 
 
-def sqrt_n(x: np.ndarray) -> np.ndarray:
-    """The kernels' sqrt: a bit-level guess of 1/sqrt(x), three Newton steps, times x."""
-    x = np.asarray(x, f32)
-    y = (np.int32(0x5F3759DF) - (x.view(np.int32) >> 1)).view(f32)
-    hx = f32(0.5) * x
-    with np.errstate(over="ignore", invalid="ignore"):
-        for _ in range(3):
-            y = y * (f32(1.5) - hx * (y * y))
-        return np.where(x > 0, x * y, f32(0))
+def sqrt_v(x: np.ndarray) -> np.ndarray:
+    """The kernels' sqrt: correctly rounded float32 (vsqrtps on x86, the exact builtin elsewhere)."""
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(np.asarray(x, f32))
 
 
 def shifted(a: np.ndarray, dr: int, dc: int, boundary: str, fill=0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -80,23 +75,25 @@ def flux(Tb, dT, W, F, k: StepConstants, boundary: str) -> tuple[np.ndarray, np.
     s = ((q[..., 0] + q[..., 1]) + q[..., 2]) + q[..., 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         kk = np.where(s > 0, MIN(f32(1), (W * k.dx_dt) / MAX(s, TINY)), f32(1))
+    kk = np.where(W > TINY, kk, f32(0))  # subnormal water: W dx/dt has too few bits to bound sum q
     q = q * kk[..., None]
     g = f32(G)
-    sp = sqrt_n(g * W)
+    sp = sqrt_v(g * W)
     with np.errstate(divide="ignore", invalid="ignore"):
         for d in range(4):
-            sp = np.where(q[..., d] > 0, MAX(sp, q[..., d] / hfs[..., d] + sqrt_n(g * hfs[..., d])), sp)
+            sp = np.where(q[..., d] > 0, MAX(sp, q[..., d] / hfs[..., d] + sqrt_v(g * hfs[..., d])), sp)
     return q.astype(f32), sp
 
 
-def sed_rden(W, sumqc):
-    return f32(1) / MAX(MAX(W, sumqc), TINY)
+def sed_rden(W):
+    return f32(1) / MAX(W, TINY)
 
 
-def sed_out(S, W, q, c, sumqc):
-    """Sediment leaving with the water through one face: S (q c) / max(W, sum q c),
-    as S ((q c) rden) with the cell's rden = 1 / max(W, sum q c)."""
-    return S * ((q * c) * sed_rden(W, sumqc))
+def sed_out(S, W, q, c):
+    """Sediment leaving with the water through one face: S (q c) / W, as
+    S ((q c) rden) with the cell's rden = 1 / W. `flux` leaves every cell more
+    water than sum q c, so the faces never carry off more than S."""
+    return S * ((q * c) * sed_rden(W))
 
 
 def update(Tb, dT, W, S, F, M, EA, k: StepConstants, boundary: str):
@@ -104,18 +101,16 @@ def update(Tb, dT, W, S, F, M, EA, k: StepConstants, boundary: str):
     through each side (east, south, west, north) as float64 per cell."""
     c = k.c_dt_dx
     h = Tb + dT
-    sumqc = (((F[..., 0] + F[..., 1]) + F[..., 2]) + F[..., 3]) * c
     qin, sin_, hn, sout, exs = [], [], [], [], []
     for d, (dr, dc) in enumerate(DIRS):
-        sout.append(sed_out(S, W, F[..., d], c, sumqc))
+        sout.append(sed_out(S, W, F[..., d], c))
         Fj, ex = shifted(F, dr, dc, boundary)
         Sj, _ = shifted(S, dr, dc, boundary)
         Wj, _ = shifted(W, dr, dc, boundary)
         hj, _ = shifted(h, dr, dc, boundary)
-        sumqc_j = (((Fj[..., 0] + Fj[..., 1]) + Fj[..., 2]) + Fj[..., 3]) * c
         qj = np.where(ex, Fj[..., (d + 2) % 4], f32(0))  # the neighbour sends through its opposite face
         qin.append(qj)
-        sin_.append(np.where(ex, sed_out(Sj, Wj, qj, c, sumqc_j), f32(0)))
+        sin_.append(np.where(ex, sed_out(Sj, Wj, qj, c), f32(0)))
         hn.append(np.where(ex, hj, h))
         exs.append(ex)
     out_w, out_s = [], []
@@ -136,7 +131,7 @@ def update(Tb, dT, W, S, F, M, EA, k: StepConstants, boundary: str):
     gy = (hn[1] - hn[3]) * k.inv_2dx
     g2 = gx * gx + gy * gy
     sin2 = g2 / (f32(1) + g2)
-    cap = k.kc * sqrt_n((qx * qx + qy * qy) * MAX(sin2, k.sin_min2))
+    cap = k.kc * sqrt_v((qx * qx + qy * qy) * MAX(sin2, k.sin_min2))
 
     hlow = MIN(MIN(hn[0], hn[2]), MIN(hn[1], hn[3]))  # never below the lowest neighbour
     emax = MAX(h - hlow, f32(0))
