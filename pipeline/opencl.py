@@ -74,6 +74,37 @@ def get_cl() -> CL:
     return CL(ctx, queue, device)
 
 
+AVX512_FLAGS = ("avx512f", "avx512vl", "avx512dq")
+
+
+def _host_cpu_flags() -> set[str]:
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:  # not Linux: no flags known, so no AVX-512 path
+        return set()
+    for line in text.splitlines():
+        if line.startswith("flags"):
+            return set(line.split(":", 1)[1].split())
+    return set()
+
+
+def x86_avx512(device) -> bool:
+    """Whether kernels may compile parts of themselves for AVX-512 with a clang
+    target attribute: the device is PoCL on this host's CPU (it compiles with
+    clang for the host) and the CPU has AVX-512 F, VL and DQ. PoCL 3.0's
+    LLVM 14 does not know Zen 4 and targets it as Zen 3 (AVX2 only).
+    WORLDBAKE_CL_AVX512=0 turns the path off."""
+    import pyopencl as cl
+
+    if os.environ.get("WORLDBAKE_CL_AVX512", "1").strip() == "0":
+        return False
+    if "portable computing language" not in device.platform.name.lower():
+        return False
+    if not device.type & cl.device_type.CPU:
+        return False
+    return all(f in _host_cpu_flags() for f in AVX512_FLAGS)
+
+
 @functools.lru_cache(maxsize=64)
 def _build(source_hash: str, source: str, options: tuple[str, ...]):
     import pyopencl as cl

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.opencl import CachedKernel, get_cl, global_size, load_program
+from pipeline.opencl import CachedKernel, get_cl, global_size, load_program, x86_avx512
 
 from .physics import G, THERMAL_C, Physics, StepConstants, talus_thresholds
 from .state import Diag
@@ -22,9 +22,21 @@ DEFAULT_LOCAL = (8, 1)  # work-items per work-group: fastest measured on PoCL; r
 
 
 def step_vector_width(device) -> int:
-    """Cells per work-item of the storm kernels: 16 where the device prefers
+    """Cells per vector of the storm kernels: 16 where the device prefers
     16-wide floats (AVX-512: 10-17 % faster than 8 in the bench), else 8."""
     return 16 if device.preferred_vector_width_float >= 16 else 8
+
+
+def step_vectors_per_item(device) -> int:
+    """Vectors per work-item of the storm kernels: 16 on a CPU, where a
+    work-item is a loop iteration and the AVX-512 body is a call whose ~30
+    arguments are paid once per call (interleaved A/B at 512^2 with AVX-512:
+    4 vectors are 17-20 % faster than 1, and 16 with one work-item per
+    work-group 4 % faster than 4 with eight), 1 on a GPU, which wants many
+    work-items."""
+    import pyopencl as cl
+
+    return 16 if device.type & cl.device_type.CPU else 1
 
 # bytes each kernel must move per cell (compulsory traffic: every array read and written once)
 BYTES_PER_CELL = {"flux": 4 * (3 + 4 + 4), "update": 4 * (4 + 4 + 2 + 5), "thermal": 4 * (3 + 2) + 4 * (5 + 1)}
@@ -33,8 +45,9 @@ BYTES_PER_CELL = {"flux": 4 * (3 + 4 + 4), "update": 4 * (4 + 4 + 2 + 5), "therm
 WORKING_SET_ARRAYS = 13
 
 
-def program(boundary_code: int, vw: int):
-    return load_program(KERNELS, (f"-DBOUNDARY={boundary_code}", f"-DVW={vw}", f"-DX0={X0}"))
+def program(boundary_code: int, vw: int, nv: int = 1, avx512: bool = False):
+    options = (f"-DBOUNDARY={boundary_code}", f"-DVW={vw}", f"-DNV={nv}", f"-DX0={X0}")
+    return load_program(KERNELS, options + (("-DX86_AVX512=1",) if avx512 else ()))
 
 
 def pad(a: np.ndarray, periodic: bool, shape: tuple[int, int]) -> np.ndarray:
@@ -51,10 +64,14 @@ class DeviceSim:
     """One erosion simulation on the device. `local` is the work-group size
     (work-items along a row, rows) of the per-cell kernels, each work-item
     handling `vw` cells of a row (default: 16 or 8 for the storm, 8 for the
-    talus rule); results depend on neither."""
+    talus rule), in the storm `nv` times over (default: 16 on a CPU, with
+    one work-item per work-group along the row, 1 on a GPU); `avx512`
+    compiles the storm for AVX-512 (default: where pipeline.opencl.x86_avx512
+    allows). Results depend on none of these."""
 
     def __init__(self, height: np.ndarray, ph: Physics, *, local: tuple[int, int] | None = DEFAULT_LOCAL,
-                 water: np.ndarray | None = None, sediment: np.ndarray | None = None, vw: int | None = None):
+                 water: np.ndarray | None = None, sediment: np.ndarray | None = None, vw: int | None = None,
+                 nv: int | None = None, avx512: bool | None = None):
         import pyopencl as cl
 
         self.cl = get_cl()
@@ -67,15 +84,21 @@ class DeviceSim:
         # cells per work-item: vw for every kernel when given, else the device's best
         self.vw = vw if vw is not None else step_vector_width(self.cl.device)
         self.vw_thermal = vw if vw is not None else VW_THERMAL
-        # whole work-groups of work-items, each handling vw cells of a row
-        self.gsize = global_size((-(-self.cols // self.vw), self.rows), self.local)
+        self.nv = nv if nv is not None else step_vectors_per_item(self.cl.device)
+        self.avx512 = x86_avx512(self.cl.device) if avx512 is None else bool(avx512)
+        # whole work-groups of work-items, each handling vw * nv (storm) or vw_thermal cells of a row
+        # a storm work-item that is already a long loop runs alone in its work-group: the padding
+        # of a row stays under one work-item (vw * nv cells)
+        self.local_storm = self.local if self.nv == 1 else (1, self.local[1])
+        self.gsize = global_size((-(-self.cols // (self.vw * self.nv)), self.rows), self.local_storm)
         self.gsize_th = global_size((-(-self.cols // self.vw_thermal), self.rows), self.local)
         # padded layout: every lane of every work-item of both has its cell and its halo,
         # and every row of cells starts on 64 bytes (see kernels.cl)
-        self.pitch = -(-(X0 + max(self.gsize[0] * self.vw, self.gsize_th[0] * self.vw_thermal) + 1) // ALIGN) * ALIGN
+        self.pitch = -(-(X0 + max(self.gsize[0] * self.vw * self.nv, self.gsize_th[0] * self.vw_thermal) + 1)
+                       // ALIGN) * ALIGN
         self.prows = self.gsize[1] + 2
         self.gsize1 = global_size((self.cols, self.rows), (16, 1))  # scalar 2-D kernels (guarded)
-        prg = program(ph.boundary_code, self.vw)
+        prg = program(ph.boundary_code, self.vw, self.nv, self.avx512)
         prg_th = program(ph.boundary_code, self.vw_thermal)
         # launched thousands of times with mostly the same arguments: set only what changed
         self.k = {name: CachedKernel(prg_th if name.startswith("thermal") else prg, name) for name in KERNEL_NAMES}
@@ -114,7 +137,8 @@ class DeviceSim:
     # -- kernels -----------------------------------------------------------
     def _run(self, name: str, *args) -> None:
         gsize = self.gsize_th if name.startswith("thermal") else self.gsize
-        self.k[name](self.queue, gsize, self.local, *args)
+        local = self.local if name.startswith("thermal") else self.local_storm
+        self.k[name](self.queue, gsize, local, *args)
 
     def _halo(self, *bufs) -> None:
         if not self.periodic:

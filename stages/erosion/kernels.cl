@@ -11,7 +11,8 @@
  * operation (the two agree bit for bit).
  *
  * Work-items: each per-step kernel work-item handles VW consecutive cells of a
- * row as one floatVW vector (the same IEEE operations on every lane). PoCL
+ * row as one floatVW vector (the same IEEE operations on every lane), in the
+ * storm kernels NV such vectors one after another. PoCL
  * vectorizes across work-items only when clang's SLP pass has not already
  * packed pieces of the kernel into short vectors, which it does to these
  * kernels; writing the vectors ourselves is robust and is still plain
@@ -22,7 +23,7 @@
  * i = AT(r, c) = (r+1)*P + X0 + c, with X0 = 16 (the west halo at X0 - 1) and
  * the pitch P a multiple of 16 floats, so every row of cells starts on a 64-byte
  * boundary and a work-item's own vectors are aligned loads and stores (the
- * buffers are at least 128-byte aligned); P >= X0 + (work-items along a row) * VW + 1
+ * buffers are at least 128-byte aligned); P >= X0 + (work-items along a row) * (cells per work-item) + 1
  * (of every kernel) and (rows rounded up to the work-group) + 2 rows, so
  * neighbours are i+-1 and i+-P
  * without index clamping (clamped indices are gathers) and no bounds guard is
@@ -47,8 +48,17 @@
  * fmin and fabs builtins are scalar library calls, and correctly rounded IEEE
  * operations give the same bits at every vector width and on every device.
  *
+ * X86_AVX512: PoCL 3.0's LLVM 14 takes Zen 4 for Zen 3 and compiles kernels
+ * for AVX2 only, so a float16 lives in two ymm registers and the storm kernels
+ * spill. With X86_AVX512 defined (pipeline.opencl.x86_avx512: PoCL on a CPU
+ * that has AVX-512F/VL/DQ) the storm code is compiled for AVX-512 through a
+ * clang target attribute. PoCL builds its work-group loops without it, and a
+ * function for more features cannot be inlined into one for fewer, so the
+ * work-item calls the body as a function: NV vectors per call pay for the
+ * call's arguments. The same IEEE operations run either way: same bits.
+ *
  * Compile-time: BOUNDARY 0 closed, 1 open (free outfall), 2 periodic;
- * VW vector width (8 or 16).
+ * VW vector width (8 or 16); NV vectors per storm work-item; X86_AVX512.
  */
 #pragma OPENCL FP_CONTRACT OFF
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
@@ -61,6 +71,14 @@
 #endif
 #ifndef X0
 #define X0 16
+#endif
+#ifndef NV
+#define NV 1
+#endif
+#ifdef X86_AVX512
+#define BODY __attribute__((noinline))
+#else
+#define BODY __attribute__((always_inline)) inline
 #endif
 #define AT(r, c) (((r) + 1) * P + X0 + (c))
 
@@ -89,7 +107,7 @@ typedef floatV __attribute__((aligned(4))) floatV_u;
 #define F(x) ((floatV)(x))
 #define ZERO F(0.0f)
 
-/* Cells (r, c0 .. c0+VW-1) of this work-item and which neighbours exist. */
+/* Cells (r, c0 .. c0+VW-1) of one vector and which neighbours exist. */
 #if BOUNDARY == 2
 #define MASKS                                                    \
     const intV exE = (intV)(-1), exW = (intV)(-1);               \
@@ -105,10 +123,22 @@ typedef floatV __attribute__((aligned(4))) floatV_u;
     const int c0 = get_global_id(0) * VW, r = get_global_id(1);  \
     const int i = AT(r, c0);                                     \
     MASKS
-/* every cell of the work-item and all its neighbours inside the grid */
+/* The storm kernels: each work-item runs NV vectors of VW cells along its row
+ * through a body function (see X86_AVX512). */
+#define STORM_KERNEL(name, ARGS, PASS, cells_fn)                              \
+    BODY void name##_body(ARGS, const int c00, const int r)                  \
+    {                                                                         \
+        for (int v = 0; v < NV; v++) {                                        \
+            const int c0 = c00 + v * VW;                                      \
+            const int i = AT(r, c0);                                          \
+            MASKS                                                             \
+            DISPATCH(cells_fn, PASS);                                         \
+        }                                                                     \
+    }
+/* every cell of the vector and all its neighbours inside the grid */
 #define INNER ((c0 > 0) & (c0 + VW < cols) & (r > 0) & (r + 1 < rows))
 #define ALL ((intV)(-1))
-/* Call fn(args..., i, exE, exS, exW, exN) for the cells of this work-item:
+/* Call fn(args..., i, exE, exS, exW, exN) for the cells of one vector:
  * with masks known to be all true (no selects) for interior work-items. */
 #if BOUNDARY == 2
 #define DISPATCH(fn, ...) fn(__VA_ARGS__, i, exE, exS, exW, exN)
@@ -120,11 +150,16 @@ typedef floatV __attribute__((aligned(4))) floatV_u;
         fn(__VA_ARGS__, i, exE, exS, exW, exN)
 #endif
 
+#ifdef X86_AVX512 /* everything the storm kernels call, up to their __kernel entries */
+#pragma clang attribute push (__attribute__((target("avx512f,avx512vl,avx512dq"))), apply_to = function)
+#endif
+
 /* Square root, correctly rounded (IEEE): the same bits as numpy's np.sqrt on
  * every device. load_program builds with -cl-fp32-correctly-rounded-divide-sqrt,
  * so the builtin sqrt is exact everywhere; on x86 PoCL turns a float16 sqrt
  * into an LLVM crash and a float8 one into library calls, so there the AVX
- * instruction itself (vsqrtps, also exact) is called, 8 lanes at a time. */
+ * instruction itself (vsqrtps, also exact) is called, 8 lanes at a time, or
+ * 16 with X86_AVX512 (4: the current rounding mode, round to nearest). */
 #if defined(__x86_64__) && defined(__AVX__)
 typedef float v8sf_ __attribute__((vector_size(32)));
 inline float8 sqrt8_avx(float8 x)
@@ -133,6 +168,12 @@ inline float8 sqrt8_avx(float8 x)
 }
 #if VW == 8
 inline floatV sqrt_v(floatV x) { return sqrt8_avx(x); }
+#elif VW == 16 && defined(X86_AVX512)
+typedef float v16sf_ __attribute__((vector_size(64)));
+inline floatV sqrt_v(floatV x)
+{
+    return __builtin_astype(__builtin_ia32_sqrtps512(__builtin_astype(x, v16sf_), 4), float16);
+}
 #elif VW == 16
 inline floatV sqrt_v(floatV x) { return (floatV)(sqrt8_avx(x.lo), sqrt8_avx(x.hi)); }
 #endif
@@ -210,11 +251,7 @@ inline void flux_cells(FLUX_ARGS, const int i, const intV exE, const intV exS, c
     }
 }
 
-__kernel void flux(FLUX_ARGS)
-{
-    CELLS
-    DISPATCH(flux_cells, FLUX_PASS);
-}
+STORM_KERNEL(flux, FLUX_ARGS, FLUX_PASS, flux_cells)
 
 /* Sediment that leaves a cell with its water through one face in one step,
  * S (q c) / W, written S * ((q c) * rden) with the cell's rden = 1 / W (one
@@ -341,10 +378,20 @@ inline void update_cells(UPDATE_ARGS, const int i, const intV exE, const intV ex
     ST(dt1, dT_out, i);
 }
 
+STORM_KERNEL(update, UPDATE_ARGS, UPDATE_PASS, update_cells)
+
+#ifdef X86_AVX512
+#pragma clang attribute pop
+#endif
+
+__kernel void flux(FLUX_ARGS)
+{
+    flux_body(FLUX_PASS, get_global_id(0) * (VW * NV), get_global_id(1));
+}
+
 __kernel void update(UPDATE_ARGS)
 {
-    CELLS
-    DISPATCH(update_cells, UPDATE_PASS);
+    update_body(UPDATE_PASS, get_global_id(0) * (VW * NV), get_global_id(1));
 }
 
 /* ---------------------------------------------------------------------------

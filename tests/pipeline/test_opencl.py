@@ -1,10 +1,12 @@
 """pipeline.opencl: CachedKernel must launch exactly what a plain kernel call
-launches, whichever arguments change between launches."""
+launches, whichever arguments change between launches; the AVX-512 path is
+offered only where the device and the CPU allow it."""
 from __future__ import annotations
 
 import numpy as np
 
-from pipeline.opencl import CachedKernel, get_cl
+from pipeline import opencl
+from pipeline.opencl import CachedKernel, get_cl, x86_avx512
 
 SOURCE = """
 __kernel void axpb(__global const float *x, __global float *y, const float a, const float b, const int n)
@@ -36,3 +38,18 @@ def test_cached_kernel_sets_every_changed_argument():
         cl.enqueue_copy(env.queue, out, by[iy])
         np.testing.assert_array_equal(out, np.float32(a) * xs[ix] + np.float32(b), err_msg=str((ix, iy, a, b)))
     assert len(k._sets) <= 2
+
+
+def test_avx512_path_needs_pocl_on_a_cpu_with_avx512_and_can_be_turned_off(monkeypatch):
+    import pyopencl as cl
+
+    device = get_cl().device
+    pocl_cpu = "portable computing language" in device.platform.name.lower() and bool(
+        device.type & cl.device_type.CPU)
+    monkeypatch.setattr(opencl, "_host_cpu_flags", lambda: {"avx2", "avx512f", "avx512vl", "avx512dq"})
+    assert x86_avx512(device) == pocl_cpu
+    monkeypatch.setattr(opencl, "_host_cpu_flags", lambda: {"avx2", "avx512f"})  # no VL, DQ
+    assert not x86_avx512(device)
+    monkeypatch.setattr(opencl, "_host_cpu_flags", lambda: {"avx2", "avx512f", "avx512vl", "avx512dq"})
+    monkeypatch.setenv("WORLDBAKE_CL_AVX512", "0")
+    assert not x86_avx512(device)

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
+from pipeline.opencl import get_cl, x86_avx512
 from stages.erosion import simulate
 from stages.erosion.device import DeviceSim
 from stages.erosion.reference import synthetic_world
@@ -23,8 +24,8 @@ from stages.erosion.reference import synthetic_world
 from .helpers import physics, run_stage, world
 
 
-def _fields(h, ph, local, vw=None, steps=150, thermal=5):
-    sim = DeviceSim(h, ph, local=local, vw=vw)
+def _fields(h, ph, local, vw=None, steps=150, thermal=5, **code_path):
+    sim = DeviceSim(h, ph, local=local, vw=vw, **code_path)
     simulate.run(sim, ph, simulate.Plan(thermal_iterations=thermal, max_steps=steps))
     return sim.fields()
 
@@ -40,6 +41,14 @@ def test_identical_across_runs_work_group_sizes_and_vector_widths(boundary):
         other = _fields(h, ph, local, vw)
         for name in base:
             assert np.array_equal(base[name], other[name]), f"{name} differs with local {local}, vw {vw}"
+    # the storm's code paths: vectors per work-item, and AVX-512 where this CPU has it
+    paths = [dict(nv=1), dict(nv=3, vw=8), dict(nv=2, avx512=False), dict(nv=1, avx512=False, vw=16)]
+    if x86_avx512(get_cl().device):
+        paths += [dict(nv=1, avx512=True), dict(nv=4, avx512=True, vw=8)]
+    for path in paths:
+        other = _fields(h, ph, (8, 1), **path)
+        for name in base:
+            assert np.array_equal(base[name], other[name]), f"{name} differs with {path}"
     assert np.abs(base["dT"]).max() > 0 and base["W"].max() > 0
 
 
