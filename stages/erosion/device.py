@@ -29,12 +29,20 @@ def step_vector_width(device) -> int:
 
 
 def step_vectors_per_item(device) -> int:
-    """Vectors per work-item of the storm kernels: 16 on a CPU, where a
-    work-item is a loop iteration and the AVX-512 body is a call whose ~30
-    arguments are paid once per call (interleaved A/B at 512^2 with AVX-512:
-    4 vectors are 17-20 % faster than 1, and 16 with one work-item per
-    work-group 4 % faster than 4 with eight), 1 on a GPU, which wants many
+    """Most vectors along a row per work-item of the storm kernels (its tile
+    is the grid's width up to this, see kernels.cl): 128 on a CPU (2048
+    cells: whole rows of the bench's grids; the AVX-512 body is a call whose
+    ~30 arguments are paid once per tile), 1 on a GPU, which wants many
     work-items."""
+    import pyopencl as cl
+
+    return 128 if device.type & cl.device_type.CPU else 1
+
+
+def step_rows_per_item(device) -> int:
+    """Rows per work-item of the storm kernels (their tile): 16 on a CPU, where
+    cells share faces and 1 / W with the row above (see kernels.cl), 1 on a
+    GPU."""
     import pyopencl as cl
 
     return 16 if device.type & cl.device_type.CPU else 1
@@ -46,8 +54,8 @@ BYTES_PER_CELL = {"flux": 4 * (3 + 4 + 4), "update": 4 * (4 + 4 + 2 + 5), "therm
 WORKING_SET_ARRAYS = 13
 
 
-def program(boundary_code: int, vw: int, nv: int = 1, avx512: bool = False):
-    options = (f"-DBOUNDARY={boundary_code}", f"-DVW={vw}", f"-DNV={nv}", f"-DX0={X0}")
+def program(boundary_code: int, vw: int, nv: int = 1, avx512: bool = False, nr: int = 1):
+    options = (f"-DBOUNDARY={boundary_code}", f"-DVW={vw}", f"-DNV={nv}", f"-DNR={nr}", f"-DX0={X0}")
     return load_program(KERNELS, options + (("-DX86_AVX512=1",) if avx512 else ()))
 
 
@@ -65,14 +73,15 @@ class DeviceSim:
     """One erosion simulation on the device. `local` is the work-group size
     (work-items along a row, rows) of the per-cell kernels, each work-item
     handling `vw` cells of a row (default: 16 or 8 for the storm, 8 for the
-    talus rule), in the storm `nv` times over (default: 16 on a CPU, with
-    one work-item per work-group along the row, 1 on a GPU); `avx512`
+    talus rule), in the storm a tile of `nr` rows of up to `nv` vectors
+    along a row (default 16 rows of 128 on a CPU, with one work-item per
+    work-group along the row, 1 by 1 on a GPU); `avx512`
     compiles the storm for AVX-512 (default: where pipeline.opencl.x86_avx512
     allows). Results depend on none of these."""
 
     def __init__(self, height: np.ndarray, ph: Physics, *, local: tuple[int, int] | None = DEFAULT_LOCAL,
                  water: np.ndarray | None = None, sediment: np.ndarray | None = None, vw: int | None = None,
-                 nv: int | None = None, avx512: bool | None = None):
+                 nv: int | None = None, avx512: bool | None = None, nr: int | None = None):
         import pyopencl as cl
 
         self.cl = get_cl()
@@ -86,20 +95,23 @@ class DeviceSim:
         self.vw = vw if vw is not None else step_vector_width(self.cl.device)
         self.vw_thermal = vw if vw is not None else VW_THERMAL
         self.nv = nv if nv is not None else step_vectors_per_item(self.cl.device)
+        self.nr = nr if nr is not None else step_rows_per_item(self.cl.device)
         self.avx512 = x86_avx512(self.cl.device) if avx512 is None else bool(avx512)
         # whole work-groups of work-items, each handling vw * nv (storm) or vw_thermal cells of a row
         # a storm work-item that is already a long loop runs alone in its work-group: the padding
         # of a row stays under one work-item (vw * nv cells)
         self.local_storm = self.local if self.nv == 1 else (1, self.local[1])
-        self.gsize = global_size((-(-self.cols // (self.vw * self.nv)), self.rows), self.local_storm)
+        self.tile_vectors = min(-(-self.cols // self.vw), self.nv)  # as TILE_VECTORS in kernels.cl
+        self.gsize = global_size((-(-self.cols // (self.vw * self.tile_vectors)), -(-self.rows // self.nr)),
+                                 self.local_storm)
         self.gsize_th = global_size((-(-self.cols // self.vw_thermal), self.rows), self.local)
         # padded layout: every lane of every work-item of both has its cell and its halo,
         # and every row of cells starts on 64 bytes (see kernels.cl)
-        self.pitch = -(-(X0 + max(self.gsize[0] * self.vw * self.nv, self.gsize_th[0] * self.vw_thermal) + 1)
+        self.pitch = -(-(X0 + max(self.gsize[0] * self.vw * self.tile_vectors, self.gsize_th[0] * self.vw_thermal) + 1)
                        // ALIGN) * ALIGN
-        self.prows = self.gsize[1] + 2
+        self.prows = max(self.gsize[1] * self.nr, self.gsize_th[1]) + 2
         self.gsize1 = global_size((self.cols, self.rows), (16, 1))  # scalar 2-D kernels (guarded)
-        prg = program(ph.boundary_code, self.vw, self.nv, self.avx512)
+        prg = program(ph.boundary_code, self.vw, self.nv, self.avx512, self.nr)
         prg_th = program(ph.boundary_code, self.vw_thermal)
         # launched thousands of times with mostly the same arguments: set only what changed
         self.k = {name: CachedKernel(prg_th if name.startswith("thermal") else prg, name) for name in KERNEL_NAMES}

@@ -12,7 +12,7 @@
  *
  * Work-items: each per-step kernel work-item handles VW consecutive cells of a
  * row as one floatVW vector (the same IEEE operations on every lane), in the
- * storm kernels NV such vectors one after another. PoCL
+ * storm kernels a tile of such vectors (up to NV along a row, NR rows). PoCL
  * vectorizes across work-items only when clang's SLP pass has not already
  * packed pieces of the kernel into short vectors, which it does to these
  * kernels; writing the vectors ourselves is robust and is still plain
@@ -54,11 +54,12 @@
  * that has AVX-512F/VL/DQ) the storm code is compiled for AVX-512 through a
  * clang target attribute. PoCL builds its work-group loops without it, and a
  * function for more features cannot be inlined into one for fewer, so the
- * work-item calls the body as a function: NV vectors per call pay for the
- * call's arguments. The same IEEE operations run either way: same bits.
+ * work-item calls the body as a function: the vectors of a whole tile per
+ * call pay for the call's arguments. The same IEEE operations run either way: same bits.
  *
  * Compile-time: BOUNDARY 0 closed, 1 open (free outfall), 2 periodic;
- * VW vector width (8 or 16); NV vectors per storm work-item; X86_AVX512.
+ * VW vector width (8 or 16); NV most vectors along a row and NR rows per
+ * storm work-item (its tile); X86_AVX512.
  */
 #pragma OPENCL FP_CONTRACT OFF
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
@@ -123,18 +124,53 @@ typedef floatV __attribute__((aligned(4))) floatV_u;
     const int c0 = get_global_id(0) * VW, r = get_global_id(1);  \
     const int i = AT(r, c0);                                     \
     MASKS
-/* The storm kernels: each work-item runs NV vectors of VW cells along its row
- * through a body function (see X86_AVX512). */
-#define STORM_KERNEL(name, ARGS, PASS, cells_fn)                              \
-    BODY void name##_body(ARGS, const int c00, const int r)                  \
-    {                                                                         \
-        for (int v = 0; v < NV; v++) {                                        \
-            const int c0 = c00 + v * VW;                                      \
-            const int i = AT(r, c0);                                          \
-            MASKS                                                             \
-            DISPATCH(cells_fn, PASS);                                         \
-        }                                                                     \
+/* The storm kernels: each work-item runs a tile of NR rows of the grid's width
+ * in vectors of VW cells, NV at most (TILE_VECTORS; see X86_AVX512), row after
+ * row: a tile spans whole rows, so it reads every array in long runs that the
+ * prefetchers follow from DRAM (tiles of a few hundred cells were 20 % slower
+ * at 2048^2). Neighbouring cells of a tile share what they have in common
+ * instead of computing it twice: the geometry of the face between them in
+ * `flux`, and in `update` the sediment one sends the other and its 1 / W.
+ * Whatever crosses from one vector to the next is carried in registers
+ * (shifted by a lane), from one row to the next in per-vector arrays. The
+ * first vector of a tile row and the first row of a tile compute everything
+ * themselves, so no value ever comes from outside the tile and a cell on the
+ * grid's edge (always first in its tile) applies its own neighbour masks. */
+#define TILE_VECTORS MIN((cols + VW - 1) / VW, NV)
+#ifndef NR
+#define NR 1
+#endif
+/* body(fresh_w, fresh_n, fresh_e) for every vector of the tile, with the flags
+ * known at compile time in each copy (no branches in the cells code): the
+ * first row computes everything itself, later rows share with the row above,
+ * and along a row with the vectors before and after. */
+#define STORM_TILE(body)                                                        \
+    for (int rr = 0; rr < NR; rr++) {                                           \
+        const int r = r00 + rr;                                                 \
+        if (rr == 0) {                                                          \
+            for (int v = 0; v < nv; v++) { TILE_CELLS(body, 1, 1, 1) }          \
+        } else {                                                                \
+            { const int v = 0; TILE_CELLS(body, 1, 0, nv == 1) }                \
+            for (int v = 1; v + 1 < nv; v++) { TILE_CELLS(body, 0, 0, 0) }      \
+            if (nv > 1) { const int v = nv - 1; TILE_CELLS(body, 0, 0, 1) }     \
+        }                                                                       \
     }
+#define TILE_CELLS(body, fresh_w, fresh_n, fresh_e) \
+    const int c0 = c00 + v * VW;                    \
+    const int i = AT(r, c0);                        \
+    MASKS                                           \
+    body(fresh_w, fresh_n, fresh_e)
+/* Lane shifts between consecutive vectors of a row: [prev[VW-1], cur[0..VW-2]]
+ * (the western neighbours of cur) and [cur[1..VW-1], next[0]] (the eastern). */
+#if VW == 8
+#define WEST_OF(prev, cur) __builtin_shufflevector(prev, cur, 7, 8, 9, 10, 11, 12, 13, 14)
+#define EAST_OF(cur, next) __builtin_shufflevector(cur, next, 1, 2, 3, 4, 5, 6, 7, 8)
+#elif VW == 16
+#define WEST_OF(prev, cur) \
+    __builtin_shufflevector(prev, cur, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25, 26, 27, 28, 29, 30)
+#define EAST_OF(cur, next) \
+    __builtin_shufflevector(cur, next, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16)
+#endif
 /* every cell of the vector and all its neighbours inside the grid */
 #define INNER ((c0 > 0) & (c0 + VW < cols) & (r > 0) & (r + 1 < rows))
 #define ALL ((intV)(-1))
@@ -193,23 +229,44 @@ inline floatV sqrt_v(floatV x) { return sqrt(x); }
  * A missing neighbour of an open grid is a dry ghost at the same ground height
  * (free outfall); of a closed grid, a wall (q = 0).
  * ------------------------------------------------------------------------- */
-inline floatV face_q(floatV q, floatV hi, floatV wi, floatV hj, floatV wj, intV ex,
-                     float g_dt_dx, float fric_dt, floatV *hf_out)
+/* What the two cells of a face share: the face depth hf, hfs^2 and the gravity
+ * term g dt/dx hf (eta_i - eta_j), from the side of cell i. From the side of j
+ * the same face has the same hf and h2 and exactly -gt: IEEE subtraction and
+ * multiplication are symmetric in sign, and the branches of hf are each
+ * other's mirror image (a difference of +0 on both sides is the one case not
+ * mirrored, where hf is max(wi, wj) either way and gt a zero that q + gt
+ * absorbs). So a face computed once serves both cells bit for bit. */
+typedef struct { floatV hf, h2, gt; } Face;
+
+inline Face face_geo(floatV hi, floatV wi, floatV hj, floatV wj, intV ex, float g_dt_dx)
 {
+    Face f;
     floatV dh = ex ? hi - hj : ZERO;
     wj = ex ? wj : ZERO;
     /* the face depth, written so thin films stay exact at any altitude */
-    floatV hf = dh >= 0.0f ? MAX(wi, wj - dh) : MAX(wi + dh, wj);
+    f.hf = dh >= 0.0f ? MAX(wi, wj - dh) : MAX(wi + dh, wj);
     floatV deta = dh + (wi - wj);
-    floatV hfs = MAX(hf, F(HMIN));
-    floatV h2 = hfs * hfs;
-    floatV qn = ((q + g_dt_dx * hf * deta) * h2) / (h2 + fric_dt * q);  /* one division */
+    floatV hfs = MAX(f.hf, F(HMIN));
+    f.h2 = hfs * hfs;
+    f.gt = g_dt_dx * f.hf * deta;
+    return f;
+}
+
+/* the face of the cell before (west of, north of) this one, seen from here */
+inline Face face_seen_back(floatV hf, floatV h2, floatV gt)
+{
+    Face f = {hf, h2, -gt};
+    return f;
+}
+
+inline floatV face_q(floatV q, Face f, intV ex, float fric_dt)
+{
+    floatV qn = ((q + f.gt) * f.h2) / (f.h2 + fric_dt * q);  /* one division */
     qn = MAX(qn, ZERO);
-    qn = hf > HMIN ? qn : ZERO;
+    qn = f.hf > HMIN ? qn : ZERO;
 #if BOUNDARY == 0
     qn = ex ? qn : ZERO;
 #endif
-    *hf_out = hf;
     return qn;
 }
 
@@ -226,15 +283,27 @@ inline floatV face_q(floatV q, floatV hi, floatV wi, floatV hj, floatV wj, intV 
     const int want_wave, const float g
 #define FLUX_PASS Tb, dT, W, QE, QS, QW, QN, wave, rows, cols, P, g_dt_dx, fric_dt, dx_dt, want_wave, g
 
+/* One vector of the flux tile. fresh_w / fresh_n: compute the west / north
+ * face here; otherwise they are the east face of the vector before (*fw, one
+ * lane over) and the south face of the row above (*fn). On return *fw and *fn
+ * hold this vector's east and south faces for the next ones. */
 __attribute__((always_inline))
-inline void flux_cells(FLUX_ARGS, const int i, const intV exE, const intV exS, const intV exW, const intV exN)
+inline void flux_cells(FLUX_ARGS, const int fresh_w, const int fresh_n, Face *fw, Face *fn,
+                       const int i, const intV exE, const intV exS, const intV exW, const intV exN)
 {
     floatV hi = LD(Tb, i) + LD(dT, i), wi = LD(W, i);
-    floatV hfE, hfS, hfW, hfN;
-    floatV qE = face_q(LD(QE, i), hi, wi, LD(Tb, i + 1) + LD(dT, i + 1), LD(W, i + 1), exE, g_dt_dx, fric_dt, &hfE);
-    floatV qS = face_q(LD(QS, i), hi, wi, LD(Tb, i + P) + LD(dT, i + P), LD(W, i + P), exS, g_dt_dx, fric_dt, &hfS);
-    floatV qW = face_q(LD(QW, i), hi, wi, LD(Tb, i - 1) + LD(dT, i - 1), LD(W, i - 1), exW, g_dt_dx, fric_dt, &hfW);
-    floatV qN = face_q(LD(QN, i), hi, wi, LD(Tb, i - P) + LD(dT, i - P), LD(W, i - P), exN, g_dt_dx, fric_dt, &hfN);
+    Face fE = face_geo(hi, wi, LD(Tb, i + 1) + LD(dT, i + 1), LD(W, i + 1), exE, g_dt_dx);
+    Face fS = face_geo(hi, wi, LD(Tb, i + P) + LD(dT, i + P), LD(W, i + P), exS, g_dt_dx);
+    Face fW = fresh_w ? face_geo(hi, wi, LD(Tb, i - 1) + LD(dT, i - 1), LD(W, i - 1), exW, g_dt_dx)
+                      : face_seen_back(WEST_OF(fw->hf, fE.hf), WEST_OF(fw->h2, fE.h2), WEST_OF(fw->gt, fE.gt));
+    Face fN = fresh_n ? face_geo(hi, wi, LD(Tb, i - P) + LD(dT, i - P), LD(W, i - P), exN, g_dt_dx)
+                      : face_seen_back(fn->hf, fn->h2, fn->gt);
+    *fw = fE;
+    *fn = fS;
+    floatV qE = face_q(LD(QE, i), fE, exE, fric_dt);
+    floatV qS = face_q(LD(QS, i), fS, exS, fric_dt);
+    floatV qW = face_q(LD(QW, i), fW, exW, fric_dt);
+    floatV qN = face_q(LD(QN, i), fN, exN, fric_dt);
     floatV sum = ((qE + qS) + qW) + qN;
     floatV k = sum > 0.0f ? MIN(F(1.0f), (wi * dx_dt) / MAX(sum, F(TINY))) : F(1.0f);
     k = wi > TINY ? k : ZERO;  /* subnormal water: W dx/dt has too few bits to bound sum q */
@@ -243,15 +312,22 @@ inline void flux_cells(FLUX_ARGS, const int i, const intV exE, const intV exS, c
     if (want_wave) {
         /* the CFL speed where water moves: face velocity q/hf plus the gravity wave */
         floatV sp = sqrt_v(g * wi);
-        sp = qE > 0.0f ? MAX(sp, qE / MAX(hfE, F(HMIN)) + sqrt_v(g * hfE)) : sp;
-        sp = qS > 0.0f ? MAX(sp, qS / MAX(hfS, F(HMIN)) + sqrt_v(g * hfS)) : sp;
-        sp = qW > 0.0f ? MAX(sp, qW / MAX(hfW, F(HMIN)) + sqrt_v(g * hfW)) : sp;
-        sp = qN > 0.0f ? MAX(sp, qN / MAX(hfN, F(HMIN)) + sqrt_v(g * hfN)) : sp;
+        sp = qE > 0.0f ? MAX(sp, qE / MAX(fE.hf, F(HMIN)) + sqrt_v(g * fE.hf)) : sp;
+        sp = qS > 0.0f ? MAX(sp, qS / MAX(fS.hf, F(HMIN)) + sqrt_v(g * fS.hf)) : sp;
+        sp = qW > 0.0f ? MAX(sp, qW / MAX(fW.hf, F(HMIN)) + sqrt_v(g * fW.hf)) : sp;
+        sp = qN > 0.0f ? MAX(sp, qN / MAX(fN.hf, F(HMIN)) + sqrt_v(g * fN.hf)) : sp;
         ST(sp, wave, i);
     }
 }
 
-STORM_KERNEL(flux, FLUX_ARGS, FLUX_PASS, flux_cells)
+BODY void flux_body(FLUX_ARGS, const int c00, const int r00)
+{
+    const int nv = TILE_VECTORS;
+    Face fw = {ZERO, ZERO, ZERO}, fn[NV];  /* east face of the vector before; south faces of the row above */
+#define FLUX_TILE_CELLS(fresh_w, fresh_n, fresh_e) DISPATCH(flux_cells, FLUX_PASS, fresh_w, fresh_n, &fw, &fn[v]);
+    STORM_TILE(FLUX_TILE_CELLS)
+#undef FLUX_TILE_CELLS
+}
 
 /* Sediment that leaves a cell with its water through one face in one step,
  * S (q c) / W, written S * ((q c) * rden) with the cell's rden = 1 / W (one
@@ -301,8 +377,19 @@ inline floatV sed_out(floatV S, floatV q, float c, floatV rden)
 #define UPDATE_PASS Tb, dT, W, S, QE, QS, QW, QN, M, EA, dT_out, W_out, S_out, rows, cols, P, \
     cc, kc, sin_min2, ks_f, kd_f, rain_dt, evap_dt, inv_wet, am, inv_2dx
 
+/* One vector of the update tile. The sediment a cell sends west and north is
+ * what its neighbours there receive from it, and its 1 / W is shared with the
+ * cells north and west of it: fresh_w / fresh_n compute the western / northern
+ * inflows here; otherwise they come from the vector before (*w_so: its sediment
+ * sent east, *w_h: its height; one lane over) and from the row above (*n_so:
+ * sediment sent south, *n_h: height), and 1 / W of this row from the row above
+ * (*n_rden), of the vector after from rden_next unless fresh_e. On return the
+ * carries hold this vector's values for the next ones (*n_rden: 1 / W of the
+ * row below). */
 __attribute__((always_inline))
-inline void update_cells(UPDATE_ARGS, const int i, const intV exE, const intV exS, const intV exW, const intV exN)
+inline void update_cells(UPDATE_ARGS, const int fresh_w, const int fresh_n, const int fresh_e,
+                         floatV *w_so, floatV *w_h, floatV *n_rden, floatV *n_so, floatV *n_h, const floatV rden_next,
+                         const int i, const intV exE, const intV exS, const intV exW, const intV exN)
 {
     const int iE = i + 1, iS = i + P, iW = i - 1, iN = i - P;
     floatV wi = LD(W, i), si = LD(S, i), dti = LD(dT, i);
@@ -313,21 +400,28 @@ inline void update_cells(UPDATE_ARGS, const int i, const intV exE, const intV ex
     floatV iqS = exS ? LD(QN, iS) : ZERO;
     floatV iqW = exW ? LD(QE, iW) : ZERO;
     floatV iqN = exN ? LD(QS, iN) : ZERO;
-    floatV rden_i = sed_rden(wi);
+    floatV rden_i = fresh_n ? sed_rden(wi) : *n_rden;
     floatV soE = sed_out(si, oE, cc, rden_i);
     floatV soS = sed_out(si, oS, cc, rden_i);
     floatV soW = sed_out(si, oW, cc, rden_i);
     floatV soN = sed_out(si, oN, cc, rden_i);
-#define RDEN(j) sed_rden(LD(W, j))
-    floatV siE = exE ? sed_out(LD(S, iE), iqE, cc, RDEN(iE)) : ZERO;
-    floatV siS = exS ? sed_out(LD(S, iS), iqS, cc, RDEN(iS)) : ZERO;
-    floatV siW = exW ? sed_out(LD(S, iW), iqW, cc, RDEN(iW)) : ZERO;
-    floatV siN = exN ? sed_out(LD(S, iN), iqN, cc, RDEN(iN)) : ZERO;
-#undef RDEN
+    floatV rden_E = fresh_e ? sed_rden(LD(W, iE)) : EAST_OF(rden_i, rden_next);
+    floatV rden_S = sed_rden(LD(W, iS));
+    floatV siE = exE ? sed_out(LD(S, iE), iqE, cc, rden_E) : ZERO;
+    floatV siS = exS ? sed_out(LD(S, iS), iqS, cc, rden_S) : ZERO;
+    /* the western neighbour's sediment sent east, the northern one's sent south */
+    floatV soE_w = fresh_w ? sed_out(LD(S, iW), iqW, cc, sed_rden(LD(W, iW))) : WEST_OF(*w_so, soE);
+    floatV soS_n = fresh_n ? sed_out(LD(S, iN), iqN, cc, sed_rden(LD(W, iN))) : *n_so;
+    floatV siW = exW ? soE_w : ZERO;
+    floatV siN = exN ? soS_n : ZERO;
+    floatV h_w = fresh_w ? LD(Tb, iW) + LD(dT, iW) : WEST_OF(*w_h, hi);
+    floatV h_n = fresh_n ? LD(Tb, iN) + LD(dT, iN) : *n_h;
     floatV hE = exE ? LD(Tb, iE) + LD(dT, iE) : hi;
     floatV hS = exS ? LD(Tb, iS) + LD(dT, iS) : hi;
-    floatV hW = exW ? LD(Tb, iW) + LD(dT, iW) : hi;
-    floatV hN = exN ? LD(Tb, iN) + LD(dT, iN) : hi;
+    floatV hW = exW ? h_w : hi;
+    floatV hN = exN ? h_n : hi;
+    *w_so = soE; *w_h = hi;
+    *n_rden = rden_S; *n_so = soS; *n_h = hi;
 
     floatV qin_sum = ((iqE + iqS) + iqW) + iqN;
     floatV qout_sum = ((oE + oS) + oW) + oN;
@@ -378,7 +472,18 @@ inline void update_cells(UPDATE_ARGS, const int i, const intV exE, const intV ex
     ST(dt1, dT_out, i);
 }
 
-STORM_KERNEL(update, UPDATE_ARGS, UPDATE_PASS, update_cells)
+BODY void update_body(UPDATE_ARGS, const int c00, const int r00)
+{
+    /* carried from the vector before, and per vector from the row above */
+    const int nv = TILE_VECTORS;
+    floatV w_so = ZERO, w_h = ZERO, n_rden[NV + 1], n_so[NV], n_h[NV];
+    n_rden[nv] = ZERO;  /* read (not used) by the last vector of a row */
+#define UPDATE_TILE_CELLS(fresh_w, fresh_n, fresh_e) \
+    DISPATCH(update_cells, UPDATE_PASS, fresh_w, fresh_n, fresh_e, &w_so, &w_h, &n_rden[v], &n_so[v], &n_h[v], \
+             n_rden[v + 1]);
+    STORM_TILE(UPDATE_TILE_CELLS)
+#undef UPDATE_TILE_CELLS
+}
 
 #ifdef X86_AVX512
 #pragma clang attribute pop
@@ -386,12 +491,12 @@ STORM_KERNEL(update, UPDATE_ARGS, UPDATE_PASS, update_cells)
 
 __kernel void flux(FLUX_ARGS)
 {
-    flux_body(FLUX_PASS, get_global_id(0) * (VW * NV), get_global_id(1));
+    flux_body(FLUX_PASS, get_global_id(0) * (VW * TILE_VECTORS), get_global_id(1) * NR);
 }
 
 __kernel void update(UPDATE_ARGS)
 {
-    update_body(UPDATE_PASS, get_global_id(0) * (VW * NV), get_global_id(1));
+    update_body(UPDATE_PASS, get_global_id(0) * (VW * TILE_VECTORS), get_global_id(1) * NR);
 }
 
 /* ---------------------------------------------------------------------------

@@ -41,8 +41,11 @@ def test_identical_across_runs_work_group_sizes_and_vector_widths(boundary):
         other = _fields(h, ph, local, vw)
         for name in base:
             assert np.array_equal(base[name], other[name]), f"{name} differs with local {local}, vw {vw}"
-    # the storm's code paths: vectors per work-item, and AVX-512 where this CPU has it
-    paths = [dict(nv=1), dict(nv=3, vw=8), dict(nv=2, avx512=False), dict(nv=1, avx512=False, vw=16)]
+    # the storm's code paths: tiles of nr rows by at most nv vectors (values shared inside a
+    # tile, computed afresh at its edges; 80 rows are no multiple of 3 or 7), and AVX-512
+    # where this CPU has it
+    paths = [dict(nv=1), dict(nv=3, vw=8), dict(nv=2, avx512=False), dict(nv=1, avx512=False, vw=16),
+             dict(nr=1), dict(nr=3, nv=2), dict(nr=7, nv=1, vw=8), dict(nr=80)]
     if x86_avx512(get_cl().device):
         paths += [dict(nv=1, avx512=True), dict(nv=4, avx512=True, vw=8)]
     for path in paths:
