@@ -272,7 +272,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[
         water_volume_m3=float(f["W"].astype(np.float64).sum() * dx * dx),
         wet_fraction=float((f["W"] > params.wet_depth_m).mean()),
         opencl_local_size=list(sim.local), opencl_vector_width=sim.vw, opencl_vector_width_thermal=sim.vw_thermal,
-        opencl_storm_vectors_per_item=sim.nv, opencl_storm_local_size=list(sim.local_storm),
+        opencl_storm_tile=[sim.nr, sim.tile_vectors], opencl_storm_local_size=list(sim.local_storm),
         opencl_storm_avx512=sim.avx512,
     )
     ctx.metrics.update(metrics)
