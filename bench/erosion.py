@@ -25,8 +25,9 @@ It prints, in one run on the same device:
    a faster level. Bandwidth counts only the compulsory bytes (every array
    read and written once per kernel, BYTES_PER_CELL), never neighbour re-reads
    or write-allocate traffic, for the kernels and the copy alike. The fraction
-   is of the best of the interleaved rounds of each; the spread over rounds
-   (median) is printed too: timings on a shared 2-core machine are noisy;
+   is of the best of the interleaved rounds of each, and, more robust on a
+   shared 2-core machine whose timings are noisy, the median (and quartiles)
+   over rounds of the step against the copy of the same round;
 2. speed-up of the OpenCL kernels over the numpy reference (reference.py), the
    same steps on the same grid (and whether the results are bit-identical);
 3. run time against error: the final height of fixed-step runs compared with
@@ -58,7 +59,7 @@ def _world(n: int, size_m: float = SIZE_M) -> tuple[np.ndarray, float]:
     return synthetic_world(n, size_m=size_m, relief_m=1200.0 * size_m / SIZE_M, seed=7), size_m / n
 
 
-def roofline(sizes: list[int], reps: int, rounds: int = 5) -> list[dict]:
+def roofline(sizes: list[int], reps: int, rounds: int = 20) -> list[dict]:
     from stages.erosion import simulate
     from stages.erosion.device import BYTES_PER_CELL, DeviceSim
     from stages.erosion.physics import step_constants
@@ -78,15 +79,16 @@ def roofline(sizes: list[int], reps: int, rounds: int = 5) -> list[dict]:
         t_step = prof["flux"] + prof["update"]
         copy_gbs = prof["copy_bytes"] / prof["copy"] / 1e9
         bw = per_step * n * n / t_step / 1e9
-        # the same from the median round of each (the spread of a noisy machine)
-        t_step_med = float(np.median(prof["rounds_flux"]) + np.median(prof["rounds_update"]))
-        copy_med = prof["copy_bytes"] / float(np.median(prof["rounds_copy"])) / 1e9
+        # per round, the step against the copy of the same round (measured a few ms apart, so a load spike
+        # from another tenant hits both): the median and quartiles of these paired fractions
+        step_rounds = np.add(prof["rounds_flux"], prof["rounds_update"])
+        paired = (per_step * n * n / step_rounds) / (prof["copy_bytes"] / np.asarray(prof["rounds_copy"]))
         t_th = prof["thermal_send"] + prof["thermal_apply"]
         rows.append(dict(
             n=n, flux_ms=prof["flux"] * 1e3, update_ms=prof["update"] * 1e3, step_ms=t_step * 1e3,
             mcell_steps_per_s=n * n / t_step / 1e6, bytes_per_cell_step=per_step, achieved_gbs=bw,
             copy_gbs=copy_gbs, fraction_of_copy=bw / copy_gbs, copy_bytes=prof["copy_bytes"],
-            median_fraction_of_copy=per_step * n * n / t_step_med / 1e9 / copy_med,
+            paired_fraction_of_copy=dict(zip(("q25", "median", "q75"), np.percentile(paired, [25, 50, 75]).tolist())),
             rounds_ms={name: [1e3 * t for t in prof[f"rounds_{name}"]] for name in ("copy", "flux", "update")},
             thermal_ms=t_th * 1e3, thermal_gbs=BYTES_PER_CELL["thermal"] * n * n / t_th / 1e9,
             loop_mcell_steps_per_s=m["cell_steps_per_second"] / 1e6, copy_kernel=prof["copy_kernel"],
@@ -224,7 +226,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="smaller sizes and shorter runs")
     ap.add_argument("--reps", type=int, default=5, help="launches per kernel timing round")
-    ap.add_argument("--rounds", type=int, default=5, help="interleaved timing rounds (the best is reported)")
+    ap.add_argument("--rounds", type=int, default=20, help="interleaved timing rounds (best and paired median reported)")
     ap.add_argument("--roofline-only", action="store_true", help="only part 1, the roofline")
     args = ap.parse_args(argv)
 
@@ -241,16 +243,17 @@ def main(argv=None) -> None:
     rows = roofline(sizes, args.reps, args.rounds)
     results["roofline"] = rows
     print(f"{'grid':>6} {'flux ms':>8} {'update ms':>9} {'step ms':>8} {'Mcell-steps/s':>14} {'B/cell':>7} "
-          f"{'GB/s':>6} {'copy GB/s':>9} {'of copy':>8} {'(median)':>8} {'loop Mcs/s':>10} {'thermal ms':>10} "
+          f"{'GB/s':>6} {'copy GB/s':>9} {'of copy':>8} {'paired: median [quartiles]':>27} {'loop Mcs/s':>10} {'thermal ms':>10} "
           f"{'copies GB/s: float4 / 8xfloat16 / streaming':>44}")
     for r in rows:
-        cg = r["copy_kernel_gbs"]
+        cg, pf = r["copy_kernel_gbs"], r["paired_fraction_of_copy"]
         print(f"{r['n']:>5}² {r['flux_ms']:8.2f} {r['update_ms']:9.2f} {r['step_ms']:8.2f} {r['mcell_steps_per_s']:14.0f} "
               f"{r['bytes_per_cell_step']:7d} {r['achieved_gbs']:6.1f} {r['copy_gbs']:9.1f} {100 * r['fraction_of_copy']:7.0f}% "
-              f"{100 * r['median_fraction_of_copy']:7.0f}% "
+              f"{100 * pf['median']:13.0f}% [{100 * pf['q25']:3.0f}-{100 * pf['q75']:3.0f}%] "
               f"{r['loop_mcell_steps_per_s']:10.0f} {r['thermal_ms']:10.2f} "
               f"{cg['copy4']:>18.1f} / {cg['copy16x8']:.1f} / {cg['copy16_stream']:.1f}")
-    print("   (best of the interleaved rounds; median: the same from the median rounds. The copy of each round is the "
+    print("   (of copy: best round of the step against best round of the copy; paired: the step of each round against "
+          f"the copy of the same round, over {args.rounds} rounds. The copy of each round is the "
           "fastest of the three copy kernels. Their buffers add up to "
           "the step's working set (13 arrays, 52 B/cell): at 512^2 both run from the 32 MB L3, above from DRAM. "
           "loop Mcs/s: the whole time loop of 600 steps from a dry start, diagnostics (at steps 1, 2, 4, 8, then every 16) and host work included)")
