@@ -51,6 +51,7 @@ from pathlib import Path
 import numpy as np
 
 SIZE_M = 8192.0
+LOOP_STEPS = 600  # steps of the timed whole loop in the roofline (from a dry start)
 
 
 def _world(n: int, size_m: float = SIZE_M) -> tuple[np.ndarray, float]:
@@ -61,7 +62,7 @@ def _world(n: int, size_m: float = SIZE_M) -> tuple[np.ndarray, float]:
 
 def roofline(sizes: list[int], reps: int, rounds: int = 20) -> list[dict]:
     from stages.erosion import simulate
-    from stages.erosion.device import BYTES_PER_CELL, DeviceSim
+    from stages.erosion.device import BYTES_PER_CELL, COPY_KERNELS, DeviceSim
     from stages.erosion.physics import step_constants
     from stages.erosion.stage import ErosionParams, physics_for, plan_for
 
@@ -73,7 +74,7 @@ def roofline(sizes: list[int], reps: int, rounds: int = 20) -> list[dict]:
         ph = physics_for(p, dx)
         sim = DeviceSim(h, ph)
         plan = plan_for(p, dx, ph)
-        plan.max_steps = 600  # the whole loop, water flowing (the kernels are timed on its final state)
+        plan.max_steps = LOOP_STEPS  # the whole loop, water flowing (the kernels are timed on its final state)
         m = simulate.run(sim, ph, plan)
         prof = sim.profile(step_constants(ph, m["dt_mean_s"]), reps=reps, rounds=rounds)
         t_step = prof["flux"] + prof["update"]
@@ -92,7 +93,7 @@ def roofline(sizes: list[int], reps: int, rounds: int = 20) -> list[dict]:
             rounds_ms={name: [1e3 * t for t in prof[f"rounds_{name}"]] for name in ("copy", "flux", "update")},
             thermal_ms=t_th * 1e3, thermal_gbs=BYTES_PER_CELL["thermal"] * n * n / t_th / 1e9,
             loop_mcell_steps_per_s=m["cell_steps_per_second"] / 1e6, copy_kernel=prof["copy_kernel"],
-            copy_kernel_gbs={c: prof["copy_bytes"] / prof[c] / 1e9 for c in ("copy4", "copy16x8", "copy16_stream")},
+            copy_kernel_gbs={c: prof["copy_bytes"] / prof[c] / 1e9 for c in COPY_KERNELS},
         ))
         del sim
     return rows
@@ -256,7 +257,7 @@ def main(argv=None) -> None:
           f"the copy of the same round, over {args.rounds} rounds. The copy of each round is the "
           "fastest of the three copy kernels. Their buffers add up to "
           "the step's working set (13 arrays, 52 B/cell): at 512^2 both run from the 32 MB L3, above from DRAM. "
-          "loop Mcs/s: the whole time loop of 600 steps from a dry start, diagnostics (at steps 1, 2, 4, 8, then every 16) and host work included)")
+          f"loop Mcs/s: the whole time loop of {LOOP_STEPS} steps from a dry start, diagnostics (at steps 1, 2, 4, 8, then every 16) and host work included)")
     if args.roofline_only:
         _write(results, t_all)
         return

@@ -14,8 +14,10 @@ from .physics import G, THERMAL_C, Physics, StepConstants, talus_thresholds
 from .state import Diag
 
 KERNELS = Path(__file__).parent / "kernels.cl"
-KERNEL_NAMES = ("flux", "update", "boundary_out", "halo", "thermal_send", "thermal_apply", "diag_rows", "velocity",
-                "copy4", "copy16x8", "copy16_stream")
+# the roofline copies of `profile`: plain float4, 8 float16 per work-item, streaming stores
+COPY_KERNELS = ("copy4", "copy16x8", "copy16_stream")
+KERNEL_NAMES = ("flux", "update", "boundary_out", "halo", "thermal_send", "thermal_apply", "diag_rows",
+                "velocity") + COPY_KERNELS
 X0 = 16  # padded column of cell column 0 (the west halo at X0 - 1): rows of cells start on 64 bytes
 ALIGN = 16  # the pitch is a multiple of this many floats (64 bytes)
 VW_THERMAL = 8  # cells per work-item of the talus rule (float8: fastest measured on PoCL/AVX-512)
@@ -28,24 +30,16 @@ def step_vector_width(device) -> int:
     return 16 if device.preferred_vector_width_float >= 16 else 8
 
 
-def step_vectors_per_item(device) -> int:
-    """Most vectors along a row per work-item of the storm kernels (its tile
-    is the grid's width up to this, see kernels.cl): 128 on a CPU (2048
+def storm_tile(device) -> tuple[int, int]:
+    """The tile of one storm work-item (see kernels.cl): (rows, most vectors
+    along a row; the tile is the grid's width up to this). On a CPU 16 rows,
+    where cells share faces and 1 / W with the row above, by 128 vectors (2048
     cells: whole rows of the bench's grids; the AVX-512 body is a call whose
-    ~30 arguments are paid once per tile), 1 on a GPU, which wants many
-    work-items."""
+    ~30 arguments are paid once per tile); on a GPU, which wants many
+    work-items, 1 by 1."""
     import pyopencl as cl
 
-    return 128 if device.type & cl.device_type.CPU else 1
-
-
-def step_rows_per_item(device) -> int:
-    """Rows per work-item of the storm kernels (their tile): 16 on a CPU, where
-    cells share faces and 1 / W with the row above (see kernels.cl), 1 on a
-    GPU."""
-    import pyopencl as cl
-
-    return 16 if device.type & cl.device_type.CPU else 1
+    return (16, 128) if device.type & cl.device_type.CPU else (1, 1)
 
 # bytes each kernel must move per cell (compulsory traffic: every array read and written once)
 BYTES_PER_CELL = {"flux": 4 * (3 + 4 + 4), "update": 4 * (4 + 4 + 2 + 5), "thermal": 4 * (3 + 2) + 4 * (5 + 1)}
@@ -94,8 +88,9 @@ class DeviceSim:
         # cells per work-item: vw for every kernel when given, else the device's best
         self.vw = vw if vw is not None else step_vector_width(self.cl.device)
         self.vw_thermal = vw if vw is not None else VW_THERMAL
-        self.nv = nv if nv is not None else step_vectors_per_item(self.cl.device)
-        self.nr = nr if nr is not None else step_rows_per_item(self.cl.device)
+        tile_rows, tile_vectors = storm_tile(self.cl.device)
+        self.nv = nv if nv is not None else tile_vectors
+        self.nr = nr if nr is not None else tile_rows
         self.avx512 = x86_avx512(self.cl.device) if avx512 is None else bool(avx512)
         # whole work-groups of work-items, each handling vw * nv (storm) or vw_thermal cells of a row
         # a storm work-item that is already a long loop runs alone in its work-group: the padding
@@ -232,8 +227,7 @@ class DeviceSim:
         return out
 
     # -- measurement (bench) ---------------------------------------------------
-    def profile(self, k: StepConstants, reps: int = 10, rounds: int = 5,
-                warm: bool = True) -> dict[str, float | list[float] | str]:
+    def profile(self, k: StepConstants, reps: int = 10, rounds: int = 5) -> dict[str, float | list[float] | str]:
         """Seconds per launch of each per-step kernel, and of the roofline copy
         kernel, measured back to back in interleaved rounds (a load spike from
         another process hits all of them alike); each entry is the best round,
@@ -247,7 +241,7 @@ class DeviceSim:
         from the same level of the memory hierarchy as flux + update (both from
         the 32 MB L3 at 512^2, both from DRAM at 1024^2 and above). Its source
         is written first, so its reads are real memory (never-written pages all
-        map to one zero page and would read from cache). With `warm`, each
+        map to one zero page and would read from cache). Each
         timed block of `reps` launches follows one untimed launch of the same
         kernel, so every kernel, the copies included, starts its block with its
         own arrays where its timed launches will find them (at 512^2 in the
@@ -292,24 +286,19 @@ class DeviceSim:
                                                scratch[2], R, C, P, self.t_ax, self.t_dg, np.float32(-1)),
         }
         times: dict[str, list[float]] = {name: [] for name in launches}
-        for name, f in launches.items():  # warm up (build, first touch)
-            f()
-        q.finish()
         for _ in range(rounds):  # rounds of `reps` launches each, interleaved
             for name, f in launches.items():
-                if warm:  # one launch outside the clock: its arrays are where the timed ones find them
-                    f()
-                    q.finish()
+                f()  # one launch outside the clock (first touch; its arrays are where the timed ones find them)
+                q.finish()
                 t = time.perf_counter()
                 for _ in range(reps):
                     f()
                 q.finish()
                 times[name].append((time.perf_counter() - t) / reps)
         # the roofline copy of each round: the fastest of the three (they differ by memory level)
-        copies = ("copy4", "copy16x8", "copy16_stream")
-        times["copy"] = [min(times[c][r] for c in copies) for r in range(rounds)]
+        times["copy"] = [min(times[c][r] for c in COPY_KERNELS) for r in range(rounds)]
         out: dict[str, float | list[float] | str] = {name: min(v) for name, v in times.items()}
         out.update({f"rounds_{name}": v for name, v in times.items()})
         out["copy_bytes"] = 32.0 * n4
-        out["copy_kernel"] = min(copies, key=lambda c: out[c])
+        out["copy_kernel"] = min(COPY_KERNELS, key=lambda c: out[c])
         return out
