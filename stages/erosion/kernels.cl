@@ -130,7 +130,7 @@ typedef floatV __attribute__((aligned(4))) floatV_u;
  * prefetchers follow from DRAM (tiles of a few hundred cells were 20 % slower
  * at 2048^2). Neighbouring cells of a tile share what they have in common
  * instead of computing it twice: the geometry of the face between them in
- * `flux`, and in `update` the sediment one sends the other and its 1 / W.
+ * `flux`, and in `update` the sediment one sends the other and its spq.
  * Whatever crosses from one vector to the next is carried in registers
  * (shifted by a lane), from one row to the next in per-vector arrays. The
  * first vector of a tile row and the first row of a tile compute everything
@@ -338,21 +338,17 @@ BODY void flux_body(FLUX_ARGS, const int c00, const int r00)
 }
 
 /* Sediment that leaves a cell with its water through one face in one step,
- * S (q c) / W, written S * ((q c) * rden) with the cell's rden = 1 / W (one
- * division per cell, not per face). The outflow scaling in `flux` leaves every
- * cell at least LIMITER_EPS = 2^-20 of its water, far more than the roundings
- * of q and of sum q c (about 10 * 2^-24), so sum q c < W and the faces never
- * carry off more than S; cells holding TINY or less send nothing. The sender
- * and the receiver evaluate it from the same stored floats, so both get the
- * same bits. */
-inline floatV sed_rden(floatV W)
+ * S (q c) / W, written q * spq with the cell's sediment per unit discharge
+ * spq = (S c) * (1 / W): one division and two products per cell, then one
+ * product per face (S * ((q c) * (1 / W)) took three per face: 5 % of `update`).
+ * The outflow scaling in `flux` leaves every cell at least LIMITER_EPS = 2^-20
+ * of its water, far more than the roundings of q, of sum q c and of spq (about
+ * 12 * 2^-24), so sum q c < W and the faces never carry off more than S; cells
+ * holding TINY or less send nothing (their q is 0). The sender and the
+ * receiver evaluate it from the same stored floats, so both get the same bits. */
+inline floatV sed_per_q(floatV S, float c, floatV W)
 {
-    return 1.0f / MAX(W, F(TINY));
-}
-
-inline floatV sed_out(floatV S, floatV q, float c, floatV rden)
-{
-    return S * ((q * c) * rden);
+    return (S * c) * (1.0f / MAX(W, F(TINY)));
 }
 
 /* ---------------------------------------------------------------------------
@@ -386,17 +382,17 @@ inline floatV sed_out(floatV S, floatV q, float c, floatV rden)
     cc, kc, sin_min2, ks_f, kd_f, rain_dt, evap_dt, inv_wet, am, inv_2dx
 
 /* One vector of the update tile. The sediment a cell sends west and north is
- * what its neighbours there receive from it, and its 1 / W is shared with the
- * cells north and west of it: fresh_w / fresh_n compute the western / northern
+ * what its neighbours there receive from it, and its spq (sediment per unit
+ * discharge) is shared with the cells north and west of it: fresh_w / fresh_n compute the western / northern
  * inflows here; otherwise they come from the vector before (*w_so: its sediment
  * sent east, *w_h: its height; one lane over) and from the row above (*n_so:
- * sediment sent south, *n_h: height), and 1 / W of this row from the row above
- * (*n_rden), of the vector after from rden_next unless fresh_e. On return the
- * carries hold this vector's values for the next ones (*n_rden: 1 / W of the
+ * sediment sent south, *n_h: height), and spq of this row from the row above
+ * (*n_spq), of the vector after from spq_next unless fresh_e. On return the
+ * carries hold this vector's values for the next ones (*n_spq: spq of the
  * row below). */
 __attribute__((always_inline))
 inline void update_cells(UPDATE_ARGS, const int fresh_w, const int fresh_n, const int fresh_e,
-                         floatV *w_so, floatV *w_h, floatV *n_rden, floatV *n_so, floatV *n_h, const floatV rden_next,
+                         floatV *w_so, floatV *w_h, floatV *n_spq, floatV *n_so, floatV *n_h, const floatV spq_next,
                          const int i, const intV exE, const intV exS, const intV exW, const intV exN)
 {
     const int iE = i + 1, iS = i + P, iW = i - 1, iN = i - P;
@@ -408,18 +404,18 @@ inline void update_cells(UPDATE_ARGS, const int fresh_w, const int fresh_n, cons
     floatV iqS = exS ? LD(QN, iS) : ZERO;
     floatV iqW = exW ? LD(QE, iW) : ZERO;
     floatV iqN = exN ? LD(QS, iN) : ZERO;
-    floatV rden_i = fresh_n ? sed_rden(wi) : *n_rden;
-    floatV soE = sed_out(si, oE, cc, rden_i);
-    floatV soS = sed_out(si, oS, cc, rden_i);
-    floatV soW = sed_out(si, oW, cc, rden_i);
-    floatV soN = sed_out(si, oN, cc, rden_i);
-    floatV rden_E = fresh_e ? sed_rden(LD(W, iE)) : EAST_OF(rden_i, rden_next);
-    floatV rden_S = sed_rden(LD(W, iS));
-    floatV siE = exE ? sed_out(LD(S, iE), iqE, cc, rden_E) : ZERO;
-    floatV siS = exS ? sed_out(LD(S, iS), iqS, cc, rden_S) : ZERO;
+    floatV spq_i = fresh_n ? sed_per_q(si, cc, wi) : *n_spq;
+    floatV soE = oE * spq_i;
+    floatV soS = oS * spq_i;
+    floatV soW = oW * spq_i;
+    floatV soN = oN * spq_i;
+    floatV spq_E = fresh_e ? sed_per_q(LD(S, iE), cc, LD(W, iE)) : EAST_OF(spq_i, spq_next);
+    floatV spq_S = sed_per_q(LD(S, iS), cc, LD(W, iS));
+    floatV siE = exE ? iqE * spq_E : ZERO;
+    floatV siS = exS ? iqS * spq_S : ZERO;
     /* the western neighbour's sediment sent east, the northern one's sent south */
-    floatV soE_w = fresh_w ? sed_out(LD(S, iW), iqW, cc, sed_rden(LD(W, iW))) : WEST_OF(*w_so, soE);
-    floatV soS_n = fresh_n ? sed_out(LD(S, iN), iqN, cc, sed_rden(LD(W, iN))) : *n_so;
+    floatV soE_w = fresh_w ? iqW * sed_per_q(LD(S, iW), cc, LD(W, iW)) : WEST_OF(*w_so, soE);
+    floatV soS_n = fresh_n ? iqN * sed_per_q(LD(S, iN), cc, LD(W, iN)) : *n_so;
     floatV siW = exW ? soE_w : ZERO;
     floatV siN = exN ? soS_n : ZERO;
     floatV h_w = fresh_w ? LD(Tb, iW) + LD(dT, iW) : WEST_OF(*w_h, hi);
@@ -429,7 +425,7 @@ inline void update_cells(UPDATE_ARGS, const int fresh_w, const int fresh_n, cons
     floatV hW = exW ? h_w : hi;
     floatV hN = exN ? h_n : hi;
     *w_so = soE; *w_h = hi;
-    *n_rden = rden_S; *n_so = soS; *n_h = hi;
+    *n_spq = spq_S; *n_so = soS; *n_h = hi;
 
     floatV qin_sum = ((iqE + iqS) + iqW) + iqN;
     floatV qout_sum = ((oE + oS) + oW) + oN;
@@ -484,11 +480,11 @@ BODY void update_body(UPDATE_ARGS, const int c00, const int r00)
 {
     /* carried from the vector before, and per vector from the row above */
     const int nv = TILE_VECTORS;
-    floatV w_so = ZERO, w_h = ZERO, n_rden[NV + 1], n_so[NV], n_h[NV];
-    n_rden[nv] = ZERO;  /* read (not used) by the last vector of a row */
+    floatV w_so = ZERO, w_h = ZERO, n_spq[NV + 1], n_so[NV], n_h[NV];
+    n_spq[nv] = ZERO;  /* read (not used) by the last vector of a row */
 #define UPDATE_TILE_CELLS(fresh_w, fresh_n, fresh_e) \
-    DISPATCH(update_cells, UPDATE_PASS, fresh_w, fresh_n, fresh_e, &w_so, &w_h, &n_rden[v], &n_so[v], &n_h[v], \
-             n_rden[v + 1]);
+    DISPATCH(update_cells, UPDATE_PASS, fresh_w, fresh_n, fresh_e, &w_so, &w_h, &n_spq[v], &n_so[v], &n_h[v], \
+             n_spq[v + 1]);
     STORM_TILE(UPDATE_TILE_CELLS)
 #undef UPDATE_TILE_CELLS
 }
@@ -602,9 +598,9 @@ __kernel void boundary_out(__global const float *restrict W, __global const floa
     else { c = f - 2 * rows - cols; r = 0; }
     int i = AT(r, c);
     float q = f < rows ? QE[i] : f < rows + cols ? QS[i] : f < 2 * rows + cols ? QW[i] : QN[i];
-    float rden = 1.0f / (W[i] > TINY ? W[i] : TINY);  /* as sed_rden */
+    float spq = (S[i] * cc) * (1.0f / (W[i] > TINY ? W[i] : TINY));  /* as sed_per_q */
     bnd[f] += (double)(q * cc);
-    bnd[nf + f] += (double)(S[i] * ((q * cc) * rden));
+    bnd[nf + f] += (double)(q * spq);
 }
 
 /* Periodic grids: fill the halo ring of up to four arrays with wrapped values.

@@ -85,15 +85,12 @@ def flux(Tb, dT, W, F, k: StepConstants, boundary: str) -> tuple[np.ndarray, np.
     return q.astype(f32), sp
 
 
-def sed_rden(W):
-    return f32(1) / MAX(W, TINY)
-
-
 def sed_out(S, W, q, c):
     """Sediment leaving with the water through one face: S (q c) / W, as
-    S ((q c) rden) with the cell's rden = 1 / W. `flux` leaves every cell more
-    water than sum q c, so the faces never carry off more than S."""
-    return S * ((q * c) * sed_rden(W))
+    q spq with the cell's sediment per unit discharge spq = (S c) (1 / W).
+    `flux` leaves every cell more water than sum q c, so the faces never carry
+    off more than S."""
+    return q * ((S * c) * (f32(1) / MAX(W, TINY)))
 
 
 def update(Tb, dT, W, S, F, M, EA, k: StepConstants, boundary: str):
