@@ -163,7 +163,7 @@ class DeviceSim:
         self._halo(*self.Q)
         self._run("update", self.Tb, self.dT[d], self.W[w], self.S[w], *self.Q, self.M, self.EA,
                   self.dT[1 - d], self.W[1 - w], self.S[1 - w], R, C, P,
-                  k.c_dt_dx, k.kc, k.sin_min2, k.ks_f, k.kd_f, k.rain_dt, k.evap_dt, k.inv_wet, k.am, k.inv_2dx)
+                  k.c_dt_dx, k.kc, k.sin_min2, k.ks_f, k.kd_f, k.rain_dt, k.evap_dt, k.inv_wet, k.am, k.four_dx2)
         if self.open:
             self.k["boundary_out"](self.queue, (self.nfaces,), None, self.W[w], self.S[w], *self.Q,
                                    self.bnd, R, C, P, k.c_dt_dx)
@@ -279,7 +279,7 @@ class DeviceSim:
                                       k.g_dt_dx, k.fric_dt, k.dx_dt, np.int32(0), np.float32(G)),
             "update": lambda: self._run("update", self.Tb, self.dT[d], self.W[w], self.S[w], *Qs, M2, EA2,
                                         scratch[0], scratch[1], scratch[2], R, C, P, k.c_dt_dx, k.kc, k.sin_min2,
-                                        k.ks_f, k.kd_f, k.rain_dt, k.evap_dt, k.inv_wet, k.am, k.inv_2dx),
+                                        k.ks_f, k.kd_f, k.rain_dt, k.evap_dt, k.inv_wet, k.am, k.four_dx2),
             "thermal_send": lambda: self._run("thermal_send", self.Tb, self.dT[d], self.W[w], scratch[0], scratch[1],
                                               R, C, P, self.t_ax, self.t_dg, np.float32(THERMAL_C), np.float32(-1)),
             "thermal_apply": lambda: self._run("thermal_apply", self.Tb, self.dT[d], self.W[w], scratch[0], scratch[1],

@@ -237,7 +237,7 @@ inline floatV sqrt_v(floatV x) { return sqrt(x); }
  * A missing neighbour of an open grid is a dry ghost at the same ground height
  * (free outfall); of a closed grid, a wall (q = 0).
  * ------------------------------------------------------------------------- */
-/* What the two cells of a face share: the face depth hf, hfs^2 and the gravity
+/* What the two cells of a face share: the face depth hf, hf^2 and the gravity
  * term g dt/dx hf (eta_i - eta_j), from the side of cell i. From the side of j
  * the same face has the same hf and h2 and exactly -gt: IEEE subtraction and
  * multiplication are symmetric in sign, and the branches of hf are each
@@ -254,8 +254,7 @@ inline Face face_geo(floatV hi, floatV wi, floatV hj, floatV wj, intV ex, float 
     /* the face depth, written so thin films stay exact at any altitude */
     f.hf = dh >= 0.0f ? MAX(wi, wj - dh) : MAX(wi + dh, wj);
     floatV deta = dh + (wi - wj);
-    floatV hfs = MAX(f.hf, F(HMIN));
-    f.h2 = hfs * hfs;
+    f.h2 = f.hf * f.hf;  /* a face at most HMIN deep carries nothing (face_q): no floor needed */
     f.gt = g_dt_dx * f.hf * deta;
     return f;
 }
@@ -271,7 +270,7 @@ inline floatV face_q(floatV q, Face f, intV ex, float fric_dt)
 {
     floatV qn = ((q + f.gt) * f.h2) / (f.h2 + fric_dt * q);  /* one division */
     qn = MAX(qn, ZERO);
-    qn = f.hf > HMIN ? qn : ZERO;
+    qn = f.hf > HMIN ? qn : ZERO;  /* also where h2 = 0 made qn 0 / 0 */
 #if BOUNDARY == 0
     qn = ex ? qn : ZERO;
 #endif
@@ -313,7 +312,9 @@ inline void flux_cells(FLUX_ARGS, const int fresh_w, const int fresh_n, Face *fw
     floatV qW = face_q(LD(QW, i), fW, exW, fric_dt);
     floatV qN = face_q(LD(QN, i), fN, exN, fric_dt);
     floatV sum = ((qE + qS) + qW) + qN;
-    floatV k = sum > 0.0f ? MIN(F(1.0f), (wi * dx_dt) / MAX(sum, F(TINY))) : F(1.0f);
+    /* sum = 0: k is 1 (W dx/dt / 0 = inf), or 0 / 0 where the select below takes 0;
+     * either way it scales four zeros */
+    floatV k = MIN(F(1.0f), (wi * dx_dt) / sum);
     k = wi > TINY ? k : ZERO;  /* subnormal water: W dx/dt has too few bits to bound sum q */
     qE *= k; qS *= k; qW *= k; qN *= k;
     ST(qE, QE, i); ST(qS, QS, i); ST(qW, QW, i); ST(qN, QN, i);
@@ -377,9 +378,9 @@ inline floatV sed_per_q(floatV S, float c, floatV W)
     const float ks_f, const float kd_f,                                              \
     const float rain_dt, const float evap_dt,                                        \
     const float inv_wet, const float am,                                             \
-    const float inv_2dx
+    const float four_dx2              /* 4 dx^2 (m^2) */
 #define UPDATE_PASS Tb, dT, W, S, QE, QS, QW, QN, M, EA, dT_out, W_out, S_out, rows, cols, P, \
-    cc, kc, sin_min2, ks_f, kd_f, rain_dt, evap_dt, inv_wet, am, inv_2dx
+    cc, kc, sin_min2, ks_f, kd_f, rain_dt, evap_dt, inv_wet, am, four_dx2
 
 /* One vector of the update tile. The sediment a cell sends west and north is
  * what its neighbours there receive from it, and its spq (sediment per unit
@@ -429,39 +430,38 @@ inline void update_cells(UPDATE_ARGS, const int fresh_w, const int fresh_n, cons
 
     floatV qin_sum = ((iqE + iqS) + iqW) + iqN;
     floatV qout_sum = ((oE + oS) + oW) + oN;
-    floatV w1 = MAX(wi + (qin_sum * cc - qout_sum * cc), ZERO);
+    floatV w1 = MAX(wi + (qin_sum - qout_sum) * cc, ZERO);
     floatV s_in = ((siE + siS) + siW) + siN;
     floatV s_out = ((soE + soS) + soW) + soN;
     floatV s1 = MAX(si + (s_in - s_out), ZERO);
 
-    /* unit discharge through the cell (m^2/s): mean of its two faces per axis */
-    floatV qx = 0.5f * ((iqW - oW) + (oE - iqE));
-    floatV qy = 0.5f * ((iqN - oN) + (oS - iqS));
-    /* terrain slope (central differences; one-sided at closed and open edges) */
-    floatV gx = (hE - hW) * inv_2dx;
-    floatV gy = (hS - hN) * inv_2dx;
-    floatV g2 = gx * gx + gy * gy;
-    floatV sin2 = g2 / (1.0f + g2);
-    floatV cap = kc * sqrt_v((qx * qx + qy * qy) * MAX(sin2, F(sin_min2)));
+    /* twice the unit discharge through the cell (m^2/s): the sum of its two faces per axis */
+    floatV qx2 = (iqW - oW) + (oE - iqE);
+    floatV qy2 = (iqN - oN) + (oS - iqS);
+    /* sin^2 of the terrain slope, g^2 / (1 + g^2) with g^2 = |dh|^2 / (2 dx)^2 from
+     * central differences (one-sided at closed and open edges) */
+    floatV dhx = hE - hW, dhy = hS - hN;
+    floatV dh2 = dhx * dhx + dhy * dhy;
+    floatV sin2 = dh2 / (four_dx2 + dh2);
+    floatV cap = (0.5f * kc) * sqrt_v((qx2 * qx2 + qy2 * qy2) * MAX(sin2, F(sin_min2)));
 
     /* erosion never takes a cell below its lowest neighbour: no pits are dug
      * (a pit would fill with deep water whose flow digs it deeper) */
     floatV hlow = MIN(MIN(hE, hW), MIN(hS, hN));
     floatV emax = MAX(hi - hlow, ZERO);
-    floatV dt_e = dti - MIN(ks_f * (cap - s1), emax);
-    floatV s_e = s1 + (dti - dt_e);
-    floatV dt_d = dti + kd_f * (s1 - cap);
-    floatV s_d = MAX(s1 - (dt_d - dti), ZERO);
-    intV ero = cap > s1;
-    floatV dt1 = ero ? dt_e : dt_d;
-    floatV s2 = ero ? s_e : s_d;
+    /* how far the bed drops: eroded while the water carries less than its capacity,
+     * negative (deposited) above it; the sediment gains exactly what the bed lost */
+    floatV room = cap - s1;
+    floatV drop = room > 0.0f ? MIN(ks_f * room, emax) : kd_f * room;
+    floatV dt1 = dti - drop;
+    floatV s2 = MAX(s1 + (dti - dt1), ZERO);
 
     floatV w2 = w1 + rain_dt;
     floatV ev = MIN(w2, F(evap_dt));
     floatV w3 = w2 - ev;
     floatV ev_act = w2 - w3;
-    /* the water is gone: what it carried settles */
-    intV dry = (w3 <= 0.0f) & (s2 > 0.0f);
+    /* the water is gone: what it carried settles (a no-op where S is 0) */
+    intV dry = w3 <= 0.0f;
     floatV dt2 = dt1 + s2;
     floatV s_dry = MAX(s2 - (dt2 - dt1), ZERO);
     dt1 = dry ? dt2 : dt1;

@@ -69,7 +69,7 @@ class StepConstants:
     evap_dt: np.float32
     inv_wet: np.float32
     am: np.float32
-    inv_2dx: np.float32
+    four_dx2: np.float32
 
 
 def rain_quantum(max_depth: float, owed: float) -> float:
@@ -99,7 +99,7 @@ def step_constants(ph: Physics, dt: float, rain_depth: float | None = None) -> S
         evap_dt=f(ph.evaporation * dt),
         inv_wet=f(1.0 / ph.wet_depth),
         am=f(-math.expm1(-dt / ph.moisture_tau)),
-        inv_2dx=f(0.5 / ph.dx),
+        four_dx2=f(4.0 * ph.dx * ph.dx),
     )
 
 

@@ -63,18 +63,18 @@ def flux(Tb, dT, W, F, k: StepConstants, boundary: str) -> tuple[np.ndarray, np.
         wj = np.where(ex, wj, f32(0))
         hf = np.where(dh >= 0, MAX(W, wj - dh), MAX(W + dh, wj))
         deta = dh + (W - wj)
-        hs = MAX(hf, HMIN)
-        h2 = hs * hs
-        qn = ((q[..., d] + k.g_dt_dx * hf * deta) * h2) / (h2 + k.fric_dt * q[..., d])
+        h2 = hf * hf
+        with np.errstate(divide="ignore", invalid="ignore"):
+            qn = ((q[..., d] + k.g_dt_dx * hf * deta) * h2) / (h2 + k.fric_dt * q[..., d])
         qn = MAX(qn, f32(0))
-        qn = np.where(hf > HMIN, qn, f32(0))
+        qn = np.where(hf > HMIN, qn, f32(0))  # also where h2 = 0 made qn 0 / 0
         if boundary == "closed":
             qn = np.where(ex, qn, f32(0))  # a wall
         q[..., d] = qn
         hfs[..., d] = hf
     s = ((q[..., 0] + q[..., 1]) + q[..., 2]) + q[..., 3]
     with np.errstate(divide="ignore", invalid="ignore"):
-        kk = np.where(s > 0, MIN(f32(1), (W * k.dx_dt) / MAX(s, TINY)), f32(1))
+        kk = MIN(f32(1), (W * k.dx_dt) / s)  # s = 0: 1 or 0 / 0, scaling four zeros
     kk = np.where(W > TINY, kk, f32(0))  # subnormal water: W dx/dt has too few bits to bound sum q
     q = q * kk[..., None]
     g = f32(G)
@@ -117,34 +117,30 @@ def update(Tb, dT, W, S, F, M, EA, k: StepConstants, boundary: str):
         out_s.append(np.where(leaving, sout[d].astype(np.float64), 0.0))
     qin_sum = ((qin[0] + qin[1]) + qin[2]) + qin[3]
     qout_sum = ((F[..., 0] + F[..., 1]) + F[..., 2]) + F[..., 3]
-    w1 = MAX(W + (qin_sum * c - qout_sum * c), f32(0))
+    w1 = MAX(W + (qin_sum - qout_sum) * c, f32(0))
     s_in = ((sin_[0] + sin_[1]) + sin_[2]) + sin_[3]
     s_out = ((sout[0] + sout[1]) + sout[2]) + sout[3]
     s1 = MAX(S + (s_in - s_out), f32(0))
 
-    qx = f32(0.5) * ((qin[2] - F[..., 2]) + (F[..., 0] - qin[0]))
-    qy = f32(0.5) * ((qin[3] - F[..., 3]) + (F[..., 1] - qin[1]))
-    gx = (hn[0] - hn[2]) * k.inv_2dx
-    gy = (hn[1] - hn[3]) * k.inv_2dx
-    g2 = gx * gx + gy * gy
-    sin2 = g2 / (f32(1) + g2)
-    cap = k.kc * sqrt_v((qx * qx + qy * qy) * MAX(sin2, k.sin_min2))
+    qx2 = (qin[2] - F[..., 2]) + (F[..., 0] - qin[0])  # twice the unit discharge
+    qy2 = (qin[3] - F[..., 3]) + (F[..., 1] - qin[1])
+    dhx, dhy = hn[0] - hn[2], hn[1] - hn[3]
+    dh2 = dhx * dhx + dhy * dhy
+    sin2 = dh2 / (k.four_dx2 + dh2)  # g^2 / (1 + g^2), g = |dh| / (2 dx)
+    cap = (f32(0.5) * k.kc) * sqrt_v((qx2 * qx2 + qy2 * qy2) * MAX(sin2, k.sin_min2))
 
     hlow = MIN(MIN(hn[0], hn[2]), MIN(hn[1], hn[3]))  # never below the lowest neighbour
     emax = MAX(h - hlow, f32(0))
-    dt_e = dT - MIN(k.ks_f * (cap - s1), emax)
-    s_e = s1 + (dT - dt_e)
-    dt_d = dT + k.kd_f * (s1 - cap)
-    s_d = MAX(s1 - (dt_d - dT), f32(0))
-    ero = cap > s1
-    dt1 = np.where(ero, dt_e, dt_d)
-    s2 = np.where(ero, s_e, s_d)
+    room = cap - s1
+    drop = np.where(room > 0, MIN(k.ks_f * room, emax), k.kd_f * room)  # eroded, or (< 0) deposited
+    dt1 = dT - drop
+    s2 = MAX(s1 + (dT - dt1), f32(0))
 
     w2 = w1 + k.rain_dt
     ev = MIN(w2, k.evap_dt)
     w3 = w2 - ev
     ev_act = w2 - w3
-    dry = (w3 <= 0) & (s2 > 0)  # the water is gone: what it carried settles
+    dry = w3 <= 0  # the water is gone: what it carried settles (a no-op where S is 0)
     dt2 = dt1 + s2
     s_dry = MAX(s2 - (dt2 - dt1), f32(0))
     dt1 = np.where(dry, dt2, dt1)
