@@ -242,8 +242,8 @@ inline floatV sqrt_v(floatV x) { return sqrt(x); }
  * the same face has the same hf and h2 and exactly -gt: IEEE subtraction and
  * multiplication are symmetric in sign, and the branches of hf are each
  * other's mirror image (a difference of +0 on both sides is the one case not
- * mirrored, where hf is max(wi, wj) either way and gt a zero that q + gt
- * absorbs). So a face computed once serves both cells bit for bit. */
+ * mirrored, where hf is max(wi, wj) either way and gt a zero that q + gt and
+ * q - gt absorb alike). So a face computed once serves both cells bit for bit. */
 typedef struct { floatV hf, h2, gt; } Face;
 
 inline Face face_geo(floatV hi, floatV wi, floatV hj, floatV wj, intV ex, float g_dt_dx)
@@ -254,23 +254,19 @@ inline Face face_geo(floatV hi, floatV wi, floatV hj, floatV wj, intV ex, float 
     /* the face depth, written so thin films stay exact at any altitude */
     f.hf = dh >= 0.0f ? MAX(wi, wj - dh) : MAX(wi + dh, wj);
     floatV deta = dh + (wi - wj);
-    f.h2 = f.hf * f.hf;  /* a face at most HMIN deep carries nothing (face_q): no floor needed */
+    f.h2 = f.hf > HMIN ? f.hf * f.hf : ZERO;  /* a face at most HMIN deep carries nothing (face_q) */
     f.gt = g_dt_dx * f.hf * deta;
     return f;
 }
 
-/* the face of the cell before (west of, north of) this one, seen from here */
-inline Face face_seen_back(floatV hf, floatV h2, floatV gt)
+/* The new outflow through a face, computed here (here = 1: gt seen from this
+ * cell) or by the neighbour across it (here = 0: this cell's gt is -f.gt; a
+ * compile-time constant at every call). A dry face (h2 = 0) gives 0 or 0 / 0,
+ * and MAX(NaN, 0) is 0: it carries nothing. */
+inline floatV face_q(floatV q, Face f, const int here, intV ex, float fric_dt)
 {
-    Face f = {hf, h2, -gt};
-    return f;
-}
-
-inline floatV face_q(floatV q, Face f, intV ex, float fric_dt)
-{
-    floatV qn = ((q + f.gt) * f.h2) / (f.h2 + fric_dt * q);  /* one division */
+    floatV qn = ((here ? q + f.gt : q - f.gt) * f.h2) / (f.h2 + fric_dt * q);  /* one division */
     qn = MAX(qn, ZERO);
-    qn = f.hf > HMIN ? qn : ZERO;  /* also where h2 = 0 made qn 0 / 0 */
 #if BOUNDARY == 0
     qn = ex ? qn : ZERO;
 #endif
@@ -302,15 +298,15 @@ inline void flux_cells(FLUX_ARGS, const int fresh_w, const int fresh_n, Face *fw
     Face fE = face_geo(hi, wi, LD(Tb, i + 1) + LD(dT, i + 1), LD(W, i + 1), exE, g_dt_dx);
     Face fS = face_geo(hi, wi, LD(Tb, i + P) + LD(dT, i + P), LD(W, i + P), exS, g_dt_dx);
     Face fW = fresh_w ? face_geo(hi, wi, LD(Tb, i - 1) + LD(dT, i - 1), LD(W, i - 1), exW, g_dt_dx)
-                      : face_seen_back(WEST_OF(fw->hf, fE.hf), WEST_OF(fw->h2, fE.h2), WEST_OF(fw->gt, fE.gt));
+                      : (Face){WEST_OF(fw->hf, fE.hf), WEST_OF(fw->h2, fE.h2), WEST_OF(fw->gt, fE.gt)};
     Face fN = fresh_n ? face_geo(hi, wi, LD(Tb, i - P) + LD(dT, i - P), LD(W, i - P), exN, g_dt_dx)
-                      : face_seen_back(fn->hf, fn->h2, fn->gt);
+                      : *fn;
     *fw = fE;
     *fn = fS;
-    floatV qE = face_q(LD(QE, i), fE, exE, fric_dt);
-    floatV qS = face_q(LD(QS, i), fS, exS, fric_dt);
-    floatV qW = face_q(LD(QW, i), fW, exW, fric_dt);
-    floatV qN = face_q(LD(QN, i), fN, exN, fric_dt);
+    floatV qE = face_q(LD(QE, i), fE, 1, exE, fric_dt);
+    floatV qS = face_q(LD(QS, i), fS, 1, exS, fric_dt);
+    floatV qW = face_q(LD(QW, i), fW, fresh_w, exW, fric_dt);
+    floatV qN = face_q(LD(QN, i), fN, fresh_n, exN, fric_dt);
     floatV sum = ((qE + qS) + qW) + qN;
     /* sum = 0: k is 1 (W dx/dt / 0 = inf), or 0 / 0 where the select below takes 0;
      * either way it scales four zeros */

@@ -63,11 +63,10 @@ def flux(Tb, dT, W, F, k: StepConstants, boundary: str) -> tuple[np.ndarray, np.
         wj = np.where(ex, wj, f32(0))
         hf = np.where(dh >= 0, MAX(W, wj - dh), MAX(W + dh, wj))
         deta = dh + (W - wj)
-        h2 = hf * hf
+        h2 = np.where(hf > HMIN, hf * hf, f32(0))  # a dry face: qn is 0 or 0 / 0, and MAX(NaN, 0) is 0
         with np.errstate(divide="ignore", invalid="ignore"):
             qn = ((q[..., d] + k.g_dt_dx * hf * deta) * h2) / (h2 + k.fric_dt * q[..., d])
         qn = MAX(qn, f32(0))
-        qn = np.where(hf > HMIN, qn, f32(0))  # also where h2 = 0 made qn 0 / 0
         if boundary == "closed":
             qn = np.where(ex, qn, f32(0))  # a wall
         q[..., d] = qn
