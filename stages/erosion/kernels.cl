@@ -445,23 +445,20 @@ inline void update_cells(UPDATE_ARGS, const int fresh_w, const int fresh_n, cons
      * (a pit would fill with deep water whose flow digs it deeper) */
     floatV hlow = MIN(MIN(hE, hW), MIN(hS, hN));
     floatV emax = MAX(hi - hlow, ZERO);
-    /* how far the bed drops: eroded while the water carries less than its capacity,
-     * negative (deposited) above it; the sediment gains exactly what the bed lost */
-    floatV room = cap - s1;
-    floatV drop = room > 0.0f ? MIN(ks_f * room, emax) : kd_f * room;
-    floatV dt1 = dti - drop;
-    floatV s2 = MAX(s1 + (dti - dt1), ZERO);
 
     floatV w2 = w1 + rain_dt;
     floatV ev = MIN(w2, F(evap_dt));
     floatV w3 = w2 - ev;
     floatV ev_act = w2 - w3;
-    /* the water is gone: what it carried settles (a no-op where S is 0) */
-    intV dry = w3 <= 0.0f;
-    floatV dt2 = dt1 + s2;
-    floatV s_dry = MAX(s2 - (dt2 - dt1), ZERO);
-    dt1 = dry ? dt2 : dt1;
-    s2 = dry ? s_dry : s2;
+
+    /* how far the bed drops: eroded while the water carries less than its capacity,
+     * negative (deposited) above it, and where the water is gone, all it carried
+     * settles; the sediment gains exactly what the bed lost */
+    floatV room = cap - s1;
+    floatV drop = room > 0.0f ? MIN(ks_f * room, emax) : kd_f * room;
+    drop = w3 <= 0.0f ? -s1 : drop;
+    floatV dt1 = dti - drop;
+    floatV s2 = MAX(s1 + (dti - dt1), ZERO);
 
     floatV pres = MIN(w3 * inv_wet, F(1.0f));
     floatV m = LD(M, i);

@@ -130,20 +130,16 @@ def update(Tb, dT, W, S, F, M, EA, k: StepConstants, boundary: str):
 
     hlow = MIN(MIN(hn[0], hn[2]), MIN(hn[1], hn[3]))  # never below the lowest neighbour
     emax = MAX(h - hlow, f32(0))
-    room = cap - s1
-    drop = np.where(room > 0, MIN(k.ks_f * room, emax), k.kd_f * room)  # eroded, or (< 0) deposited
-    dt1 = dT - drop
-    s2 = MAX(s1 + (dT - dt1), f32(0))
-
     w2 = w1 + k.rain_dt
     ev = MIN(w2, k.evap_dt)
     w3 = w2 - ev
     ev_act = w2 - w3
-    dry = w3 <= 0  # the water is gone: what it carried settles (a no-op where S is 0)
-    dt2 = dt1 + s2
-    s_dry = MAX(s2 - (dt2 - dt1), f32(0))
-    dt1 = np.where(dry, dt2, dt1)
-    s2 = np.where(dry, s_dry, s2)
+
+    room = cap - s1
+    drop = np.where(room > 0, MIN(k.ks_f * room, emax), k.kd_f * room)  # eroded, or (< 0) deposited
+    drop = np.where(w3 <= 0, -s1, drop)  # the water is gone: what it carried settles
+    dt1 = dT - drop
+    s2 = MAX(s1 + (dT - dt1), f32(0))
     pres = MIN(w3 * k.inv_wet, f32(1))
     M1 = M + k.am * (pres - M)
     EA1 = EA + ev_act
