@@ -142,8 +142,13 @@ typedef floatV __attribute__((aligned(4))) floatV_u;
  * tiles in reverse order (L2 reuse from flux) -2 to -6 %; tiles handed out by
  * an integer atomic counter -5 %; east neighbours from aligned loads and lane
  * shifts, no change; QE/QS/QW/QN interleaved in blocks of 16 cells (one stream
- * instead of four) -4 to -8 %. Division-free flux (wrong results, a bound)
- * was only 5 % faster. */
+ * instead of four) -4 to -8 %; two rows interleaved per tile, 32-cell vectors
+ * (two zmm per operation, more independent work in flight) and 32-row tiles, no
+ * gain. Division-free flux (wrong results, a bound) was only 5 % faster.
+ * What does help at 512^2 is fewer operations: there the step is bound by the
+ * FP pipes, not by memory (with each core re-running one tile whose data stay
+ * in its L2, flux is 1 % and update 12 % faster), and every AVX-512 operation
+ * taken out of a vector's code saved about 1 % of its kernel. */
 #define TILE_VECTORS MIN((cols + VW - 1) / VW, NV)
 #ifndef NR
 #define NR 1
