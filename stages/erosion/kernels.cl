@@ -237,7 +237,8 @@ inline floatV sqrt_v(floatV x) { return sqrt(x); }
  * scaling that keeps water non-negative.
  *   hf = max(eta_i, eta_j) - max(h_i, h_j)
  *   q <- max(0, (q + g dt hf (eta_i - eta_j) / dx) / (1 + dt (f/8) q / hf^2))
- *   (evaluated as (q + ...) hf^2 / (hf^2 + dt (f/8) q): one division)
+ *   (evaluated as (q + ...) hf^2 / (hf^2 + dt (f/8) q): one division; a face
+ *   at most HMIN deep carries nothing)
  *   q <- q * min(1, (1 - eps) W dx / (dt sum q))
  * A missing neighbour of an open grid is a dry ghost at the same ground height
  * (free outfall); of a closed grid, a wall (q = 0).
@@ -356,12 +357,13 @@ inline floatV sed_per_q(floatV S, float c, floatV W)
 /* ---------------------------------------------------------------------------
  * 2. Water, sediment, erosion/deposition, rain, evaporation, moisture.
  * Water:     W1 = W + dt/dx (sum q_in - sum q_out)
- * Sediment:  moved in flux form with the water (sed_out on every face).
+ * Sediment:  moved in flux form with the water (q spq on every face).
  * Capacity:  C = Kc |q| max(sin a, sin a_min)   (m; |q| unit discharge, m^2/s)
  * Exchange:  C > S: erode min(ks (C - S), h - min h_neighbour); else deposit
  *            kd (S - C); ks = 1-exp(-Ks dt), kd = 1-exp(-Kd dt). The amount moved
  *            is the actual change of dT, so dT + S is conserved.
- * Rain/evap: W += rain dt; evaporate min(W, E dt); water gone -> sediment settles.
+ * Rain/evap: W += rain dt; evaporate min(W, E dt); water gone -> all sediment
+ *            settles (instead of the exchange).
  * Moisture:  M += am (min(W/wet, 1) - M), am = 1 - exp(-dt/tau).
  * ------------------------------------------------------------------------- */
 #define UPDATE_ARGS                                                                  \
@@ -385,8 +387,8 @@ inline floatV sed_per_q(floatV S, float c, floatV W)
 
 /* One vector of the update tile. The sediment a cell sends west and north is
  * what its neighbours there receive from it, and its spq (sediment per unit
- * discharge) is shared with the cells north and west of it: fresh_w / fresh_n compute the western / northern
- * inflows here; otherwise they come from the vector before (*w_so: its sediment
+ * discharge) is shared with the cells north and west of it: fresh_w / fresh_n
+ * compute the western / northern inflows here; otherwise they come from the vector before (*w_so: its sediment
  * sent east, *w_h: its height; one lane over) and from the row above (*n_so:
  * sediment sent south, *n_h: height), and spq of this row from the row above
  * (*n_spq), of the vector after from spq_next unless fresh_e. On return the
