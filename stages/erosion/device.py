@@ -33,7 +33,7 @@ def step_vector_width(device) -> int:
 def storm_tile(device) -> tuple[int, int]:
     """The tile of one storm work-item (see kernels.cl): (rows, most vectors
     along a row; the tile is the grid's width up to this). On a CPU 16 rows,
-    where cells share faces and 1 / W with the row above, by 128 vectors (2048
+    where cells share faces and sediment per discharge with the row above, by 128 vectors (2048
     cells: whole rows of the bench's grids; the AVX-512 body is a call whose
     ~30 arguments are paid once per tile); on a GPU, which wants many
     work-items, 1 by 1."""
@@ -155,15 +155,24 @@ class DeviceSim:
         n = self.rows + self.cols + 2
         self.k["halo"](self.queue, (n,), None, *b, np.int32(len(bufs)), self.R, self.C, self.P)
 
+    def _flux(self, k: StepConstants, Q, wave, want_wave: bool) -> None:
+        """The flux kernel on the current state, updating the pipes Q in place."""
+        self._run("flux", self.Tb, self.dT[self.cd], self.W[self.cw], *Q, wave, self.R, self.C, self.P,
+                  k.g_dt_dx, k.fric_dt, k.dx_dt, np.int32(want_wave), np.float32(G))
+
+    def _update(self, k: StepConstants, Q, M, EA, dT_out, W_out, S_out) -> None:
+        """The update kernel on the current state and pipes Q, writing the new dT, W, S."""
+        d, w = self.cd, self.cw
+        self._run("update", self.Tb, self.dT[d], self.W[w], self.S[w], *Q, M, EA, dT_out, W_out, S_out,
+                  self.R, self.C, self.P, k.c_dt_dx, k.kc, k.sin_min2, k.ks_f, k.kd_f, k.rain_dt, k.evap_dt,
+                  k.inv_wet, k.am, k.four_dx2)
+
     def step(self, k: StepConstants, want_wave: bool = False) -> None:
         d, w = self.cd, self.cw
         R, C, P = self.R, self.C, self.P
-        self._run("flux", self.Tb, self.dT[d], self.W[w], *self.Q, self.wave, R, C, P,
-                  k.g_dt_dx, k.fric_dt, k.dx_dt, np.int32(want_wave), np.float32(G))
+        self._flux(k, self.Q, self.wave, want_wave)
         self._halo(*self.Q)
-        self._run("update", self.Tb, self.dT[d], self.W[w], self.S[w], *self.Q, self.M, self.EA,
-                  self.dT[1 - d], self.W[1 - w], self.S[1 - w], R, C, P,
-                  k.c_dt_dx, k.kc, k.sin_min2, k.ks_f, k.kd_f, k.rain_dt, k.evap_dt, k.inv_wet, k.am, k.four_dx2)
+        self._update(k, self.Q, self.M, self.EA, self.dT[1 - d], self.W[1 - w], self.S[1 - w])
         if self.open:
             self.k["boundary_out"](self.queue, (self.nfaces,), None, self.W[w], self.S[w], *self.Q,
                                    self.bnd, R, C, P, k.c_dt_dx)
@@ -275,11 +284,8 @@ class DeviceSim:
             "copy4": lambda: self.k["copy4"](q, (n4,), (256,) if n4 % 256 == 0 else None, ca, cb, np.int32(n4)),
             "copy16x8": lambda: self.k["copy16x8"](q, (n4 // 32,), None, ca, cb),
             "copy16_stream": lambda: self.k["copy16_stream"](q, (n4 // 4,), None, ca, cb),
-            "flux": lambda: self._run("flux", self.Tb, self.dT[d], self.W[w], *Qs, scratch[0], R, C, P,
-                                      k.g_dt_dx, k.fric_dt, k.dx_dt, np.int32(0), np.float32(G)),
-            "update": lambda: self._run("update", self.Tb, self.dT[d], self.W[w], self.S[w], *Qs, M2, EA2,
-                                        scratch[0], scratch[1], scratch[2], R, C, P, k.c_dt_dx, k.kc, k.sin_min2,
-                                        k.ks_f, k.kd_f, k.rain_dt, k.evap_dt, k.inv_wet, k.am, k.four_dx2),
+            "flux": lambda: self._flux(k, Qs, scratch[0], want_wave=False),
+            "update": lambda: self._update(k, Qs, M2, EA2, *scratch),
             "thermal_send": lambda: self._run("thermal_send", self.Tb, self.dT[d], self.W[w], scratch[0], scratch[1],
                                               R, C, P, self.t_ax, self.t_dg, np.float32(THERMAL_C), np.float32(-1)),
             "thermal_apply": lambda: self._run("thermal_apply", self.Tb, self.dT[d], self.W[w], scratch[0], scratch[1],
