@@ -44,19 +44,26 @@ def source_hash(source_dir: Path) -> str:
 
 
 @functools.lru_cache(maxsize=None)
-def library_versions(uses_opencl: bool) -> dict[str, str]:
+def _fixed_library_versions() -> tuple[tuple[str, str], ...]:
     import OpenImageIO
+    import pyopencl
     from pxr import Usd
 
-    versions = {"numpy": np.__version__, "OpenImageIO": OpenImageIO.VERSION_STRING,
-                "usd": ".".join(map(str, Usd.GetVersion())), "engine_format": str(ENGINE_FORMAT)}
-    if uses_opencl:
-        import pyopencl
+    return (("numpy", np.__version__), ("OpenImageIO", OpenImageIO.VERSION_STRING),
+            ("usd", ".".join(map(str, Usd.GetVersion()))), ("engine_format", str(ENGINE_FORMAT)),
+            ("pyopencl", pyopencl.VERSION_TEXT))
 
+
+def library_versions(uses_opencl: bool) -> dict[str, str]:
+    """The versions that change numbers; with OpenCL, the device in use (asked
+    each time: tests switch devices with opencl.use_device)."""
+    versions = dict(_fixed_library_versions())
+    if uses_opencl:
         from .opencl import get_cl
 
-        versions["pyopencl"] = pyopencl.VERSION_TEXT
         versions["opencl_device"] = get_cl().fingerprint
+    else:
+        del versions["pyopencl"]
     return versions
 
 

@@ -6,14 +6,17 @@
     worldbake gc
     worldbake export WORLD DEST
     worldbake describe
+    worldbake devices [--json]
 
 Exit status: 0 done, 1 a stage failed (numerical blow-up, broken invariant),
-2 bad config or input file (nothing written).
+2 bad config or input file (nothing written), 3 no usable OpenCL device
+(the message names each device tried and why it failed).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -21,8 +24,7 @@ from . import usdio
 from .bake import plan_bake
 from .executors import bake_worlds
 from .config import list_variants, load_config
-from .errors import InputError, StageError
-from .opencl import OpenCLError
+from .errors import DeviceError, InputError, StageError
 from .graph import build_graph
 from .registry import all_stages
 from .store import Store
@@ -120,6 +122,31 @@ def _cmd_gc(args) -> int:
     return 0
 
 
+def _cmd_devices(args) -> int:
+    from . import opencl
+
+    want = os.environ.get("WORLDBAKE_CL_DEVICE", "").strip()
+    candidates, chosen = opencl.probe_all(want, stop_at_first=False)
+    if args.json:
+        print(json.dumps({"WORLDBAKE_CL_DEVICE": want or None,
+                          "order": "WORLDBAKE_CL_DEVICE, then GPUs with float64, then CPU runtimes "
+                                   f"({', '.join(opencl.CPU_RUNTIME_ORDER)}), then others",
+                          "devices": [c.as_dict() for c in candidates],
+                          "used": chosen.index if chosen else None}, indent=2))
+    else:
+        print("OpenCL devices, in the order a bake tries them"
+              + (f" (WORLDBAKE_CL_DEVICE={want!r})" if want else "") + ":")
+        for c in candidates:
+            mark = "*" if c is chosen else " "
+            status = f"ok ({c.probe_ms:.0f} ms)" if c.ok else f"FAILED: {c.error}"
+            print(f" {mark} {c.index:<4} {c.kind:<5} {c.platform} / {c.name}  [{c.reason}]  probe {status}")
+        if chosen is not None:
+            print(f"a bake uses {chosen.index} {chosen.platform} / {chosen.name} (the first whose probe passes)")
+    if chosen is None:
+        raise DeviceError(opencl.no_device_message(candidates, want))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="worldbake", description="Bake outdoor worlds from a config file.")
     parser.add_argument("--project", default=".", help="project root: configs and paths are checked against it (default: .)")
@@ -145,14 +172,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("world", help="the world's name (a folder in build/worlds/)")
     p.add_argument("dest", help="a new folder, or a path ending in .usdz")
     sub.add_parser("describe", help="print every stage's inputs, outputs and config keys (markdown)")
+    p = sub.add_parser("devices", help="every OpenCL device, its probe result, and which one a bake uses")
+    p.add_argument("--json", action="store_true", help="print as JSON")
     args = parser.parse_args(argv)
     handlers = {"bake": _cmd_bake, "plan": _cmd_plan, "validate": _cmd_validate, "gc": _cmd_gc, "export": _cmd_export,
-                "describe": _cmd_describe}
+                "describe": _cmd_describe, "devices": _cmd_devices}
     try:
         return handlers[args.command](args)
-    except (InputError, OpenCLError) as e:  # a bad config, input file or device choice
+    except InputError as e:  # a bad config or input file
         print(f"worldbake: error: {e}", file=sys.stderr)
         return 2
+    except DeviceError as e:  # no OpenCL device can run the kernels
+        print(f"worldbake: OpenCL device error: {e}", file=sys.stderr)
+        return 3
     except StageError as e:
         print(f"worldbake: stage failed: {e}", file=sys.stderr)
         return 1

@@ -5,6 +5,9 @@ naming the file and key, exit status 2, nothing written.
 StageError: a stage could not produce a valid result (a numerical blow-up,
 a broken invariant). The message names the stage, parameter and step; the
 half-made artifact is thrown away. Exit status 1.
+DeviceError: no OpenCL device can run the kernels (none passes the probe,
+WORLDBAKE_CL_DEVICE names none, or a kernel does not build on the device).
+The message names each device tried and its error. Exit status 3.
 """
 
 
@@ -13,4 +16,8 @@ class InputError(Exception):
 
 
 class StageError(Exception):
+    pass
+
+
+class DeviceError(Exception):
     pass

@@ -9,6 +9,8 @@ gives the same keys and the same files as a local one.
 """
 from __future__ import annotations
 
+import atexit
+import os
 import sys
 import time
 from typing import Any
@@ -33,6 +35,39 @@ def _dask_task(build_dir: str, ps: PlannedStep, config: WorldConfig, graph: Grap
     return _run_or_reuse(Store(build_dir), ps, config, graph, sys.stderr)
 
 
+def _exit_without_native_teardown() -> None:
+    """The last act of a Dask worker process: flush, then leave without running
+    the native libraries' static destructors. With Intel's CPU OpenCL runtime
+    and pymeshlab (its Qt and plugin libraries) loaded in one worker process,
+    their destructors corrupt the heap at exit ("malloc_consolidate(): unaligned
+    fastbin chunk detected", then an abort) after every task has finished and
+    reported; a plain script doing the same in its main thread does not. The
+    results are already written and renamed into place, and the worker's state
+    is already reported to the scheduler, so nothing is lost by skipping them."""
+    import logging
+
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except Exception:  # a closed stream: nothing to flush
+            pass
+    os._exit(0)
+
+
+def _worker_plugin():
+    from distributed import WorkerPlugin
+
+    class ExitWithoutNativeTeardown(WorkerPlugin):
+        name = "worldbake-exit-without-native-teardown"
+
+        def setup(self, worker) -> None:
+            # registered after distributed's own handlers, so it runs first (LIFO)
+            atexit.register(_exit_without_native_teardown)
+
+    return ExitWithoutNativeTeardown()
+
+
 def _client(executor: str):
     try:
         from distributed import Client, LocalCluster
@@ -40,10 +75,14 @@ def _client(executor: str):
         raise InputError(f"--executor {executor}: the 'distributed' package is not installed") from e
     if executor == "dask":
         cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
-        return Client(cluster), cluster
+        client = Client(cluster)
+        client.register_plugin(_worker_plugin())
+        return client, cluster
     if "://" not in executor:
         raise InputError(f"--executor {executor!r}: use local, dask, or a scheduler address such as tcp://host:8786")
-    return Client(executor), None
+    client = Client(executor)
+    client.register_plugin(_worker_plugin())
+    return client, None
 
 
 def bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, *, executor: str = "local",

@@ -17,6 +17,8 @@ from stages.erosion.device import DeviceSim
 
 from .helpers import physics, world
 
+pytestmark = pytest.mark.every_device  # kernels against their references on each runtime
+
 TOL = 1e-6
 
 

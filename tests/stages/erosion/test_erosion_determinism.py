@@ -30,6 +30,7 @@ def _fields(h, ph, local, vw=None, steps=150, thermal=5, **code_path):
     return sim.fields()
 
 
+@pytest.mark.every_device
 @pytest.mark.parametrize("boundary", ["open", "periodic"])
 def test_identical_across_runs_work_group_sizes_and_vector_widths(boundary):
     h, dx = world(96)

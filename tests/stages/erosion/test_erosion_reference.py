@@ -19,6 +19,8 @@ from stages.erosion.reference import TINY, ReferenceSim, flux, thermal_step, upd
 
 from .helpers import physics, world
 
+pytestmark = pytest.mark.every_device  # kernels against their references on each runtime
+
 FIELDS = ("dT", "W", "S", "M", "vx", "vz", "F")
 
 

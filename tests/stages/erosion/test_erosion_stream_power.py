@@ -34,6 +34,7 @@ def test_steady_state_slope(n_exp):
     np.testing.assert_allclose(slope, want, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.every_device
 @pytest.mark.parametrize("n_exp", [1.0, 1.5, 4.0])
 def test_kernel_equals_reference(n_exp):
     rng = np.random.default_rng(5)

@@ -6,6 +6,8 @@ from pipeline.opencl import get_cl
 from stages.heightmap import noise, reference
 from stages.heightmap.stage import HeightmapParams, heights
 
+pytestmark = pytest.mark.every_device  # kernels against their references on each runtime
+
 RELIEF = 1000.0
 BASE = dict(seed=11, size_m=4000.0, resolution=96, wavelength_m=1500.0, octaves=8, lacunarity=2.0,
             hurst=0.8, relief_m=RELIEF, base_m=100.0)

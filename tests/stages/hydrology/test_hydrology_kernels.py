@@ -5,6 +5,8 @@ import pytest
 from stages.hydrology import device as dev
 from stages.hydrology import reference as ref
 
+pytestmark = pytest.mark.every_device  # kernels against their references on each runtime
+
 
 def terrains():
     rng = np.random.default_rng(7)

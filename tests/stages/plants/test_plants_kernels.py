@@ -6,6 +6,8 @@ from stages.plants import geometry, grass, leaves
 from stages.plants import reference as ref
 from stages.plants.species import GrassSpec, LeafSpec
 
+pytestmark = pytest.mark.every_device  # kernels against their references on each runtime
+
 
 def _frames(rng, n):
     t = rng.normal(size=(n, 3))

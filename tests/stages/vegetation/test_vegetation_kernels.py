@@ -19,6 +19,8 @@ from stages.vegetation.stage import preference_table, splat_table
 
 from .conftest import on_pocl, synthetic_height
 
+pytestmark = pytest.mark.every_device  # kernels against their references on each runtime
+
 DX = 8.0
 
 
