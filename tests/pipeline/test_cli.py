@@ -280,5 +280,5 @@ def test_unknown_opencl_device_is_a_clear_error(project):
     cmd = [sys.executable, "-m", "pipeline.cli", "plan", "configs/default.toml"]
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=project, timeout=120,
                           env={**os.environ, "WORLDBAKE_CL_DEVICE": "no-such-gpu"})
-    assert proc.returncode == 2 and "WORLDBAKE_CL_DEVICE='no-such-gpu' matches no device" in proc.stderr
+    assert proc.returncode == 3 and "WORLDBAKE_CL_DEVICE='no-such-gpu' matches no device" in proc.stderr
     assert "Traceback" not in proc.stderr
