@@ -1,7 +1,7 @@
 """Keys, planning and running: what `worldbake plan` and `worldbake bake` do.
 
-The cache key of a stage run hashes its name and version, the bytes of its
-own source files, its canonical params, the bytes of the files its params
+The cache key of a stage run hashes its name and version, the normalised
+text of every source file it can load (pipeline.sources), its canonical params, the bytes of the files its params
 name, the keys of its inputs, the seed when it uses one, and the versions of
 the libraries (and the OpenCL device) that change its numbers. Never mtimes.
 """
@@ -25,22 +25,13 @@ from .contract import Artifact, RunContext, Stage
 from .errors import StageError
 from .graph import Graph, Step, plan
 from .grid import Grid
+from .sources import stage_source_hash
 from .store import MANIFEST, Store, sha256_file, write_json
 
 # Bump when the engine changes how artifacts are written (file formats,
 # provenance layout), so that old keys stop matching.
 ENGINE_FORMAT = 1
 KEY_LENGTH = 20  # hex digits of sha256 kept in folder names (80 bits)
-
-
-@functools.lru_cache(maxsize=None)
-def source_hash(source_dir: Path) -> str:
-    """sha256 over the relative paths and bytes of a stage's .py and .cl files."""
-    h = hashlib.sha256()
-    for path in sorted(p for p in Path(source_dir).rglob("*") if p.suffix in (".py", ".cl") and "__pycache__" not in p.parts):
-        h.update(path.relative_to(source_dir).as_posix().encode() + b"\0")
-        h.update(path.read_bytes() + b"\0")
-    return h.hexdigest()
 
 
 @functools.lru_cache(maxsize=None)
@@ -79,7 +70,7 @@ def stage_key(step: Step, config: WorldConfig, keys: dict[str, str]) -> PlannedS
     material = {
         "stage": stage.name,
         "version": stage.version,
-        "source": source_hash(stage.source_dir),
+        "source": stage_source_hash(stage.source_dir),
         "params": json.loads(params_json),
         "files": {k: v for k, v in sorted(config.file_hashes.items()) if k.startswith(stage.name + ".")},
         "inputs": {role: list(v) for role, v in inputs.items()},

@@ -68,7 +68,7 @@ class Stage:
     outputs: tuple[Artifact, ...]
     params: type[pydantic.BaseModel]
     run: Callable[["RunContext", dict[str, Any], Any], dict[str, Any]]
-    source_dir: Path  # every .py/.cl file in it is part of the cache key
+    source_dir: Path  # stages/<name>: its files and every project module they import are in the key (pipeline.sources)
     uses_seed: bool = False  # the config's seed is part of the key and given in ctx.seed
     uses_opencl: bool = False  # the OpenCL device is part of the key
     # Params that must hold the same value in every stage declaring them (the

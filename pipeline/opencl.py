@@ -124,8 +124,14 @@ def load_program(path: Path | str, options: tuple[str, ...] = ()) -> "object":
     `-cl-fp32-correctly-rounded-divide-sqrt` keeps divisions and square roots
     exact so kernels agree with their numpy references; fast-math options are
     never used because they change numbers between devices."""
+    from .sources import CL_INCLUDE_DIR, cl_include_hash
+
     source = Path(path).read_text()
-    opts = ("-cl-fp32-correctly-rounded-divide-sqrt",) + tuple(options)
+    # The shared headers' hash is an option too: an edited header must not
+    # be served from this process's cache or PoCL's (keyed on source text
+    # and options).
+    opts = ("-cl-fp32-correctly-rounded-divide-sqrt", f"-I{CL_INCLUDE_DIR}",
+            f"-DWORLDBAKE_INCLUDE_HASH=0x{cl_include_hash()[:12]}") + tuple(options)
     return _build(hashlib.sha256(source.encode()).hexdigest(), source, opts)
 
 

@@ -161,8 +161,8 @@ def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, 
         step_fn: Callable | None = None) -> StreamPowerResult:
     """Erode `height` (m, finite) for `years`; k in m^(1-2m)/year, uplift in
     m/year. step_fn replaces the device solve (tests pass reference_step)."""
-    from stages.hydrology import device as flow
-    from stages.hydrology import reference as flowref
+    from pipeline.flow import device as flow
+    from pipeline.flow import reference as flowref
 
     h = np.asarray(height, np.float64).copy()
     if not np.isfinite(h).all():

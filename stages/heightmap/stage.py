@@ -21,7 +21,9 @@ from pipeline.errors import StageError
 from pipeline.grid import Grid
 from pipeline.preview import hillshade
 
-from . import dem, noise
+from pipeline import dem
+
+from . import noise
 
 
 class HeightmapParams(Params):

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import reference as ref
+from pipeline.flow import reference as ref
 
 
 @dataclass
@@ -164,7 +164,7 @@ def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.nd
 
     # 2. lake routing and inflows
     code_lake = np.where(D, code_raw, code_main).astype(np.int8)
-    from .device import quantize
+    from pipeline.flow.device import quantize
 
     q, scale = quantize(runoff)
     acc = accumulate(code_lake, q).astype(np.float64).ravel() / scale

@@ -32,16 +32,16 @@ import numpy as np
 from pipeline.contract import Artifact, Input, Param, Params, ProjectPath, RunContext, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
+from stages.common import TERRAIN_SOURCES
 from pipeline.preview import hillshade
 
-from . import device as dev
+from pipeline.flow import device as dev
 from . import lakes as lakes_mod
 from . import mfd
-from . import reference as ref
+from pipeline.flow import reference as ref
 from . import rivers as rivers_mod
 
 SECONDS_PER_YEAR = 365.25 * 86400.0
-TERRAIN_SOURCES = ("erosion.height", "heightmap.height")
 
 
 class HydrologyParams(Params):
@@ -98,7 +98,7 @@ def rain_from_map(path: Path, rows: int, cols: int) -> np.ndarray:
     """Yearly rain (mm/year, float64) from an image file, stretched over the
     rows x cols terrain (cell-centred bilinear); clear errors for a missing,
     corrupt, integer, non-finite or negative map."""
-    from stages.heightmap.dem import read_dem, resample
+    from pipeline.dem import read_dem, resample
 
     try:
         src = read_dem(path, label="rain map")
@@ -207,7 +207,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
     t0 = time.perf_counter()
     mesh = None
     if rows >= 2 and cols >= 2:
-        from stages.world.terrain_mesh import build_terrain_mesh
+        from pipeline.terrain_mesh import build_terrain_mesh
 
         mesh = build_terrain_mesh(Grid(np.nan_to_num(h, nan=hmin), dx, ("height",), terrain.origin_m), params.mesh_max_vertices)
     ground = np.nan_to_num(h, nan=hmin).astype(np.float64)
@@ -216,7 +216,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
                              params.river_velocity_max_m_s, params.river_min_slope, params.river_width_depth_ratio,
                              params.river_lift_m)
     if mesh is not None and riv.curves:
-        from stages.world.terrain_mesh import height_on_mesh
+        from pipeline.terrain_mesh import height_on_mesh
 
         used = np.unique(np.concatenate(riv.curves))
         ox, oz = terrain.origin_m

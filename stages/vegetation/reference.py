@@ -13,6 +13,8 @@ import zlib
 
 import numpy as np
 
+from pipeline.hashing import mix32
+
 F = np.float32
 U = np.uint32
 INV24 = F(5.9604645e-08)
@@ -23,17 +25,6 @@ PN = 3  # Poisson neighbourhood (cells) and phase period PN + 1
 
 
 # --------------------------------------------------------------------------- hashing
-
-def mix32(h):
-    """lowbias32 on uint32 (arrays or scalars), wrapping."""
-    h = np.asarray(h, dtype=U)
-    with np.errstate(over="ignore"):
-        h = h ^ (h >> U(16))
-        h = h * U(0x7FEB352D)
-        h = h ^ (h >> U(15))
-        h = h * U(0x846CA68B)
-        h = h ^ (h >> U(16))
-    return h
 
 
 def hash4(k, a, b, c):

@@ -30,13 +30,13 @@ from pipeline import exr
 from pipeline.contract import Artifact, Input, RunContext, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
+from stages.common import TERRAIN_SOURCES
 from pipeline.preview import hillshade
 
 from . import attributes as attrs
 from . import ecosystem, grass, placement, usd_layer
 from .params import NPREF_ORDER, VegetationParams
 
-TERRAIN_SOURCES = ("erosion.height", "heightmap.height")
 SPECIES_MAPS = "species.exr"
 ATTR_CHANNELS = ("attr.slope", "attr.aspect", "attr.curvature", "attr.sky_view", "attr.sunlight", "attr.moisture")
 SPLAT_CHANNELS = ("splat.rock", "splat.scree", "splat.grass", "splat.dry_grass", "splat.mud", "splat.snow")
@@ -107,7 +107,7 @@ def preview(height: Grid, splat: np.ndarray, gdens: np.ndarray, water: np.ndarra
 
 
 def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> dict[str, Any]:
-    from stages.world.terrain_mesh import build_terrain_mesh
+    from pipeline.terrain_mesh import build_terrain_mesh
 
     T: dict[str, float] = {}
     t_all = time.perf_counter()

@@ -18,10 +18,10 @@ import numpy as np
 from pipeline import exr, usdio
 from pipeline.contract import Artifact, Input, Param, Params, RunContext, Stage
 from pipeline.grid import Grid
+from stages.common import TERRAIN_SOURCES, plant_asset_prim
 
-from .terrain_mesh import bilinear, build_terrain_mesh
+from pipeline.terrain_mesh import bilinear, build_terrain_mesh
 
-TERRAIN_SOURCES = ("erosion.height", "heightmap.height")
 # Upstream USD layers composed into the world, strongest first; absent when
 # their stage is disabled or not needed.
 LAYER_INPUTS = (
@@ -138,7 +138,7 @@ def bind_plant_assets(root_path: Path, placed: dict, plants_layer: Path, ctx: Ru
     layer = Sdf.Layer.FindOrOpen(str(root_path))
     bound = {}
     for species, proto_path in placed.get("prototypes", {}).items():
-        asset_prim = Sdf.Path(f"/Plants/{species}")
+        asset_prim = Sdf.Path(plant_asset_prim(species))
         if not assets.GetPrimAtPath(asset_prim):
             continue
         spec = Sdf.CreatePrimInLayer(layer, Sdf.Path(proto_path))
