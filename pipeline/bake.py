@@ -1,9 +1,11 @@
 """Keys, planning and running: what `worldbake plan` and `worldbake bake` do.
 
 The cache key of a stage run hashes its name and version, the normalised
-text of every source file it can load (pipeline.sources), its canonical params, the bytes of the files its params
-name, the keys of its inputs, the seed when it uses one, and the versions of
-the libraries (and the OpenCL device) that change its numbers. Never mtimes.
+text of every source file it can load (pipeline.sources), its canonical
+params, the bytes of the files its params name, the content hashes of the
+input artifacts it reads (from their producers' manifests: early cutoff),
+the seed when it uses one, and the versions of the libraries (and the
+OpenCL device) that change its numbers. Never mtimes.
 """
 from __future__ import annotations
 
@@ -51,8 +53,30 @@ def library_versions(uses_opencl: bool) -> dict[str, str]:
     return versions
 
 
+def _digest(material: dict) -> str:
+    return hashlib.sha256(json.dumps(material, sort_keys=True, separators=(",", ":")).encode()).hexdigest()[:KEY_LENGTH]
+
+
 @dataclass(frozen=True)
 class PlannedStep:
+    """A step as the config alone defines it, before its inputs exist.
+
+    `recipe` hashes everything of the key but the inputs' content, with the
+    producers' recipes in its place: it names the step while planning (the
+    same recipe needed by two worlds is one task). The key itself is known
+    only once the inputs are made (key_step)."""
+
+    stage: Stage
+    recipe: str
+    inputs: dict[str, tuple[str, str]]  # role -> (artifact name, producer stage)
+    params_json: str
+    material: dict[str, Any]  # the key material without the inputs
+
+
+@dataclass(frozen=True)
+class KeyedStep:
+    """A step whose inputs are made: its cache key and where its inputs are."""
+
     stage: Stage
     key: str
     inputs: dict[str, tuple[str, str, str]]  # role -> (artifact name, producer stage, producer key)
@@ -60,37 +84,70 @@ class PlannedStep:
     key_material: dict[str, Any]
 
 
-def stage_key(step: Step, config: WorldConfig, keys: dict[str, str]) -> PlannedStep:
-    stage = step.stage
-    params_json = canonical_params(config.params[stage.name])
-    inputs = {}
-    for role, art in sorted(step.inputs.items()):
-        producer = art.split(".", 1)[0]
-        inputs[role] = (art, producer, keys[producer])
-    material = {
-        "stage": stage.name,
-        "version": stage.version,
-        "source": stage_source_hash(stage.source_dir),
-        "params": json.loads(params_json),
-        "files": {k: v for k, v in sorted(config.file_hashes.items()) if k.startswith(stage.name + ".")},
-        "inputs": {role: list(v) for role, v in inputs.items()},
-        "seed": config.seed if stage.uses_seed else None,
-        "libraries": library_versions(stage.uses_opencl),
-    }
-    digest = hashlib.sha256(json.dumps(material, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
-    return PlannedStep(stage, digest[:KEY_LENGTH], inputs, params_json, material)
-
-
 def plan_bake(graph: Graph, config: WorldConfig) -> list[PlannedStep]:
     enabled = {name: p.enabled for name, p in config.params.items()}
     steps = plan(graph, enabled, config.outputs, str(config.path))
-    keys: dict[str, str] = {}
+    recipes: dict[str, str] = {}
     planned = []
     for step in steps:
-        ps = stage_key(step, config, keys)
-        keys[step.stage.name] = ps.key
-        planned.append(ps)
+        stage = step.stage
+        params_json = canonical_params(config.params[stage.name])
+        inputs = {role: (art, graph.producers[art][0].name) for role, art in sorted(step.inputs.items())}
+        material = {
+            "stage": stage.name,
+            "version": stage.version,
+            "source": stage_source_hash(stage.source_dir),
+            "params": json.loads(params_json),
+            "files": {k: v for k, v in sorted(config.file_hashes.items()) if k.startswith(stage.name + ".")},
+            "seed": config.seed if stage.uses_seed else None,
+            "libraries": library_versions(stage.uses_opencl),
+        }
+        recipe = _digest({**material, "inputs": {r: [a, recipes[p]] for r, (a, p) in inputs.items()}})
+        recipes[stage.name] = recipe
+        planned.append(PlannedStep(stage, recipe, inputs, params_json, material))
     return planned
+
+
+def grid_content_hash(grid: Grid) -> str:
+    """The values a grid holds, without the file's provenance header (which
+    names the producer's key, so equal pixels would never compare equal)."""
+    h = hashlib.sha256()
+    h.update(json.dumps([list(grid.channels), list(grid.data.shape), grid.data.dtype.str, grid.cell_size_m,
+                         list(grid.origin_m)]).encode())
+    h.update(np.ascontiguousarray(grid.data).tobytes())
+    return h.hexdigest()
+
+
+def artifact_content_hash(manifest: dict, artifact: Artifact, producer: Stage) -> str:
+    """What a consumer of `artifact` reads, as one hash: the content hash the
+    engine recorded when writing it (grids: the values; json: the canonical
+    text), else the file hashes of the producer's manifest: the artifact's
+    file, and for USD layers and textures also the files beside it that no
+    other output names (the layers and images it references)."""
+    recorded = manifest.get("outputs", {}).get(artifact.name, {}).get("content")
+    if recorded:
+        return recorded
+    files = manifest["files"]
+    if artifact.kind in ("usd", "texture"):
+        others = {a.file for a in producer.outputs if a.name != artifact.name} | {MANIFEST}
+        parts = {f: h for f, h in files.items() if f not in others}
+    else:
+        parts = {artifact.file: files[artifact.file]}
+    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()
+
+
+def key_step(ps: PlannedStep, store: Store, graph: Graph, keys: dict[str, str]) -> KeyedStep:
+    """The key of a planned step whose producers have run (keys: stage ->
+    the key it ran or was cached under). Early cutoff: the key hashes the
+    content of the inputs, not the producers' keys, so a producer that re-ran
+    and wrote the same bytes leaves this key as it was."""
+    inputs, content = {}, {}
+    for role, (art, producer) in ps.inputs.items():
+        inputs[role] = (art, producer, keys[producer])
+        producer_stage, artifact = graph.producers[art]
+        content[role] = [art, artifact_content_hash(store.manifest(producer, keys[producer]), artifact, producer_stage)]
+    material = {**ps.material, "inputs": content}
+    return KeyedStep(ps.stage, _digest(material), inputs, ps.params_json, material)
 
 
 # --------------------------------------------------------------------------- running
@@ -137,7 +194,7 @@ def _finite_metrics(metrics: dict) -> dict:
     return fix(metrics)
 
 
-def run_step(store: Store, ps: PlannedStep, config: WorldConfig, graph: Graph,
+def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
              progress: Callable[[float, str], None]) -> dict:
     """Run one stage into a temporary folder and rename it into place."""
     stage = ps.stage
@@ -174,11 +231,13 @@ def run_step(store: Store, ps: PlannedStep, config: WorldConfig, graph: Graph,
                 grid = _check_grid(stage, art, value, terrain_shape)
                 terrain_shape = terrain_shape or (grid.shape if art.shape == "terrain" else None)
                 exr.write_grid(target, grid, provenance)
-                meta.update(channels=list(grid.channels), shape=list(grid.shape), cell_size_m=grid.cell_size_m)
+                meta.update(channels=list(grid.channels), shape=list(grid.shape), cell_size_m=grid.cell_size_m,
+                            content=grid_content_hash(grid))
             elif art.kind == "image":
                 exr.write_png(target, value)
             elif art.kind == "json":
                 write_json(target, _finite_metrics(value))
+                meta["content"] = sha256_file(target)
             elif art.kind in ("usd", "texture"):
                 if Path(value).resolve() != target.resolve() or not target.is_file():
                     raise StageError(f"stage {stage.name}: output {art.name} must be written to ctx.path({art.name!r})")
@@ -187,7 +246,8 @@ def run_step(store: Store, ps: PlannedStep, config: WorldConfig, graph: Graph,
         manifest = {
             "stage": stage.name, "version": stage.version, "key": ps.key,
             "params": json.loads(ps.params_json), "seed": provenance["seed"],
-            "inputs": {role: {"artifact": a, "stage": s, "key": k} for role, (a, s, k) in ps.inputs.items()},
+            "inputs": {role: {"artifact": a, "stage": s, "key": k, "content": ps.key_material["inputs"][role][1]}
+                       for role, (a, s, k) in ps.inputs.items()},
             "outputs": out_meta, "files": files,
             "timings": {"run_s": round(t_run, 4), "write_s": round(time.perf_counter() - t1, 4)},
             "metrics": _finite_metrics(ctx.metrics),
@@ -200,8 +260,10 @@ def run_step(store: Store, ps: PlannedStep, config: WorldConfig, graph: Graph,
 # --------------------------------------------------------------------------- publishing
 
 
-def publish_world(store: Store, config: WorldConfig, planned: list[PlannedStep]) -> Path:
-    """build/worlds/<name>/: manifest.json naming every artifact key used and,
+def publish_world(store: Store, config: WorldConfig, planned: list[KeyedStep]) -> Path:
+    """build/worlds/<name>/: manifest.json naming every artifact key used
+    (with early cutoff, a cached step may reference the output of an earlier
+    run of its producer: those are named too, so gc keeps them) and,
     when a planned stage publishes a root layer, world.usda composing it by a
     relative path."""
     with store.publishing(config.name) as work:
@@ -218,6 +280,7 @@ def publish_world(store: Store, config: WorldConfig, planned: list[PlannedStep])
             "world": config.name, "config": str(config.path), "variant": config.variant, "seed": config.seed,
             "outputs": list(config.outputs),
             "artifacts": [{"stage": ps.stage.name, "key": ps.key} for ps in planned],
+            "uses": [{"stage": s, "key": k} for s, k in sorted(store.closure({(ps.stage.name, ps.key) for ps in planned}))],
         })
     return store.worlds / config.name
 

@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 from . import usdio
-from .bake import plan_bake
+from .bake import key_step, plan_bake
 from .executors import bake_worlds
 from .config import list_variants, load_config
 from .errors import InputError, StageError
@@ -45,10 +45,19 @@ def _cmd_plan(args) -> int:
     out = []
     for config in _configs(args):
         rows = []
+        keys: dict[str, str] = {}  # stages whose output is in the store now
         for ps in plan_bake(graph, config):
-            status = "cached" if store.has(ps.stage.name, ps.key) else "will run"
-            rows.append({"stage": ps.stage.name, "key": ps.key, "status": status,
-                         "inputs": {r: f"{a}@{k}" for r, (a, _, k) in ps.inputs.items()}})
+            if all(producer in keys for _, producer in ps.inputs.values()):
+                ks = key_step(ps, store, graph, keys)
+                cached = store.has(ps.stage.name, ks.key)
+                if cached:
+                    keys[ps.stage.name] = ks.key
+                rows.append({"stage": ps.stage.name, "key": ks.key, "status": "cached" if cached else "will run",
+                             "inputs": {r: f"{a}@{k}" for r, (a, _, k) in ks.inputs.items()}})
+            else:  # the key hashes what its inputs will hold (early cutoff): known once they are made
+                rows.append({"stage": ps.stage.name, "key": None, "status": "after inputs",
+                             "inputs": {r: f"{a}@?" if p not in keys else f"{a}@{keys[p]}"
+                                        for r, (a, p) in ps.inputs.items()}})
         out.append({"world": config.name, "steps": rows})
     if args.json:
         print(json.dumps(out, indent=2))
@@ -57,7 +66,7 @@ def _cmd_plan(args) -> int:
             print(f"world {world['world']}:")
             for r in world["steps"]:
                 inputs = ", ".join(f"{k} <- {v}" for k, v in r["inputs"].items())
-                print(f"  {r['stage']:<12} {r['key']}  {r['status']:<8}  {inputs}")
+                print(f"  {r['stage']:<12} {r['key'] or '-' * 20}  {r['status']:<12}  {inputs}")
     return 0
 
 

@@ -114,8 +114,24 @@ class Store:
             shutil.rmtree(work, ignore_errors=True)
             shutil.rmtree(old, ignore_errors=True)
 
+    def closure(self, keys: set[tuple[str, str]]) -> set[tuple[str, str]]:
+        """`keys` and every (stage, key) their manifests name as an input,
+        transitively: a run cached by early cutoff may reference (by a USD
+        asset path) the folder of an earlier run of its producer."""
+        todo, seen = list(keys), set()
+        while todo:
+            entry = todo.pop()
+            if entry in seen:
+                continue
+            seen.add(entry)
+            if self.has(*entry):
+                for inp in self.manifest(*entry).get("inputs", {}).values():
+                    todo.append((inp["stage"], inp["key"]))
+        return seen
+
     def referenced_keys(self) -> set[tuple[str, str]]:
-        """(stage, key) pairs named by some world manifest."""
+        """(stage, key) pairs some world uses: named by its manifest, or
+        reached from those through the artifacts' inputs."""
         refs = set()
         if not self.worlds.is_dir():
             return refs
@@ -124,7 +140,7 @@ class Store:
             if m.is_file():
                 for entry in json.loads(m.read_text()).get("artifacts", []):
                     refs.add((entry["stage"], entry["key"]))
-        return refs
+        return self.closure(refs)
 
     def gc(self) -> list[Path]:
         """Remove every artifact folder that no world references."""
@@ -165,9 +181,9 @@ class Store:
         shutil.rmtree(work, ignore_errors=True)
         try:
             shutil.copytree(src, work / "worlds" / world)
-            for entry in json.loads((src / MANIFEST).read_text())["artifacts"]:
-                shutil.copytree(self.folder(entry["stage"], entry["key"]),
-                                work / "artifacts" / entry["stage"] / entry["key"])
+            named = {(e["stage"], e["key"]) for e in json.loads((src / MANIFEST).read_text())["artifacts"]}
+            for stage, key in sorted(self.closure(named)):
+                shutil.copytree(self.folder(stage, key), work / "artifacts" / stage / key)
             os.rename(work, dest)
         finally:
             shutil.rmtree(work, ignore_errors=True)

@@ -131,7 +131,7 @@ STAGE = Stage(
     version=1,
     description="plant assets in USD: L-system trees and shrubs (watertight woody solid, leaves) and grass tufts, "
     "with a measured lod variant set, wind primvars and materials",
-    inputs=(Input("placed", one_of=("vegetation.species",), optional=True,
+    inputs=(Input("placed", one_of=("vegetation.placed",), optional=True,
                   description="the species the vegetation map placed; only those are built"),),
     outputs=(Artifact("plants.assets", kind="usd", file="plants.usda", shape="any",
                       description="/Plants (kind group): one prim per built species referencing ./<species>.usdc "

@@ -30,7 +30,7 @@ from pipeline import exr
 from pipeline.contract import Artifact, Input, RunContext, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
-from stages.common import TERRAIN_SOURCES
+from stages.common import TERRAIN_SOURCES, prototype_prim
 from pipeline.preview import hillshade
 
 from . import attributes as attrs
@@ -285,7 +285,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
         "placed": placed_names,
         "unplaced": unplaced,
         "species": species_report,
-        "prototypes": {n: f"/World/Vegetation/Prototypes/{n}" for n in placed_names},
+        "prototypes": {n: prototype_prim(n) for n in placed_names},
         "maps": {"file": SPECIES_MAPS, "channels": per_species_channels,
                  "units": "suitability, yield (relative yield from the simulation): 1; density (target), placed: plants per ha; grass density: 1"},
     }
@@ -323,6 +323,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
         "vegetation.canopy": g(np.stack([cover, total_density], -1), ("canopy.cover", "canopy.density")),
         "vegetation.instances": usd_path,
         "vegetation.species": report,
+        "vegetation.placed": {"placed": placed_names, "prototypes": report["prototypes"]},
         "vegetation.stats": stats,
         "vegetation.preview": preview(Grid(h, dx, ("height",), origin), splat, gdens, water, sets, dom, grow),
     }
@@ -364,6 +365,9 @@ STAGE = Stage(
         Artifact("vegetation.species", kind="json", file="species.json", shape="any",
                  description="the placed species with instance counts (the plants stage builds only these), the "
                  "unplaced ones, the prototype prim paths and the per-species maps in species.exr"),
+        Artifact("vegetation.placed", kind="json", file="placed.json", shape="any",
+                 description="only the names of the placed species and their prototype prims: what the plants stage "
+                 "reads, so a bake that places the same species again builds no plant (early cutoff)"),
         Artifact("vegetation.stats", kind="json", file="stats.json", shape="any",
                  description="ecosystem history and stability, placement and density errors, splat checks, timings"),
         Artifact("vegetation.preview", kind="image", file="preview.png", dtype="uint8",

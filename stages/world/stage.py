@@ -31,7 +31,7 @@ LAYER_INPUTS = (
 )
 # The plant assets that replace the vegetation placeholders.
 ASSET_INPUTS = (
-    Input("placed", one_of=("vegetation.species",), optional=True, description="which species were placed, where their prototypes are"),
+    Input("placed", one_of=("vegetation.placed",), optional=True, description="which species were placed, where their prototypes are"),
     Input("plants", one_of=("plants.assets",), optional=True, description="the plant assets (plants.usda)"),
 )
 
