@@ -69,14 +69,15 @@ def _hashes(root: Path) -> dict[str, str]:
 
 
 def _erosion_key(root: Path) -> str:
-    """The erosion key of the default config with stream power on, hashing
+    """The erosion step's recipe (its key but for the inputs' content, which
+    is the same here) for the default config with stream power on, hashing
     the sources in `root`."""
     stage_source_hash.cache_clear()
     stages = {n: replace(s, source_dir=root / "stages" / n) for n, s in STAGES.items()}
     config = load_config(ROOT / "configs" / "default.toml", stages, project_root=ROOT,
                          sets=["erosion.geological_years=100000", "outputs=['erosion']"])
     steps = plan_bake(build_graph(stages), config)
-    return next(ps.key for ps in steps if ps.stage.name == "erosion")
+    return next(ps.recipe for ps in steps if ps.stage.name == "erosion")
 
 
 def test_editing_the_flow_kernels_changes_erosions_key(project_copy):
