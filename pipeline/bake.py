@@ -9,6 +9,7 @@ OpenCL device) that change its numbers. Never mtimes.
 """
 from __future__ import annotations
 
+import fnmatch
 import functools
 import hashlib
 import json
@@ -124,6 +125,8 @@ def artifact_content_hash(manifest: dict, artifact: Artifact, producer: Stage) -
     text), else the file hashes of the producer's manifest: the artifact's
     file, and for USD layers and textures also the files beside it that no
     other output names (the layers and images it references)."""
+    if manifest.get("outputs", {}).get(artifact.name, {}).get("absent"):
+        return "absent"
     recorded = manifest.get("outputs", {}).get(artifact.name, {}).get("content")
     if recorded:
         return recorded
@@ -165,8 +168,9 @@ def _load_input(store: Store, artifact: Artifact, producer: str, key: str) -> An
 def _check_grid(stage: Stage, art: Artifact, value: Any, terrain_shape: tuple[int, int] | None) -> Grid:
     if not isinstance(value, Grid):
         raise StageError(f"stage {stage.name}: output {art.name} must be a Grid, got {type(value).__name__}")
-    if tuple(value.channels) != tuple(art.channels):
-        raise StageError(f"stage {stage.name}: output {art.name} has channels {value.channels}, declared {art.channels}")
+    wrong = art.channel_sets(tuple(value.channels))
+    if wrong:
+        raise StageError(f"stage {stage.name}: output {art.name} {wrong}")
     if value.data.dtype != np.dtype(art.dtype):
         raise StageError(f"stage {stage.name}: output {art.name} is {value.data.dtype}, declared {art.dtype}")
     if art.shape == "terrain" and terrain_shape is not None and value.shape != terrain_shape:
@@ -177,6 +181,12 @@ def _check_grid(stage: Stage, art: Artifact, value: Any, terrain_shape: tuple[in
         raise StageError(f"stage {stage.name}: output {art.name} has {int(bad.sum())} non-finite values "
                          f"(first at row {r}, col {c}); not written")
     return value
+
+
+def _declared_file(stage: Stage, name: str) -> bool:
+    """A file in a run's folder that some output declares: its file, or
+    one its `beside` patterns match."""
+    return any(name == a.file or any(fnmatch.fnmatchcase(name, pat) for pat in a.beside) for a in stage.outputs)
 
 
 def _finite_metrics(metrics: dict) -> dict:
@@ -202,6 +212,8 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
     terrain_shape = None
     for role, (art_name, producer, key) in ps.inputs.items():
         art = graph.producers[art_name][1]
+        if art.optional and store.manifest(producer, key)["outputs"].get(art_name, {}).get("absent"):
+            continue  # the producer wrote nothing for it (its consumers take it as optional)
         inputs[role] = _load_input(store, art, producer, key)
         if art.kind == "grid" and art.shape == "terrain":
             terrain_shape = inputs[role].shape
@@ -217,22 +229,28 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
         except FloatingPointError as e:
             raise StageError(f"stage {stage.name}: numerical failure: {e}") from e
         t_run = time.perf_counter() - t0
-        missing = [a.name for a in stage.outputs if a.name not in outputs]
+        missing = [a.name for a in stage.outputs if a.name not in outputs and not a.optional]
         extra = [n for n in outputs if n not in {a.name for a in stage.outputs}]
         if missing or extra:
             raise StageError(f"stage {stage.name}: returned {sorted(outputs)}, declared {[a.name for a in stage.outputs]}")
         t1 = time.perf_counter()
         out_meta = {}
         for art in stage.outputs:
-            value = outputs[art.name]
+            value = outputs.get(art.name)
             target = work / art.file
             meta: dict[str, Any] = {"file": art.file, "kind": art.kind, "units": art.units}
+            if value is None:
+                if not art.optional:
+                    raise StageError(f"stage {stage.name}: output {art.name} is None but not declared optional")
+                out_meta[art.name] = {**meta, "absent": True}
+                continue
             if art.kind == "grid":
                 grid = _check_grid(stage, art, value, terrain_shape)
                 terrain_shape = terrain_shape or (grid.shape if art.shape == "terrain" else None)
-                exr.write_grid(target, grid, provenance)
-                meta.update(channels=list(grid.channels), shape=list(grid.shape), cell_size_m=grid.cell_size_m,
-                            content=grid_content_hash(grid))
+                units = art.channel_units(tuple(grid.channels))
+                exr.write_grid(target, grid, {**provenance, "units": units})
+                meta.update(channels=list(grid.channels), channel_units=units, shape=list(grid.shape),
+                            cell_size_m=grid.cell_size_m, content=grid_content_hash(grid))
             elif art.kind == "image":
                 exr.write_png(target, value)
             elif art.kind == "json":
@@ -243,6 +261,10 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
                     raise StageError(f"stage {stage.name}: output {art.name} must be written to ctx.path({art.name!r})")
             out_meta[art.name] = meta
         files = {p.relative_to(work).as_posix(): sha256_file(p) for p in sorted(work.rglob("*")) if p.is_file()}
+        undeclared = [f for f in files if not _declared_file(stage, f)]
+        if undeclared:
+            raise StageError(f"stage {stage.name}: wrote files no output declares: {undeclared[:10]} "
+                             f"(declare them as artifacts, or in an artifact's `beside` patterns)")
         manifest = {
             "stage": stage.name, "version": stage.version, "key": ps.key,
             "params": json.loads(ps.params_json), "seed": provenance["seed"],

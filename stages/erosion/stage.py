@@ -286,7 +286,8 @@ STAGE = Stage(
     description="Optional geological time (stream-power incision with uplift, implicit Braun-Willett scheme), "
     "thermal weathering (talus angle, Olsen's rule) and hydraulic erosion on the virtual-pipe "
     "shallow-water model with mass-conserving sediment transport, on the OpenCL device",
-    inputs=(Input("height", one_of=("heightmap.height",), description="the terrain to erode"),),
+    inputs=(Input("height", one_of=("heightmap.height",), description="the terrain to erode", channels=("height",),
+                  units="m"),),
     outputs=(
         Artifact("erosion.height", kind="grid", file="height.exr", channels=("height",), units="m",
                  description="eroded terrain height, float32, one value per cell"),

@@ -352,8 +352,8 @@ STAGE = Stage(
     description="Water: depression filling or breaching, D8 flow and accumulation, rivers with widths and Strahler "
     "order, lakes by Fill-Spill-Merge (seed 003 algorithm 2), wetness index and moisture, and a USD water layer",
     inputs=(
-        Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height"),
-        Input("erosion_moisture", one_of=("erosion.moisture",), optional=True,
+        Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height", channels=("height",), units="m"),
+        Input("erosion_moisture", one_of=("erosion.moisture",), optional=True, channels=("moisture",), units="1",
               description="where water stood during the erosion storm, 0..1"),
     ),
     outputs=(
@@ -363,11 +363,11 @@ STAGE = Stage(
         _grid("hydrology.flow", "flow.exr", ("flow.x", "flow.z", "flow.d8"), "1",
               "D8 flow direction: unit vector (x east, z south) and code (0..7 = N, NE, E, SE, S, SW, W, NW as in "
               "pysheds; -1 outlet; NaN no-data)", nodata_nan=True),
-        _grid("hydrology.accumulation", "accumulation.exr", ("flow.accumulation", "flow.discharge"), "m^2",
+        _grid("hydrology.accumulation", "accumulation.exr", ("flow.accumulation", "flow.discharge"), "m^2, m^3/s",
               "D8 drainage area (m^2) and mean discharge (m^3/s) from rain * runoff"),
-        _grid("hydrology.lakes", "lakes.exr", ("lake.depth", "lake.level", "lake.id"), "m",
+        _grid("hydrology.lakes", "lakes.exr", ("lake.depth", "lake.level", "lake.id"), "m, m, 1",
               "lake water depth (m), water level (m, NaN where dry) and lake id (0 = dry)", nodata_nan=True),
-        _grid("hydrology.rivers", "rivers.exr", ("river.mask", "river.width", "river.order"), "m",
+        _grid("hydrology.rivers", "rivers.exr", ("river.mask", "river.width", "river.order"), "1, m, 1",
               "river mask (0/1), channel width (m) and Strahler order"),
         _grid("hydrology.wetness", "wetness.exr", ("wetness",), "ln(m)", "topographic wetness index ln(a / tan b)"),
         _grid("hydrology.moisture", "moisture.exr", ("moisture",), "1",

@@ -133,7 +133,7 @@ STAGE = Stage(
     "with a measured lod variant set, wind primvars and materials",
     inputs=(Input("placed", one_of=("vegetation.placed",), optional=True,
                   description="the species the vegetation map placed; only those are built"),),
-    outputs=(Artifact("plants.assets", kind="usd", file="plants.usda", shape="any",
+    outputs=(Artifact("plants.assets", kind="usd", file="plants.usda", shape="any", beside=("*.usdc",),
                       description="/Plants (kind group): one prim per built species referencing ./<species>.usdc "
                       "(kind component, lod variant set LOD0..LODn, extentsHint, UsdPreviewSurface, wind primvars)"),),
     params=PlantsParams,

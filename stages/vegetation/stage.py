@@ -258,9 +258,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
     if gname:
         per_species += [gsuit, gdens]
         per_species_channels += [f"suitability.{gname}", f"density.{gname}"]
-    if per_species:
-        exr.write_grid(Path(ctx.out_dir) / SPECIES_MAPS, g(np.stack(per_species, -1), tuple(per_species_channels)),
-                       ctx.provenance)
+    species_maps = g(np.stack(per_species, -1), tuple(per_species_channels)) if per_species else None
     total_density = n_t.sum(axis=0) * ha if len(plants) else np.zeros((rows, cols))
     lap("maps_s", t0)
 
@@ -323,6 +321,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
         "vegetation.canopy": g(np.stack([cover, total_density], -1), ("canopy.cover", "canopy.density")),
         "vegetation.instances": usd_path,
         "vegetation.species": report,
+        "vegetation.species_maps": species_maps,
         "vegetation.placed": {"placed": placed_names, "prototypes": report["prototypes"]},
         "vegetation.stats": stats,
         "vegetation.preview": preview(Grid(h, dx, ("height",), origin), splat, gdens, water, sets, dom, grow),
@@ -341,11 +340,14 @@ STAGE = Stage(
     "density and tufts, terrain splat weights (seed 004, fixed), and the instances as UsdGeom.PointInstancers in "
     "quadtree tiles",
     inputs=(
-        Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height"),
-        Input("moisture", one_of=("hydrology.moisture",), optional=True, description="moisture 0..1"),
-        Input("lakes", one_of=("hydrology.lakes",), optional=True, description="lake depth: nothing grows in lakes"),
-        Input("rivers", one_of=("hydrology.rivers",), optional=True, description="river mask: nothing grows in rivers"),
-        Input("erosion_moisture", one_of=("erosion.moisture",), optional=True,
+        Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height", channels=("height",), units="m"),
+        Input("moisture", one_of=("hydrology.moisture",), optional=True, description="moisture 0..1",
+              channels=("moisture",), units="1"),
+        Input("lakes", one_of=("hydrology.lakes",), optional=True, description="lake depth: nothing grows in lakes",
+              channels=("lake.depth",), units="m"),
+        Input("rivers", one_of=("hydrology.rivers",), optional=True, description="river mask: nothing grows in rivers",
+              channels=("river.mask",), units="1"),
+        Input("erosion_moisture", one_of=("erosion.moisture",), optional=True, channels=("moisture",), units="1",
               description="moisture from the erosion storm, used when hydrology is off"),
     ),
     outputs=(
@@ -365,6 +367,12 @@ STAGE = Stage(
         Artifact("vegetation.species", kind="json", file="species.json", shape="any",
                  description="the placed species with instance counts (the plants stage builds only these), the "
                  "unplaced ones, the prototype prim paths and the per-species maps in species.exr"),
+        Artifact("vegetation.species_maps", kind="grid", file=SPECIES_MAPS, optional=True,
+                 channels=("suitability.{plant}", "yield.{plant}", "density.{plant}", "placed.{plant}",
+                           "suitability.{grass}", "density.{grass}"), units="1, 1, 1/ha, 1/ha, 1, 1",
+                 description="per placed species: suitability (0..1), relative yield of the simulation (plants only), "
+                 "target density and placed density (plants per ha); for the grass species suitability and tuft "
+                 "density (0..1); absent when no species grows"),
         Artifact("vegetation.placed", kind="json", file="placed.json", shape="any",
                  description="only the names of the placed species and their prototype prims: what the plants stage "
                  "reads, so a bake that places the same species again builds no plant (early cutoff)"),

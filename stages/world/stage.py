@@ -181,7 +181,8 @@ STAGE = Stage(
     name="world",
     version=1,
     description="Assemble world.usda: the terrain mesh and material, and every upstream USD layer.",
-    inputs=(Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height"),) + LAYER_INPUTS + ASSET_INPUTS,
+    inputs=(Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height", channels=("height",),
+                  units="m"),) + LAYER_INPUTS + ASSET_INPUTS,
     outputs=(
         Artifact("world.root", kind="usd", file="world.usda", shape="any", publish=True,
                  description="the root layer composing every layer of the world"),

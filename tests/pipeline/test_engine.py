@@ -147,6 +147,41 @@ def test_non_finite_output_is_refused(project):
     assert not (project / "build" / "artifacts" / "source").exists()
 
 
+@pytest.mark.parametrize("mode, message", [
+    ("extra_file", r"source: wrote files no output declares: \['notes.txt'\]"),
+    ("extra_channel", r"source.height has channels \['height2'\] that are not declared"),
+])
+def test_undeclared_files_and_channels_are_refused(project, mode, message):
+    with pytest.raises(StageError, match=message):
+        do_bake(project, write(project, BASE + f'mode = "{mode}"\n'))
+    assert not (project / "build" / "artifacts" / "source").exists()
+
+
+def test_channel_patterns_and_units():
+    art = Artifact("v.maps", "grid", "maps.exr", units="1, 1/ha, 1, 1, 1",
+                   channels=("suitability.{plant}", "density.{plant}", "yield.{plant}",
+                             "suitability.{grass}", "density.{grass}"))
+    good = ("suitability.oak", "density.oak", "yield.oak", "suitability.meadow", "density.meadow")
+    assert art.channel_sets(good) is None
+    assert art.channel_units(good)["density.oak"] == "1/ha" and art.channel_units(good)["density.meadow"] == "1"
+    assert "not declared" in art.channel_sets(("suitability.oak",))  # an incomplete set
+    assert "not declared" in art.channel_sets(good + ("height",))
+    fixed = Artifact("v.h", "grid", "h.exr", channels=("height", "water"), units="m")
+    assert "misses" in fixed.channel_sets(("height",))
+
+
+def test_graph_compares_what_consumers_read_with_what_producers_write():
+    src = _stage("a", outputs=(Artifact("a.h", "grid", "h.exr", channels=("height",), units="m"),))
+    for inp, message in ((Input("t", ("a.h",), channels=("depth",)), "reads channel 'depth'"),
+                         (Input("t", ("a.h",), channels=("height",), units="ft"), "expects 'height' in 'ft'")):
+        with pytest.raises(GraphError, match=message):
+            build_graph({"a": src, "b": _stage("b", inputs=(inp,))})
+    build_graph({"a": src, "b": _stage("b", inputs=(Input("t", ("a.h",), channels=("height",), units="m"),))})
+    same_shape = Artifact("a.m", "grid", "m.exr", channels=("d.{x}", "d.{y}"), units="1, m")
+    with pytest.raises(GraphError, match="ambiguous"):
+        build_graph({"a": _stage("a", outputs=(same_shape,))})
+
+
 def test_gc_keeps_referenced_artifacts(project):
     path = write(project, BASE)
     do_bake(project, path)

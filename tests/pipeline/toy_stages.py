@@ -17,7 +17,7 @@ CALLS: list[str] = []  # which stages actually ran, in order
 class SourceParams(Params):
     size: int = Param(8, ge=2, le=64, units="cells", description="cells per side")
     level_m: float = Param(1.0, ge=-100.0, le=100.0, units="m", description="base level")
-    mode: Literal["ramp", "flat", "nan"] = Param("ramp", description="what to generate")
+    mode: Literal["ramp", "flat", "nan", "extra_file", "extra_channel"] = Param("ramp", description="what to generate")
     data: ProjectPath | None = Param(None, description="optional file whose bytes are added")
 
 
@@ -31,6 +31,10 @@ def run_source(ctx, inputs, params):
     if params.data:
         h += len(ctx.resolve(params.data).read_bytes())
     h += ctx.seed % 7
+    if params.mode == "extra_file":
+        (ctx.out_dir / "notes.txt").write_text("not declared")
+    if params.mode == "extra_channel":
+        return {"source.height": Grid(np.stack([h, h], -1), 10.0, ("height", "height2"))}
     return {"source.height": Grid(h, 10.0)}
 
 
@@ -42,8 +46,8 @@ class ShiftParams(Params):
 def run_shift(ctx, inputs, params):
     CALLS.append("shift")
     g = inputs["terrain"]
-    (ctx.out_dir / "scratch.txt").write_text("half")
     if params.fail_after_write:
+        (ctx.out_dir / "scratch.txt").write_text("half")
         raise RuntimeError("boom")
     return {"shift.height": Grid(g.data + np.float32(params.amount_m), g.cell_size_m)}
 
