@@ -156,7 +156,7 @@ def test_outputs_and_maps(baked):
     assert w.min() >= 0 and w.max() <= 1 and np.abs(w.sum(-1) - 1).max() <= 1e-6
     gd = out["vegetation.grass"].channel("grass.density")
     assert gd.min() >= 0 and gd.max() <= 1
-    maps = exr.read_grid(ctx.out_dir / "species.exr")
+    maps = out["vegetation.species_maps"]
     assert set(out["vegetation.species"]["maps"]["channels"]) == set(maps.channels)
     assert out["vegetation.preview"].dtype == np.uint8 and out["vegetation.preview"].shape == (N, N, 3)
     json.dumps(out["vegetation.stats"], default=float)
@@ -238,7 +238,7 @@ def test_instances_on_the_mesh_and_where_they_may_grow(baked):
     mesh = build_terrain_mesh(terrain, params.mesh_max_vertices)
     dom = pl.Domain(N, N, DX, terrain.origin_m)
     attrs = out["vegetation.attributes"]
-    maps = exr.read_grid(ctx.out_dir / "species.exr")
+    maps = out["vegetation.species_maps"]
     water = (world_inputs()["lakes"].channel("lake.depth") > 0) | (world_inputs()["rivers"].channel("river.mask") > 0.5)
     found = collect(out["vegetation.instances"])
     h = terrain.data
@@ -261,7 +261,7 @@ def test_density_and_distances(baked):
     out, ctx, params = baked
     terrain = world_inputs()["terrain"]
     dom = pl.Domain(N, N, DX, terrain.origin_m)
-    maps = exr.read_grid(ctx.out_dir / "species.exr")
+    maps = out["vegetation.species_maps"]
     found = collect(out["vegetation.instances"])
     judged = 0
     pts = {}

@@ -1,0 +1,81 @@
+"""Bad input is refused before any work: exit 2, one message naming the file
+and the key, nothing written. Each case a new user tried (issue 21) is kept
+here; `worldbake` runs in-process on a copy of configs/."""
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import main
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture
+def project(tmp_path):
+    shutil.copytree(REPO / "configs", tmp_path / "configs")
+    return tmp_path
+
+
+def refused(project: Path, capsys, *args: str, config: str = "configs/bad.toml") -> str:
+    """Run `worldbake bake`; assert exit 2, one line on stderr, nothing written."""
+    status = main(["--project", str(project), "bake", str(project / config) if not Path(config).is_absolute()
+                   else config, *args])
+    err = capsys.readouterr().err
+    assert status == 2, err
+    assert len(err.strip().splitlines()) == 1, err
+    assert not (project / "build").exists()
+    return err
+
+
+def bad(project: Path, text: str, name: str = "bad.toml") -> None:
+    (project / "configs" / name).write_bytes(text.encode() if isinstance(text, str) else text)
+
+
+@pytest.mark.parametrize("text, pattern", [
+    ('extends = "default.toml"\nname = "../up"\n', r"bad.toml: name: must be .*got '../up'"),
+    ('extends = "default.toml"\nname = "a/b"\n', r"bad.toml: name: must be"),
+    ('extends = "default.toml"\nname = "' + "x" * 300 + '"\n', r"bad.toml: name: must be 1 to 64"),
+    ('extends = "default.toml"\n[variants."../x"]\nworld.roughness = 0.5\n', r"variants.../x: must be"),
+    ('extends = "default.toml"\n[variants.' + "v" * 100 + ']\nworld.roughness = 0.5\n', r"variants.v+: must be"),
+    ('extends = "default.toml"\n[plants.species."a/b"]\npreset = "shrub"\n', r"plants.species.a/b: must be"),
+    ('extends = "default.toml"\n[world]\nroughness = nan\n', r"bad.toml: world.roughness: must be a finite number"),
+    ('extends = "default.toml"\n[heightmap]\nsize_m = inf\n', r"bad.toml: heightmap.size_m: must be a finite number"),
+    ('extends = "default.toml"\n[variants.v]\nworld.bogus = 1\n', r"world.bogus: unknown key"),
+    ('extends = "default.toml"\n[variants.v]\nworld.roughness = 7.0\n', r"\[variants.v\]: world.roughness"),
+    ("x = " + "[" * 50000 + "]" * 50000 + "\n", r"bad.toml: (not valid TOML|x: tables nested)"),
+    ("[" + ".".join(["a"] * 40) + "]\n", r"bad.toml: a(\.a)*: tables nested more than 16 deep"),
+])
+def test_bad_config_is_refused_before_work(project, capsys, text, pattern):
+    bad(project, text)
+    err = refused(project, capsys)
+    assert re.search(pattern, err), err
+
+
+def test_variants_are_checked_when_the_base_world_is_baked(project, capsys):
+    bad(project, 'extends = "default.toml"\n[variants.v]\nheightmap.no_such = 1\n')
+    assert "heightmap.no_such: unknown key" in refused(project, capsys)
+
+
+@pytest.mark.parametrize("assignment", ['extends="default.toml"', "variants.x.world.roughness=0.5"])
+def test_set_cannot_change_extends_or_variants(project, capsys, assignment):
+    err = refused(project, capsys, "--set", assignment, config="configs/default.toml")
+    assert re.search(r"--set .*cannot be set from the command line", err), err
+
+
+def test_config_outside_the_project_is_refused(project, tmp_path_factory, capsys):
+    outside = tmp_path_factory.mktemp("elsewhere") / "w.toml"
+    outside.write_text((project / "configs" / "default.toml").read_text())
+    assert "outside the project" in refused(project, capsys, config=str(outside))
+    (project / "configs" / "link.toml").symlink_to(outside)
+    assert "outside the project" in refused(project, capsys, config="configs/link.toml")
+
+
+def test_a_utf8_byte_order_mark_is_accepted(project, capsys):
+    bad(project, b"\xef\xbb\xbf" + b'extends = "default.toml"\nname = "bom"\n', "bom.toml")
+    status = main(["--project", str(project), "plan", str(project / "configs" / "bom.toml")])
+    assert status == 0, capsys.readouterr().err
+    assert "world bom:" in capsys.readouterr().out
