@@ -14,6 +14,7 @@ import functools
 import hashlib
 import json
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -24,8 +25,8 @@ import numpy as np
 
 from . import exr, usdio
 from .config import WorldConfig, canonical_params
-from .contract import Artifact, RunContext, Stage
-from .errors import StageError
+from .contract import Artifact, Check, CheckContext, GridInfo, ParamError, RunContext, Stage
+from .errors import InputError, StageError
 from .graph import Graph, Step, plan
 from .grid import Grid
 from .sources import stage_source_hash
@@ -151,6 +152,57 @@ def key_step(ps: PlannedStep, store: Store, graph: Graph, keys: dict[str, str]) 
         content[role] = [art, artifact_content_hash(store.manifest(producer, keys[producer]), artifact, producer_stage)]
     material = {**ps.material, "inputs": content}
     return KeyedStep(ps.stage, _digest(material), inputs, ps.params_json, material)
+
+
+# --------------------------------------------------------------------------- checking
+
+
+def memory_limit_bytes() -> tuple[float, str]:
+    """What a bake may hold at once: WORLDBAKE_MAX_MEMORY_GB when set, else
+    80 % of the machine's physical memory (the rest is the system's and the
+    other processes')."""
+    env = os.environ.get("WORLDBAKE_MAX_MEMORY_GB", "").strip()
+    if env:
+        try:
+            return float(env) * 2**30, f"WORLDBAKE_MAX_MEMORY_GB = {env}"
+        except ValueError:
+            raise InputError(f"WORLDBAKE_MAX_MEMORY_GB = {env!r}: must be a number of GiB") from None
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    return 0.8 * total, f"80 % of this machine's {total / 2**30:.1f} GiB"
+
+
+def check_world(graph: Graph, config: WorldConfig) -> dict[str, Check]:
+    """Every planned stage's check, in plan order, before any work: bad
+    values, unreadable files and runs too large for the machine are an
+    InputError naming the config file and key."""
+    limit, limit_how = memory_limit_bytes()
+    sizes: dict[str, GridInfo] = {}  # artifact name -> size
+    results = {}
+    for ps in plan_bake(graph, config):
+        stage = ps.stage
+        inputs = {role: sizes[art] for role, (art, _) in ps.inputs.items() if art in sizes}
+        ctx = CheckContext(seed=config.seed, project_root=config.project_root, inputs=inputs)
+        params = config.params[stage.name]
+        result = Check()
+        if stage.check is not None:
+            try:
+                result = stage.check(params, ctx) or Check()
+            except ParamError as e:
+                where = config.origin.get(f"{stage.name}.{e.key.split('.')[0]}", str(config.path))
+                raise InputError(f"{where}: {stage.name}.{e.key}: {e.message}") from None
+        terrain = next((inputs[i.role] for i in stage.inputs if i.role in inputs
+                        and graph.producers[ps.inputs[i.role][0]][1].shape == "terrain"), None)
+        for art in stage.outputs:
+            if art.kind == "grid":
+                info = result.grids.get(art.name) or (terrain if art.shape == "terrain" else None)
+                if info is not None:
+                    sizes[art.name] = info
+        if result.memory_bytes > limit:
+            raise InputError(f"{config.origin.get(stage.name, str(config.path))}: {stage.name}: the run would hold "
+                             f"about {result.memory_bytes / 2**30:.1f} GiB ({result.memory_how}), more than the "
+                             f"{limit / 2**30:.1f} GiB a bake may use ({limit_how}); lower the sizes named")
+        results[stage.name] = result
+    return results
 
 
 # --------------------------------------------------------------------------- running

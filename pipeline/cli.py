@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 from . import usdio
-from .bake import key_step, plan_bake
+from .bake import check_world, key_step, plan_bake
 from .executors import bake_worlds
 from .config import list_variants, load_config
 from .errors import InputError, StageError
@@ -29,14 +29,21 @@ from .store import Store
 
 
 def _configs(args) -> list:
+    """The worlds to bake, after every world of the config file (the base
+    and each variant, baked or not) passed load_config and every planned
+    stage's check: nothing runs before all of them are known good."""
     stages = all_stages()
+    graph = build_graph(stages)
     root = Path(args.project).resolve()
     path = Path(args.config)
-    if args.all_variants:
-        names = [None] + list_variants(path, root)
-    else:
-        names = [args.variant]
-    return [load_config(path, stages, project_root=root, variant=v, sets=args.set) for v in names]
+    every = [None] + list_variants(path, root)
+    if args.variant is not None and args.variant not in every:
+        load_config(path, stages, project_root=root, variant=args.variant, sets=args.set)  # names the problem
+    wanted = every if args.all_variants else [args.variant]
+    configs = {v: load_config(path, stages, project_root=root, variant=v, sets=args.set) for v in every}
+    for config in configs.values():
+        check_world(graph, config)
+    return [configs[v] for v in wanted]
 
 
 def _cmd_plan(args) -> int:
@@ -74,7 +81,7 @@ def _cmd_bake(args) -> int:
     graph = build_graph(all_stages())
     configs = _configs(args)  # every config validated before any work
     store = Store(Path(args.project) / args.build)
-    reports = bake_worlds(store, configs, graph, executor=args.executor)
+    reports = bake_worlds(store, configs, graph, executor=args.executor, checked=True)
     summary = []
     for config in configs:
         world_dir = store.worlds / config.name

@@ -22,6 +22,7 @@ import math
 import re
 import tomllib
 import typing
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -87,6 +88,7 @@ class WorldConfig:
     outputs: tuple[str, ...]
     params: dict[str, Params]  # per stage, validated
     file_hashes: dict[str, str]  # "stage.param" -> sha256 of the file a ProjectPath names
+    origin: dict[str, str] = dataclasses.field(default_factory=dict, compare=False)  # key -> the file (or --set) it came from
 
 
 def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -349,7 +351,7 @@ def load_config(path: Path | str, stages: dict[str, Stage], *, project_root: Pat
         for other in variants:
             load_config(path, stages, project_root=root, variant=other, sets=sets)
     return WorldConfig(path=path, project_root=root, name=name, variant=variant, seed=seed,
-                       outputs=tuple(outputs), params=params, file_hashes=file_hashes)
+                       outputs=tuple(outputs), params=params, file_hashes=file_hashes, origin=dict(origin))
 
 
 def canonical_params(model: Params) -> str:

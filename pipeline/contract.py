@@ -158,6 +158,12 @@ class Stage:
     # same triangles). A config sets them once in [shared]; the engine copies
     # them into each declaring stage and refuses a config where they differ.
     shared_params: tuple[str, ...] = ()
+    # Validation beyond the schema, run for every planned stage before any
+    # stage runs (pipeline.bake.check_world): parse what the params hold,
+    # open the files they name, and estimate the run's memory and work from
+    # the params and the sizes of the input grids. Raises ParamError; returns
+    # a Check. None: the schema is all there is to check.
+    check: Callable[[Any, "CheckContext"], "Check"] | None = None
 
     def output(self, name: str) -> Artifact:
         for a in self.outputs:
@@ -179,6 +185,48 @@ def Param(default: Any, *, units: str = "", description: str = "", **constraints
     """A parameter with its units and valid range (ge/le/gt/lt) as data.
     The README's parameter tables are generated from these declarations."""
     return pydantic.Field(default, description=description, json_schema_extra={"units": units}, **constraints)
+
+
+class ParamError(Exception):
+    """A stage's check found a bad value: `key` is the param's dotted name
+    inside the stage's table (e.g. "species.oak.lsystem.rules"); the engine
+    names the config file and stage."""
+
+    def __init__(self, key: str, message: str):
+        super().__init__(message)
+        self.key, self.message = key, message
+
+
+@dataclass(frozen=True)
+class GridInfo:
+    """What a check knows of a grid before it exists."""
+
+    shape: tuple[int, int]
+    cell_size_m: float
+
+
+@dataclass(frozen=True)
+class Check:
+    """A stage's answer before it runs: the grids it will write (those of
+    terrain shape default to its terrain input's), the peak memory it will
+    hold and the work it will do, each with how it was estimated."""
+
+    memory_bytes: float = 0.0
+    memory_how: str = ""
+    grids: dict[str, GridInfo] = field(default_factory=dict)  # artifact name -> size
+    work_how: str = ""
+
+
+@dataclass
+class CheckContext:
+    """What a stage's check may use."""
+
+    seed: int
+    project_root: Path
+    inputs: dict[str, GridInfo]  # role -> size of each grid input the plan gives it
+
+    def resolve(self, project_path: str) -> Path:
+        return self.project_root / project_path
 
 
 @dataclass

@@ -15,7 +15,7 @@ import sys
 import time
 from typing import Any
 
-from .bake import KeyedStep, PlannedStep, StepReport, key_step, plan_bake, publish_world, run_step, _progress_printer
+from .bake import check_world, KeyedStep, PlannedStep, StepReport, key_step, plan_bake, publish_world, run_step, _progress_printer
 from .config import WorldConfig
 from .errors import InputError
 from .graph import Graph
@@ -60,8 +60,12 @@ def _client(executor: str):
 
 
 def bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, *, executor: str = "local",
-                log=sys.stderr) -> dict[str, list[StepReport]]:
-    """Bake every config; returns the step reports per world name."""
+                log=sys.stderr, checked: bool = False) -> dict[str, list[StepReport]]:
+    """Bake every config; returns the step reports per world name. Every
+    planned stage's check runs first (unless the caller ran them: checked)."""
+    if not checked:
+        for config in configs:
+            check_world(graph, config)
     store.clean_stale()
     plans = [(config, plan_bake(graph, config)) for config in configs]
     reports: dict[str, list[StepReport]] = {}
