@@ -171,6 +171,17 @@ def memory_limit_bytes() -> tuple[float, str]:
     return 0.8 * total, f"80 % of this machine's {total / 2**30:.1f} GiB"
 
 
+def _origin_of(config: WorldConfig, key: str) -> str:
+    """The file (or --set) a key or the table holding it came from."""
+    parts = key.split(".")
+    for n in range(len(parts), 0, -1):
+        prefix = ".".join(parts[:n])
+        for k, where in config.origin.items():
+            if k == prefix or k.startswith(prefix + "."):
+                return where
+    return str(config.path)
+
+
 def check_world(graph: Graph, config: WorldConfig) -> dict[str, Check]:
     """Every planned stage's check, in plan order, before any work: bad
     values, unreadable files and runs too large for the machine are an
@@ -188,7 +199,7 @@ def check_world(graph: Graph, config: WorldConfig) -> dict[str, Check]:
             try:
                 result = stage.check(params, ctx) or Check()
             except ParamError as e:
-                where = config.origin.get(f"{stage.name}.{e.key.split('.')[0]}", str(config.path))
+                where = _origin_of(config, f"{stage.name}.{e.key}")
                 raise InputError(f"{where}: {stage.name}.{e.key}: {e.message}") from None
         terrain = next((inputs[i.role] for i in stage.inputs if i.role in inputs
                         and graph.producers[ps.inputs[i.role][0]][1].shape == "terrain"), None)
@@ -198,7 +209,7 @@ def check_world(graph: Graph, config: WorldConfig) -> dict[str, Check]:
                 if info is not None:
                     sizes[art.name] = info
         if result.memory_bytes > limit:
-            raise InputError(f"{config.origin.get(stage.name, str(config.path))}: {stage.name}: the run would hold "
+            raise InputError(f"{_origin_of(config, stage.name)}: {stage.name}: the run would hold "
                              f"about {result.memory_bytes / 2**30:.1f} GiB ({result.memory_how}), more than the "
                              f"{limit / 2**30:.1f} GiB a bake may use ({limit_how}); lower the sizes named")
         results[stage.name] = result

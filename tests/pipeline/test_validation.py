@@ -79,3 +79,37 @@ def test_a_utf8_byte_order_mark_is_accepted(project, capsys):
     status = main(["--project", str(project), "plan", str(project / "configs" / "bom.toml")])
     assert status == 0, capsys.readouterr().err
     assert "world bom:" in capsys.readouterr().out
+
+
+BAD_SPECIES = '''extends = "default.toml"
+[plants]
+build = ["grass", "bad"]
+[plants.species.bad]
+preset = "shrub"
+[plants.species.bad.lsystem]
+axiom = "S(1)"
+iterations = 3
+[[plants.species.bad.lsystem.rules]]
+pred = "S(s)"
+succ = "F(s) S(SUCC)"
+'''
+
+
+@pytest.mark.parametrize("succ, pattern", [
+    ("s/(s-1)", r"float division by zero \(with s = 1.0\)"),
+    ("exp(s*1000)", r"math range error"),
+    ("s*1e300*1e300", r"gives inf, not a finite number"),
+    ("s+", r"cannot parse expression 's\+'"),
+    ("q", r"unknown name 'q'"),
+])
+def test_lsystem_rules_are_evaluated_before_work(project, capsys, succ, pattern):
+    bad(project, BAD_SPECIES.replace("SUCC", succ))
+    err = refused(project, capsys)
+    assert re.search(r"bad.toml: plants.species.bad.lsystem: species 'bad', lsystem.rules\[0\] \(S\(s\) -> ", err), err
+    assert re.search(pattern, err), err
+
+
+def test_nan_tropism_is_refused_naming_the_key(project, capsys):
+    bad(project, 'extends = "default.toml"\n[plants.species.shrub]\npreset = "shrub"\n'
+                 '[plants.species.shrub.lsystem]\ntropism_strength = nan\n')
+    assert "plants.species.shrub.lsystem.tropism_strength: must be a finite number" in refused(project, capsys)
