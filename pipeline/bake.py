@@ -199,8 +199,8 @@ def check_world(graph: Graph, config: WorldConfig) -> dict[str, Check]:
             try:
                 result = stage.check(params, ctx) or Check()
             except ParamError as e:
-                where = _origin_of(config, f"{stage.name}.{e.key}")
-                raise InputError(f"{where}: {stage.name}.{e.key}: {e.message}") from None
+                key = f"{stage.name}.{e.key}" if e.key else stage.name
+                raise InputError(f"{_origin_of(config, key)}: {key}: {e.message}") from None
         terrain = next((inputs[i.role] for i in stage.inputs if i.role in inputs
                         and graph.producers[ps.inputs[i.role][0]][1].shape == "terrain"), None)
         for art in stage.outputs:

@@ -189,8 +189,9 @@ def Param(default: Any, *, units: str = "", description: str = "", **constraints
 
 class ParamError(Exception):
     """A stage's check found a bad value: `key` is the param's dotted name
-    inside the stage's table (e.g. "species.oak.lsystem.rules"); the engine
-    names the config file and stage."""
+    inside the stage's table (e.g. "species.oak.lsystem.rules"), or "" when
+    the message names the keys itself; the engine names the config file and
+    the stage."""
 
     def __init__(self, key: str, message: str):
         super().__init__(message)

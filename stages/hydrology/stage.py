@@ -29,7 +29,7 @@ from typing import Any, Literal, Optional
 
 import numpy as np
 
-from pipeline.contract import Artifact, Input, Param, Params, ProjectPath, RunContext, Stage
+from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, ProjectPath, RunContext, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
 from stages.common import TERRAIN_SOURCES
@@ -346,6 +346,24 @@ def _grid(name, file, channels, units, description, nodata_nan=False):
                     nodata_nan=nodata_nan)
 
 
+BYTES_PER_CELL = 160  # about 20 float64/float32 fields: heights, fills, codes, accumulation, lakes, rivers, moisture
+
+
+def check(params: HydrologyParams, ctx: CheckContext) -> Check:
+    """The rain map opened, sized and checked (finite, not negative) now;
+    the memory from the terrain's cells."""
+    if params.rain_map_path is not None:
+        try:
+            rain_from_map(ctx.resolve(params.rain_map_path), 2, 2)
+        except InputError as e:
+            raise ParamError("rain_map_path", str(e).removeprefix("hydrology: ")) from None
+    terrain = ctx.inputs.get("terrain")
+    if terrain is None:
+        return Check()
+    cells = terrain.shape[0] * terrain.shape[1]
+    return Check(memory_bytes=BYTES_PER_CELL * cells, memory_how=f"the terrain's {cells:,} cells x {BYTES_PER_CELL} B")
+
+
 STAGE = Stage(
     name="hydrology",
     version=1,
@@ -381,6 +399,7 @@ STAGE = Stage(
     ),
     params=HydrologyParams,
     run=run,
+    check=check,
     source_dir=Path(__file__).resolve().parent,
     uses_opencl=True,
     shared_params=("mesh_max_vertices",),

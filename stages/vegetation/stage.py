@@ -20,6 +20,7 @@ without overlap, instanced in USD.
 """
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from pipeline import exr
-from pipeline.contract import Artifact, Input, RunContext, Stage
+from pipeline.contract import Artifact, Check, CheckContext, Input, ParamError, RunContext, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
 from stages.common import TERRAIN_SOURCES, prototype_prim
@@ -332,6 +333,39 @@ def _grid(name, file, channels, units, description):
     return Artifact(name, kind="grid", file=file, channels=channels, units=units, description=description)
 
 
+# Memory: about 60 float32/float64 fields a terrain cell (attributes,
+# moisture, splat, grass, canopy, the horizon scan's buffers) and 6 per
+# species (suitability, yield, densities, placed counts); the simulation
+# grid holds about 12 float64 values a simulation cell and 2 per species.
+BYTES_PER_CELL, BYTES_PER_CELL_SPECIES = 320, 48
+BYTES_PER_SIM_CELL, BYTES_PER_SIM_CELL_SPECIES = 96, 16
+MAX_HORIZON_SAMPLES = 256  # samples per direction of the horizon scan (growth 1.3 over 1500 m of 1 m cells: 28)
+
+
+def check(params: VegetationParams, ctx: CheckContext) -> Check:
+    """The horizon scan's samples and the memory of the maps and of the
+    simulation grid, from the terrain's size, before any stage runs."""
+    terrain = ctx.inputs.get("terrain")
+    if terrain is None:
+        return Check()
+    rows, cols = terrain.shape
+    dx = terrain.cell_size_m
+    limit = max(params.horizon_distance_m / dx, 1.0)
+    samples = int(math.log(limit) / math.log(params.horizon_step_growth)) + 1
+    if samples > MAX_HORIZON_SAMPLES:
+        raise ParamError("horizon_step_growth", f"{params.horizon_step_growth:g} takes {samples:,} samples per "
+                         f"direction to reach horizon_distance_m = {params.horizon_distance_m:g} on {dx:g} m cells "
+                         f"(at most {MAX_HORIZON_SAMPLES}); raise it or lower horizon_distance_m")
+    sim = ecosystem.sim_grid(cols, rows, dx, params.sim_cell_m)
+    n = len(params.grow)
+    memory = (rows * cols * (BYTES_PER_CELL + BYTES_PER_CELL_SPECIES * n)
+              + sim.nx * sim.nz * (BYTES_PER_SIM_CELL + BYTES_PER_SIM_CELL_SPECIES * n))
+    return Check(memory_bytes=memory,
+                 memory_how=f"the terrain's {rows * cols:,} cells x ({BYTES_PER_CELL} + {BYTES_PER_CELL_SPECIES} x {n} "
+                 f"species) B + vegetation.sim_cell_m = {params.sim_cell_m:g}: {sim.nx * sim.nz:,} simulation cells x "
+                 f"({BYTES_PER_SIM_CELL} + {BYTES_PER_SIM_CELL_SPECIES} x {n}) B")
+
+
 STAGE = Stage(
     name="vegetation",
     version=1,
@@ -383,6 +417,7 @@ STAGE = Stage(
     ),
     params=VegetationParams,
     run=run,
+    check=check,
     source_dir=Path(__file__).resolve().parent,
     uses_seed=True,
     uses_opencl=True,

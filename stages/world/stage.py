@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import exr, usdio
-from pipeline.contract import Artifact, Input, Param, Params, RunContext, Stage
+from pipeline.contract import Artifact, Check, CheckContext, Input, Param, Params, RunContext, Stage
 from pipeline.grid import Grid
 from stages.common import TERRAIN_SOURCES, plant_asset_prim
 
@@ -177,6 +177,21 @@ def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
     return {"world.root": root_path, "world.terrain": terrain_path, "world.albedo": albedo_path}
 
 
+def check(params: WorldParams, ctx: CheckContext) -> Check:
+    """Memory: the albedo computed at texture resolution (ground_colour
+    holds about 20 float64 values a texel at its peak, with the RGB blends,
+    and maketx copies the result: 256 B a texel) and the terrain mesh
+    (points, normals, uvs, indices: about 80 B a vertex)."""
+    texels = params.texture_size ** 2
+    vertices = params.mesh_max_vertices ** 2
+    terrain = ctx.inputs.get("terrain")
+    if terrain is not None:
+        vertices = min(terrain.shape[0], params.mesh_max_vertices) * min(terrain.shape[1], params.mesh_max_vertices)
+    return Check(memory_bytes=256 * texels + 80 * vertices,
+                 memory_how=f"world.texture_size = {params.texture_size}: {texels:,} texels x 256 B, "
+                 f"+ {vertices:,} vertices x 80 B")
+
+
 STAGE = Stage(
     name="world",
     version=1,
@@ -193,6 +208,7 @@ STAGE = Stage(
     ),
     params=WorldParams,
     run=run,
+    check=check,
     source_dir=Path(__file__).parent,
     shared_params=("mesh_max_vertices",),
 )

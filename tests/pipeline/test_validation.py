@@ -113,3 +113,57 @@ def test_nan_tropism_is_refused_naming_the_key(project, capsys):
     bad(project, 'extends = "default.toml"\n[plants.species.shrub]\npreset = "shrub"\n'
                  '[plants.species.shrub.lsystem]\ntropism_strength = nan\n')
     assert "plants.species.shrub.lsystem.tropism_strength: must be a finite number" in refused(project, capsys)
+
+
+def _raster(path: Path, data) -> None:
+    import numpy as np
+
+    from pipeline import exr
+    from pipeline.grid import Grid
+    exr.write_grid(path, Grid(np.asarray(data, np.float32), 1.0))
+
+
+def test_dem_is_opened_and_checked_at_validation_naming_the_key(project, capsys):
+    import numpy as np
+    dem = np.full((16, 16), 100.0)
+    dem[3, 4] = np.nan
+    _raster(project / "dem.exr", dem)
+    bad(project, 'extends = "default.toml"\n[heightmap]\ngenerator = "dem"\ndem_path = "dem.exr"\n')
+    err = refused(project, capsys)
+    assert re.search(r"bad.toml: heightmap.dem_path: DEM file .*dem.exr contains 1 NaN .* row 3, column 4", err), err
+
+
+def test_a_raster_declaring_too_many_pixels_is_refused_before_reading(project, capsys, monkeypatch):
+    import numpy as np
+
+    from pipeline import dem
+    monkeypatch.setattr(dem, "MAX_PIXELS", 100)  # a 16x16 file stands for a 32768^2 one
+    _raster(project / "dem.exr", np.zeros((16, 16)))
+    bad(project, 'extends = "default.toml"\n[heightmap]\ngenerator = "dem"\ndem_path = "dem.exr"\n')
+    assert re.search(r"heightmap.dem_path: DEM file .* declares 16x16 pixels, more than the 100", refused(project, capsys))
+
+
+@pytest.mark.parametrize("value, pattern", [(-1.0, r"has negative rain"), (float("nan"), r"contains 1 NaN")])
+def test_rain_map_is_checked_at_validation_naming_the_key(project, capsys, value, pattern):
+    import numpy as np
+    rain = np.full((8, 8), 800.0)
+    rain[2, 2] = value
+    _raster(project / "rain.exr", rain)
+    bad(project, 'extends = "default.toml"\n[hydrology]\nrain_map_path = "rain.exr"\n')
+    err = refused(project, capsys)
+    assert re.search(r"bad.toml: hydrology.rain_map_path: rain map .*rain.exr " + pattern, err), err
+
+
+@pytest.mark.parametrize("assignment, pattern", [
+    ("heightmap.resolution=16384", r"the run would hold about [\d.]+ GiB \(the terrain's 268,435,456 cells"),
+    ("world.texture_size=16384", r"--set: world: the run would hold about 64.0 GiB \(world.texture_size = 16384"),
+    ("heightmap.size_m=1000000", r"vegetation: the run would hold about [\d.]+ GiB .*15,625,000,000 simulation cells"),
+    ("vegetation.sim_cell_m=0.01", r"vegetation: the run would hold .*vegetation.sim_cell_m = 0.01"),
+    ("vegetation.horizon_step_growth=1.0001", r"--set: vegetation.horizon_step_growth: 1.0001 takes 52,341 samples"),
+    ("erosion.geological_years=1e9", r"erosion: geological_years = 1e\+09 .* is 1e\+05 steps"),
+    ("erosion.dt_s=100", r"erosion: dt_s = 100 s breaks the CFL limit"),
+])
+def test_runs_too_large_are_refused_with_the_estimate(project, capsys, monkeypatch, assignment, pattern):
+    monkeypatch.setenv("WORLDBAKE_MAX_MEMORY_GB", "16")  # the same answer on any machine
+    err = refused(project, capsys, "--set", assignment, config="configs/default.toml")
+    assert re.search(pattern, err), err
