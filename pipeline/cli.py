@@ -25,7 +25,7 @@ from .errors import InputError, StageError
 from .opencl import OpenCLError
 from .graph import build_graph
 from .registry import all_stages
-from .store import Store
+from .store import Store, StoreBusy
 
 
 def _configs(args) -> list:
@@ -129,7 +129,11 @@ def _cmd_describe(args) -> int:
 
 def _cmd_gc(args) -> int:
     store = Store(Path(args.project) / args.build)
-    removed = store.gc()
+    try:
+        removed = store.gc(wait=not args.no_wait)
+    except StoreBusy as e:
+        print(f"worldbake: gc: {e}; nothing removed (without --no-wait, gc waits for it)", file=sys.stderr)
+        return 1
     for p in removed:
         print(f"removed {p}")
     print(f"{len(removed)} unreferenced artifact folders removed")
@@ -156,7 +160,8 @@ def main(argv: list[str] | None = None) -> int:
                                 "(2 worker processes); tcp://HOST:PORT: a running Dask scheduler")
     p = sub.add_parser("validate", help="run every pxr.UsdValidation validator on a world")
     p.add_argument("path", help="a world folder or USD file")
-    sub.add_parser("gc", help="remove artifacts no world references")
+    p = sub.add_parser("gc", help="remove artifacts no world references (waits for running bakes)")
+    p.add_argument("--no-wait", action="store_true", help="refuse (exit 1) instead of waiting while a bake runs")
     p = sub.add_parser("export", help="a self-contained copy of a baked world: a folder, or a .usdz file")
     p.add_argument("world", help="the world's name (a folder in build/worlds/)")
     p.add_argument("dest", help="a new folder, or a path ending in .usdz")

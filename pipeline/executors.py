@@ -66,6 +66,11 @@ def bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, *, execu
     if not checked:
         for config in configs:
             check_world(graph, config)
+    with store.baking():
+        return _bake_worlds(store, configs, graph, executor, log)
+
+
+def _bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, executor: str, log) -> dict[str, list[StepReport]]:
     store.clean_stale()
     plans = [(config, plan_bake(graph, config)) for config in configs]
     reports: dict[str, list[StepReport]] = {}

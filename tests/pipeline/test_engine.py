@@ -13,7 +13,7 @@ from pipeline.config import load_config
 from pipeline.contract import Artifact, Input, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.graph import GraphError, build_graph
-from pipeline.store import Store
+from pipeline.store import Store, StoreBusy
 
 from . import toy_stages
 from .toy_stages import TOY
@@ -190,6 +190,41 @@ def test_gc_keeps_referenced_artifacts(project):
     assert len(list((store.artifacts / "assemble").iterdir())) == 2
     removed = store.gc()
     assert len(removed) == 1 and len(list((store.artifacts / "assemble").iterdir())) == 1
+
+
+def test_gc_refuses_or_waits_while_a_bake_holds_the_store(project):
+    path = write(project, BASE)
+    do_bake(project, path)
+    do_bake(project, path, sets=["assemble.label=two"])  # the first assemble is now unreferenced
+    store = Store(project / "build")
+    with store.baking():
+        with pytest.raises(StoreBusy):
+            store.gc(wait=False)
+        assert len(list((store.artifacts / "assemble").iterdir())) == 2
+    assert len(store.gc(wait=False)) == 1
+
+
+def test_gc_during_a_bake_leaves_the_bakes_result_intact(project, monkeypatch):
+    """The bake stops in its last stage, when its first stages' artifacts
+    exist but no world names them yet; gc starts then and must wait."""
+    import threading
+
+    running, release = threading.Event(), threading.Event()
+    monkeypatch.setitem(toy_stages.HOOKS, "assemble", lambda: (running.set(), release.wait(60)))
+    path = write(project, BASE)
+    bake = threading.Thread(target=do_bake, args=(project, path))
+    bake.start()
+    assert running.wait(60)
+    removed: list = []
+    gc = threading.Thread(target=lambda: removed.extend(Store(project / "build").gc()))
+    gc.start()
+    release.set()
+    bake.join(60)
+    gc.join(60)
+    assert removed == []
+    store = Store(project / "build")
+    for entry in json.loads((store.worlds / "w" / "manifest.json").read_text())["artifacts"]:
+        assert store.has(entry["stage"], entry["key"])
 
 
 def test_stale_tmp_from_a_dead_run_is_removed(project):

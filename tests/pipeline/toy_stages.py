@@ -12,6 +12,7 @@ from pipeline.grid import Grid
 
 HERE = Path(__file__).parent
 CALLS: list[str] = []  # which stages actually ran, in order
+HOOKS: dict = {}  # stage name -> a function called when it starts (tests of concurrency)
 
 
 class SourceParams(Params):
@@ -58,6 +59,8 @@ class AssembleParams(Params):
 
 def run_assemble(ctx, inputs, params):
     CALLS.append("assemble")
+    if "assemble" in HOOKS:
+        HOOKS["assemble"]()
     stage, _ = usdio.create_stage(ctx.path("assemble.root"), ctx.provenance)
     stage.GetRootLayer().Save()
     return {"assemble.root": ctx.path("assemble.root"),
