@@ -285,7 +285,8 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
     with store.writing(stage.name, ps.key) as work:
         ctx = RunContext(stage=stage, key=ps.key, out_dir=work, seed=config.seed, provenance=provenance,
                          project_root=config.project_root, progress=progress,
-                         final_dir=store.folder(stage.name, ps.key))
+                         final_dir=store.folder(stage.name, ps.key),
+                         input_artifacts={role: art for role, (art, _, _) in ps.inputs.items() if role in inputs})
         t0 = time.perf_counter()
         try:
             outputs = stage.run(ctx, inputs, config.params[stage.name])

@@ -243,6 +243,7 @@ class RunContext:
     progress: Callable[[float, str], None] = field(default=lambda f, m: None)
     metrics: dict[str, Any] = field(default_factory=dict)
     final_dir: Path | None = None  # where out_dir will be renamed to once the run is whole
+    input_artifacts: dict[str, str] = field(default_factory=dict)  # role -> the artifact the plan chose for it
 
     def path(self, artifact_name: str) -> Path:
         """Where an output artifact's file goes."""

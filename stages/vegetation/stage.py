@@ -135,10 +135,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
     a = attrs.compute(h, dx, params, be)
     lap("attributes_s", t0)
     moist = _optional_channel(inputs, "moisture", "moisture", h.shape)
-    source = "hydrology"
-    if moist is None:
-        moist = _optional_channel(inputs, "erosion_moisture", "moisture", h.shape)
-        source = "erosion"
+    source = ctx.input_artifacts.get("moisture", "")  # hydrology's when it runs, else the erosion storm's
     if moist is None:
         moist = attrs.fallback_moisture(h, dx, params.moisture_fallback_radius_m, params.moisture_fallback_scale_m)
         source = "topographic position"
@@ -375,14 +372,13 @@ STAGE = Stage(
     "quadtree tiles",
     inputs=(
         Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height", channels=("height",), units="m"),
-        Input("moisture", one_of=("hydrology.moisture",), optional=True, description="moisture 0..1",
-              channels=("moisture",), units="1"),
+        Input("moisture", one_of=("hydrology.moisture", "erosion.moisture"), optional=True, channels=("moisture",),
+              units="1", description="moisture 0..1: hydrology's, else the erosion storm's, else none (the stage "
+              "derives it from the topographic position)"),
         Input("lakes", one_of=("hydrology.lakes",), optional=True, description="lake depth: nothing grows in lakes",
               channels=("lake.depth",), units="m"),
         Input("rivers", one_of=("hydrology.rivers",), optional=True, description="river mask: nothing grows in rivers",
               channels=("river.mask",), units="1"),
-        Input("erosion_moisture", one_of=("erosion.moisture",), optional=True, channels=("moisture",), units="1",
-              description="moisture from the erosion storm, used when hydrology is off"),
     ),
     outputs=(
         _grid("vegetation.attributes", "attributes.exr", ATTR_CHANNELS, "deg, deg, 1/m, 1, 1, 1",

@@ -29,7 +29,8 @@ def test_contract():
     assert STAGE.uses_seed and STAGE.uses_opencl and "mesh_max_vertices" in STAGE.shared_params
     roles = {i.role: i for i in STAGE.inputs}
     assert roles["terrain"].one_of == ("erosion.height", "heightmap.height") and not roles["terrain"].optional
-    assert all(roles[r].optional for r in ("moisture", "lakes", "rivers", "erosion_moisture"))
+    assert all(roles[r].optional for r in ("moisture", "lakes", "rivers"))
+    assert roles["moisture"].one_of == ("hydrology.moisture", "erosion.moisture")
     s = STAGE.output("vegetation.splat")
     assert s.channels == ("splat.rock", "splat.scree", "splat.grass", "splat.dry_grass", "splat.mud", "splat.snow")
     assert STAGE.output("vegetation.instances").kind == "usd"
