@@ -5,8 +5,7 @@
 // -1 outlet (edge cell), -2 no-data, -3 pit/flat (no strictly lower neighbour).
 // Every result is exact: min/max on floats, integer sums. No atomics.
 
-__constant int DR[8] = {-1, -1, 0, 1, 1, 1, 0, -1};
-__constant int DC[8] = {0, 1, 1, 1, 0, -1, -1, -1};
+#include "worldbake_d8.h"
 
 #ifndef ACC_T
 #define ACC_T uint

@@ -26,10 +26,9 @@ from typing import Callable
 import numpy as np
 
 from pipeline.errors import StageError
+from pipeline.flow.reference import DC, DR
 
 KERNELS = Path(__file__).with_name("stream_power.cl")
-DR = np.array([-1, -1, 0, 1, 1, 1, 0, -1])
-DC = np.array([0, 1, 1, 1, 0, -1, -1, -1])
 NEWTON_TOL = 1e-10
 NEWTON_MAX = 100
 SECONDS_PER_YEAR = 365.25 * 86400.0

@@ -83,11 +83,11 @@ def _erosion_key(root: Path) -> str:
 def test_editing_the_flow_kernels_changes_erosions_key(project_copy):
     kernels = project_copy / "pipeline" / "flow" / "kernels.cl"
     text = kernels.read_text()
+    marker = "#define ACC_T uint"
     before = _erosion_key(project_copy)
     hydrology_before = _hashes(project_copy)["hydrology"]
     try:
-        edited = text.replace("__constant int DR[8] = {-1, -1, 0, 1, 1, 1, 0, -1};",
-                              "__constant int DR[8] = {-1, -1, 0, 1, 1, 1, 0, 1};")
+        edited = text.replace(marker, "#define ACC_T ulong")
         assert edited != text
         kernels.write_text(edited)
         assert _erosion_key(project_copy) != before
@@ -107,6 +107,7 @@ def test_editing_a_shared_header_changes_the_keys_of_the_stages_including_it(pro
         changed = {n for n in STAGES if after[n] != before[n]}
         including = {n for n in STAGES if any('#include "worldbake_hash.h"' in p.read_text()
                                               for p in (project_copy / "stages" / n).glob("*.cl"))}
+        assert including == {"heightmap", "vegetation"}
         assert including and changed == including
     finally:
         header.write_text(text)
@@ -151,4 +152,17 @@ def test_a_code_edit_in_a_stage_changes_only_that_stages_key(project_copy):
         assert {n for n in STAGES if after[n] != before[n]} == {"world"}
     finally:
         path.write_text(text)
+        stage_source_hash.cache_clear()
+
+
+def test_editing_the_d8_header_changes_the_keys_of_the_stages_routing_flow(project_copy):
+    header = project_copy / "pipeline" / "cl" / "worldbake_d8.h"
+    text = header.read_text()
+    before = _hashes(project_copy)
+    try:
+        header.write_text(text.replace("{-1, -1, 0, 1, 1, 1, 0, -1}", "{-1, -1, 0, 1, 1, 1, 0, 1}"))
+        after = _hashes(project_copy)
+        assert {n for n in STAGES if after[n] != before[n]} >= {"erosion", "hydrology"}
+    finally:
+        header.write_text(text)
         stage_source_hash.cache_clear()
