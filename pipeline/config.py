@@ -3,7 +3,7 @@ every key validated before any work.
 
     name = "default"          # world name: build/worlds/<name>/
     seed = 1                  # the world seed, given to stages that declare uses_seed
-    outputs = ["world"]       # stage or artifact names wanted; the planner runs only what they need
+    outputs = ["world"]       # stage or artifact names wanted (default: the stages publishing a root layer)
     extends = "base.toml"     # optional, relative to this file, inside the project
     [heightmap]               # one table per stage: its params (see README)
     octaves = 8
@@ -309,7 +309,8 @@ def load_config(path: Path | str, stages: dict[str, Stage], *, project_root: Pat
     seed = tree.get("seed", 0)
     if not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed < 2**32:
         raise InputError(f"{origin.get('seed', shown)}: seed: must be an integer in 0 .. 2**32-1, got {seed!r}")
-    outputs = tree.get("outputs", ["world"])
+    # by default, the stages that publish a world root layer
+    outputs = tree.get("outputs", sorted({s.name for s in stages.values() for a in s.outputs if a.publish}))
     if not isinstance(outputs, list) or not outputs or not all(isinstance(o, str) for o in outputs):
         raise InputError(f"{origin.get('outputs', shown)}: outputs: must be a non-empty list of stage or artifact names, got {outputs!r}")
 

@@ -166,3 +166,32 @@ def test_editing_the_d8_header_changes_the_keys_of_the_stages_routing_flow(proje
     finally:
         header.write_text(text)
         stage_source_hash.cache_clear()
+
+
+def _docstring_nodes(tree: ast.AST) -> set[int]:
+    ids = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body \
+                and isinstance(node.body[0], ast.Expr) and isinstance(node.body[0].value, ast.Constant):
+            ids.add(id(node.body[0].value))
+    return ids
+
+
+def test_the_engine_names_no_stage():
+    """pipeline/ is stage-agnostic: no string in its code is a stage's name
+    or one of its artifacts' names (examples in docstrings, comments and help
+    texts are words, not dependencies; the keys of the engine's own JSON
+    name the engine's notions)."""
+    # "world" is also the engine's own notion (a baked world: build/worlds/<name>)
+    names = (set(STAGES) - {"world"}) | {a.name for s in STAGES.values() for a in s.outputs}
+    for path in sorted((ROOT / "pipeline").rglob("*.py")):
+        tree = ast.parse(path.read_text())
+        skip = _docstring_nodes(tree)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Dict):
+                skip.update(id(k) for k in node.keys if k is not None)
+            if isinstance(node, ast.Subscript):
+                skip.add(id(node.slice))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in skip:
+                assert node.value not in names, f"{path.relative_to(ROOT)}:{node.lineno} names {node.value!r}"
