@@ -33,16 +33,11 @@ def _env():
 
 
 def _buf(a: np.ndarray, write: bool = False):
-    import pyopencl as cl
+    from pipeline.clhost import Buffers
 
-    env = _env()
-    mf = cl.mem_flags
-    a = np.ascontiguousarray(a)
-    if write:
-        return cl.Buffer(env.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=a)
     # read-only inputs are used in place (no copy on a CPU device); the
     # buffer keeps a reference to the array, which nobody writes meanwhile
-    return cl.Buffer(env.ctx, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=a)
+    return Buffers().arr(a, write=write, in_place=not write)
 
 
 def _ceil(n: int, local: int | None) -> tuple[int, ...]:
