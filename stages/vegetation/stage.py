@@ -107,6 +107,82 @@ def preview(height: Grid, splat: np.ndarray, gdens: np.ndarray, water: np.ndarra
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)
 
 
+HA = 1e4  # m^2 per hectare
+
+
+def _terrain(terrain: Grid) -> tuple[np.ndarray, np.ndarray, float, tuple[float, float]]:
+    """Heights with no-data cells at the lowest height, the no-data mask,
+    the cell size and the origin."""
+    h_raw = terrain.channel(terrain.channels[0]).astype(F)
+    rows, cols = h_raw.shape
+    if rows < 2 or cols < 2:
+        raise InputError(f"vegetation: the terrain grid is {rows}x{cols}; at least 2x2 cells are needed")
+    nodata = ~np.isfinite(h_raw)
+    if nodata.all():
+        raise InputError("vegetation: the terrain has no finite height")
+    h = np.where(nodata, np.float32(np.nanmin(h_raw)), h_raw).astype(F)
+    return h, nodata, float(terrain.cell_size_m), tuple(terrain.origin_m)
+
+
+def _moisture(ctx: RunContext, inputs: dict[str, Any], h: np.ndarray, dx: float,
+              params: VegetationParams) -> tuple[np.ndarray, str]:
+    """Moisture 0..1 and where it came from: the input (hydrology's, else
+    the erosion storm's), else the topographic position."""
+    moist = _optional_channel(inputs, "moisture", "moisture", h.shape)
+    source = ctx.input_artifacts.get("moisture", "")
+    if moist is None:
+        moist = attrs.fallback_moisture(h, dx, params.moisture_fallback_radius_m, params.moisture_fallback_scale_m)
+        source = "topographic position"
+    return np.clip(moist, 0.0, 1.0).astype(F), source
+
+
+def _water(inputs: dict[str, Any], shape: tuple[int, int]) -> np.ndarray:
+    """Where lakes or rivers are (nothing grows there)."""
+    lakes = _optional_channel(inputs, "lakes", "lake.depth", shape)
+    rivers = _optional_channel(inputs, "rivers", "river.mask", shape)
+    water = np.zeros(shape, bool)
+    if lakes is not None:
+        water |= lakes > 0
+    if rivers is not None:
+        water |= rivers > 0.5
+    return water
+
+
+def _species_maps(plants, gname, sets, dom, suit, share, n_t, gsuit, gdens, g) -> Grid | None:
+    """vegetation.species_maps: per plant species suitability, relative
+    yield, target and placed density (plants per ha); for the grass species
+    suitability and tuft density. None when no species grows."""
+    rows, cols = dom.rows, dom.cols
+    per_species_channels, per_species = [], []
+    for s, name in enumerate(plants):
+        counts = np.zeros((rows, cols))
+        if len(sets[name]):
+            np.add.at(counts, dom.world_cell(sets[name].positions), 1.0)
+        per_species += [suit[s], share[s], n_t[s] * HA, counts * HA / (dom.dx * dom.dx)]
+        per_species_channels += [f"suitability.{name}", f"yield.{name}", f"density.{name}", f"placed.{name}"]
+    if gname:
+        per_species += [gsuit, gdens]
+        per_species_channels += [f"suitability.{gname}", f"density.{gname}"]
+    return g(np.stack(per_species, -1), tuple(per_species_channels)) if per_species else None
+
+
+def _species_report(params: VegetationParams, sets, placed, tuft_stats) -> dict[str, dict]:
+    """Per species to grow: its kind, instances, whether placed, and the
+    target and shortfall (plants) or the tuft spacing (grass)."""
+    species_report = {}
+    for name in params.grow:
+        e = params.species[name]
+        n = len(sets[name]) if name in sets else 0
+        rep = {"kind": e.kind, "instances": int(n), "placed": bool(n > 0)}
+        if e.kind == "plant":
+            rep.update(target_instances=round(placed[name].stats.get("target_plants", 0.0), 1),
+                       shortfall=int(placed[name].stats.get("shortfall_plants", 0)))
+        else:
+            rep.update(tuft_spacing_m=tuft_stats.get("tuft_spacing_m"))
+        species_report[name] = rep
+    return species_report
+
+
 def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> dict[str, Any]:
     from pipeline.terrain_mesh import build_terrain_mesh
 
@@ -116,17 +192,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
     def lap(name, t0):
         T[name] = round(time.perf_counter() - t0, 4)
 
-    terrain: Grid = inputs["terrain"]
-    h_raw = terrain.channel(terrain.channels[0]).astype(F)
-    rows, cols = h_raw.shape
-    if rows < 2 or cols < 2:
-        raise InputError(f"vegetation: the terrain grid is {rows}x{cols}; at least 2x2 cells are needed")
-    nodata = ~np.isfinite(h_raw)
-    if nodata.all():
-        raise InputError("vegetation: the terrain has no finite height")
-    h = np.where(nodata, np.float32(np.nanmin(h_raw)), h_raw).astype(F)
-    dx = float(terrain.cell_size_m)
-    origin = tuple(terrain.origin_m)
+    h, nodata, dx, origin = _terrain(inputs["terrain"])
+    rows, cols = h.shape
     be = backend_modules(True)
     seed = int(ctx.seed)
 
@@ -134,19 +201,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
     t0 = time.perf_counter()
     a = attrs.compute(h, dx, params, be)
     lap("attributes_s", t0)
-    moist = _optional_channel(inputs, "moisture", "moisture", h.shape)
-    source = ctx.input_artifacts.get("moisture", "")  # hydrology's when it runs, else the erosion storm's
-    if moist is None:
-        moist = attrs.fallback_moisture(h, dx, params.moisture_fallback_radius_m, params.moisture_fallback_scale_m)
-        source = "topographic position"
-    moist = np.clip(moist, 0.0, 1.0).astype(F)
-    lakes = _optional_channel(inputs, "lakes", "lake.depth", h.shape)
-    rivers = _optional_channel(inputs, "rivers", "river.mask", h.shape)
-    water = np.zeros(h.shape, bool)
-    if lakes is not None:
-        water |= lakes > 0
-    if rivers is not None:
-        water |= rivers > 0.5
+    moist, source = _moisture(ctx, inputs, h, dx, params)
+    water = _water(inputs, h.shape)
     blocked = (water | nodata).astype(np.uint8)
 
     ctx.progress(0.05, "splat weights")
@@ -245,36 +301,16 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
     def g(data, channels):
         return Grid(np.ascontiguousarray(data, dtype=F), dx, channels, origin)
 
-    ha = 1e4
-    per_species_channels, per_species = [], []
-    for s, name in enumerate(plants):
-        counts = np.zeros((rows, cols))
-        if len(sets[name]):
-            np.add.at(counts, dom.world_cell(sets[name].positions), 1.0)
-        per_species += [suit[s], share[s], n_t[s] * ha, counts * ha / (dx * dx)]
-        per_species_channels += [f"suitability.{name}", f"yield.{name}", f"density.{name}", f"placed.{name}"]
-    if gname:
-        per_species += [gsuit, gdens]
-        per_species_channels += [f"suitability.{gname}", f"density.{gname}"]
-    species_maps = g(np.stack(per_species, -1), tuple(per_species_channels)) if per_species else None
-    total_density = n_t.sum(axis=0) * ha if len(plants) else np.zeros((rows, cols))
+    species_maps = _species_maps(plants, gname, sets, dom, suit, share, n_t, gsuit, gdens, g)
+    per_species_channels = list(species_maps.channels) if species_maps is not None else []
+    total_density = n_t.sum(axis=0) * HA if len(plants) else np.zeros((rows, cols))
     lap("maps_s", t0)
 
     # statistics and the species report
     errors_by_species = {}
     for s, name in enumerate(plants):
         errors_by_species[name] = placement.density_error(placed[name].x, placed[name].z, n_t[s], dom)
-    species_report = {}
-    for name in params.grow:
-        e = params.species[name]
-        n = len(sets[name]) if name in sets else 0
-        rep = {"kind": e.kind, "instances": int(n), "placed": bool(n > 0)}
-        if e.kind == "plant":
-            rep.update(target_instances=round(placed[name].stats.get("target_plants", 0.0), 1),
-                       shortfall=int(placed[name].stats.get("shortfall_plants", 0)))
-        else:
-            rep.update(tuft_spacing_m=tuft_stats.get("tuft_spacing_m"))
-        species_report[name] = rep
+    species_report = _species_report(params, sets, placed, tuft_stats)
     placed_names = [n for n in params.grow if species_report[n]["placed"]]
     unplaced = [n for n in params.grow if not species_report[n]["placed"]]
     report = {
