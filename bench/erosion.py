@@ -62,7 +62,8 @@ def _world(n: int, size_m: float = SIZE_M) -> tuple[np.ndarray, float]:
 
 def roofline(sizes: list[int], reps: int, rounds: int = 20) -> list[dict]:
     from stages.erosion import simulate
-    from stages.erosion.device import BYTES_PER_CELL, COPY_KERNELS, DeviceSim
+    from bench.erosion_profile import BYTES_PER_CELL, COPY_KERNELS, profile
+    from stages.erosion.device import DeviceSim
     from stages.erosion.physics import step_constants
     from stages.erosion.stage import ErosionParams, physics_for, plan_for
 
@@ -80,7 +81,7 @@ def roofline(sizes: list[int], reps: int, rounds: int = 20) -> list[dict]:
         sim = DeviceSim(h, ph)
         plan.max_steps = LOOP_STEPS  # the whole loop, water flowing (the kernels are timed on its final state)
         m = simulate.run(sim, ph, plan)
-        prof = sim.profile(step_constants(ph, m["dt_mean_s"]), reps=reps, rounds=rounds)
+        prof = profile(sim, step_constants(ph, m["dt_mean_s"]), reps=reps, rounds=rounds)
         t_step = prof["flux"] + prof["update"]
         copy_gbs = prof["copy_bytes"] / prof["copy"] / 1e9
         bw = per_step * n * n / t_step / 1e9

@@ -1,16 +1,20 @@
 """Keys, planning and running: what `worldbake plan` and `worldbake bake` do.
 
-The cache key of a stage run hashes its name and version, the bytes of its
-own source files, its canonical params, the bytes of the files its params
-name, the keys of its inputs, the seed when it uses one, and the versions of
-the libraries (and the OpenCL device) that change its numbers. Never mtimes.
+The cache key of a stage run hashes its name and version, the normalised
+text of every source file it can load (pipeline.sources), its canonical
+params, the bytes of the files its params name, the content hashes of the
+input artifacts it reads (from their producers' manifests: early cutoff),
+the seed when it uses one, and the versions of the libraries (and the
+OpenCL device) that change its numbers. Never mtimes.
 """
 from __future__ import annotations
 
+import fnmatch
 import functools
 import hashlib
 import json
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -21,26 +25,17 @@ import numpy as np
 
 from . import exr, usdio
 from .config import WorldConfig, canonical_params
-from .contract import Artifact, RunContext, Stage
-from .errors import StageError
+from .contract import Artifact, Check, CheckContext, GridInfo, ParamError, RunContext, Stage
+from .errors import InputError, StageError
 from .graph import Graph, Step, plan
 from .grid import Grid
+from .sources import stage_source_hash
 from .store import MANIFEST, Store, sha256_file, write_json
 
 # Bump when the engine changes how artifacts are written (file formats,
 # provenance layout), so that old keys stop matching.
 ENGINE_FORMAT = 1
 KEY_LENGTH = 20  # hex digits of sha256 kept in folder names (80 bits)
-
-
-@functools.lru_cache(maxsize=None)
-def source_hash(source_dir: Path) -> str:
-    """sha256 over the relative paths and bytes of a stage's .py and .cl files."""
-    h = hashlib.sha256()
-    for path in sorted(p for p in Path(source_dir).rglob("*") if p.suffix in (".py", ".cl") and "__pycache__" not in p.parts):
-        h.update(path.relative_to(source_dir).as_posix().encode() + b"\0")
-        h.update(path.read_bytes() + b"\0")
-    return h.hexdigest()
 
 
 @functools.lru_cache(maxsize=None)
@@ -67,8 +62,30 @@ def library_versions(uses_opencl: bool) -> dict[str, str]:
     return versions
 
 
+def _digest(material: dict) -> str:
+    return hashlib.sha256(json.dumps(material, sort_keys=True, separators=(",", ":")).encode()).hexdigest()[:KEY_LENGTH]
+
+
 @dataclass(frozen=True)
 class PlannedStep:
+    """A step as the config alone defines it, before its inputs exist.
+
+    `recipe` hashes everything of the key but the inputs' content, with the
+    producers' recipes in its place: it names the step while planning (the
+    same recipe needed by two worlds is one task). The key itself is known
+    only once the inputs are made (key_step)."""
+
+    stage: Stage
+    recipe: str
+    inputs: dict[str, tuple[str, str]]  # role -> (artifact name, producer stage)
+    params_json: str
+    material: dict[str, Any]  # the key material without the inputs
+
+
+@dataclass(frozen=True)
+class KeyedStep:
+    """A step whose inputs are made: its cache key and where its inputs are."""
+
     stage: Stage
     key: str
     inputs: dict[str, tuple[str, str, str]]  # role -> (artifact name, producer stage, producer key)
@@ -76,37 +93,134 @@ class PlannedStep:
     key_material: dict[str, Any]
 
 
-def stage_key(step: Step, config: WorldConfig, keys: dict[str, str]) -> PlannedStep:
-    stage = step.stage
-    params_json = canonical_params(config.params[stage.name])
-    inputs = {}
-    for role, art in sorted(step.inputs.items()):
-        producer = art.split(".", 1)[0]
-        inputs[role] = (art, producer, keys[producer])
-    material = {
-        "stage": stage.name,
-        "version": stage.version,
-        "source": source_hash(stage.source_dir),
-        "params": json.loads(params_json),
-        "files": {k: v for k, v in sorted(config.file_hashes.items()) if k.startswith(stage.name + ".")},
-        "inputs": {role: list(v) for role, v in inputs.items()},
-        "seed": config.seed if stage.uses_seed else None,
-        "libraries": library_versions(stage.uses_opencl),
-    }
-    digest = hashlib.sha256(json.dumps(material, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
-    return PlannedStep(stage, digest[:KEY_LENGTH], inputs, params_json, material)
-
-
 def plan_bake(graph: Graph, config: WorldConfig) -> list[PlannedStep]:
     enabled = {name: p.enabled for name, p in config.params.items()}
     steps = plan(graph, enabled, config.outputs, str(config.path))
-    keys: dict[str, str] = {}
+    recipes: dict[str, str] = {}
     planned = []
     for step in steps:
-        ps = stage_key(step, config, keys)
-        keys[step.stage.name] = ps.key
-        planned.append(ps)
+        stage = step.stage
+        params_json = canonical_params(config.params[stage.name])
+        inputs = {role: (art, graph.producers[art][0].name) for role, art in sorted(step.inputs.items())}
+        material = {
+            "stage": stage.name,
+            "version": stage.version,
+            "source": stage_source_hash(stage.source_dir),
+            "params": json.loads(params_json),
+            "files": {k: v for k, v in sorted(config.file_hashes.items()) if k.startswith(stage.name + ".")},
+            "seed": config.seed if stage.uses_seed else None,
+            "libraries": library_versions(stage.uses_opencl),
+        }
+        recipe = _digest({**material, "inputs": {r: [a, recipes[p]] for r, (a, p) in inputs.items()}})
+        recipes[stage.name] = recipe
+        planned.append(PlannedStep(stage, recipe, inputs, params_json, material))
     return planned
+
+
+def grid_content_hash(grid: Grid) -> str:
+    """The values a grid holds, without the file's provenance header (which
+    names the producer's key, so equal pixels would never compare equal)."""
+    h = hashlib.sha256()
+    h.update(json.dumps([list(grid.channels), list(grid.data.shape), grid.data.dtype.str, grid.cell_size_m,
+                         list(grid.origin_m)]).encode())
+    h.update(np.ascontiguousarray(grid.data).tobytes())
+    return h.hexdigest()
+
+
+def artifact_content_hash(manifest: dict, artifact: Artifact, producer: Stage) -> str:
+    """What a consumer of `artifact` reads, as one hash: the content hash the
+    engine recorded when writing it (grids: the values; json: the canonical
+    text), else the file hashes of the producer's manifest: the artifact's
+    file, and for USD layers and textures also the files beside it that no
+    other output names (the layers and images it references)."""
+    if manifest.get("outputs", {}).get(artifact.name, {}).get("absent"):
+        return "absent"
+    recorded = manifest.get("outputs", {}).get(artifact.name, {}).get("content")
+    if recorded:
+        return recorded
+    files = manifest["files"]
+    if artifact.kind in ("usd", "texture"):
+        others = {a.file for a in producer.outputs if a.name != artifact.name} | {MANIFEST}
+        parts = {f: h for f, h in files.items() if f not in others}
+    else:
+        parts = {artifact.file: files[artifact.file]}
+    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()
+
+
+def key_step(ps: PlannedStep, store: Store, graph: Graph, keys: dict[str, str]) -> KeyedStep:
+    """The key of a planned step whose producers have run (keys: stage ->
+    the key it ran or was cached under). Early cutoff: the key hashes the
+    content of the inputs, not the producers' keys, so a producer that re-ran
+    and wrote the same bytes leaves this key as it was."""
+    inputs, content = {}, {}
+    for role, (art, producer) in ps.inputs.items():
+        inputs[role] = (art, producer, keys[producer])
+        producer_stage, artifact = graph.producers[art]
+        content[role] = [art, artifact_content_hash(store.manifest(producer, keys[producer]), artifact, producer_stage)]
+    material = {**ps.material, "inputs": content}
+    return KeyedStep(ps.stage, _digest(material), inputs, ps.params_json, material)
+
+
+# --------------------------------------------------------------------------- checking
+
+
+def memory_limit_bytes() -> tuple[float, str]:
+    """What a bake may hold at once: WORLDBAKE_MAX_MEMORY_GB when set, else
+    80 % of the machine's physical memory (the rest is the system's and the
+    other processes')."""
+    env = os.environ.get("WORLDBAKE_MAX_MEMORY_GB", "").strip()
+    if env:
+        try:
+            return float(env) * 2**30, f"WORLDBAKE_MAX_MEMORY_GB = {env}"
+        except ValueError:
+            raise InputError(f"WORLDBAKE_MAX_MEMORY_GB = {env!r}: must be a number of GiB") from None
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    return 0.8 * total, f"80 % of this machine's {total / 2**30:.1f} GiB"
+
+
+def _origin_of(config: WorldConfig, key: str) -> str:
+    """The file (or --set) a key or the table holding it came from."""
+    parts = key.split(".")
+    for n in range(len(parts), 0, -1):
+        prefix = ".".join(parts[:n])
+        for k, where in config.origin.items():
+            if k == prefix or k.startswith(prefix + "."):
+                return where
+    return str(config.path)
+
+
+def check_world(graph: Graph, config: WorldConfig) -> dict[str, Check]:
+    """Every planned stage's check, in plan order, before any work: bad
+    values, unreadable files and runs too large for the machine are an
+    InputError naming the config file and key."""
+    limit, limit_how = memory_limit_bytes()
+    sizes: dict[str, GridInfo] = {}  # artifact name -> size
+    results = {}
+    for ps in plan_bake(graph, config):
+        stage = ps.stage
+        inputs = {role: sizes[art] for role, (art, _) in ps.inputs.items() if art in sizes}
+        ctx = CheckContext(seed=config.seed, project_root=config.project_root, inputs=inputs)
+        params = config.params[stage.name]
+        result = Check()
+        if stage.check is not None:
+            try:
+                result = stage.check(params, ctx) or Check()
+            except ParamError as e:
+                key = f"{stage.name}.{e.key}" if e.key else stage.name
+                raise InputError(f"{_origin_of(config, key)}: {key}: {e.message}") from None
+        terrain = next((inputs[i.role] for i in stage.inputs if i.role in inputs
+                        and graph.producers[ps.inputs[i.role][0]][1].shape == "terrain"), None)
+        for art in stage.outputs:
+            if art.kind == "grid":
+                info = result.grids.get(art.name) or (terrain if art.shape == "terrain" else None)
+                if info is not None:
+                    sizes[art.name] = info
+        if result.memory_bytes > limit:
+            raise InputError(f"{_origin_of(config, stage.name)}: {stage.name}: the run would hold "
+                             f"about {result.memory_bytes / 2**30:.1f} GiB ({result.memory_how}), more than the "
+                             f"{limit / 2**30:.1f} GiB a bake may use ({limit_how}); lower the sizes named")
+        results[stage.name] = result
+    return results
 
 
 # --------------------------------------------------------------------------- running
@@ -124,8 +238,9 @@ def _load_input(store: Store, artifact: Artifact, producer: str, key: str) -> An
 def _check_grid(stage: Stage, art: Artifact, value: Any, terrain_shape: tuple[int, int] | None) -> Grid:
     if not isinstance(value, Grid):
         raise StageError(f"stage {stage.name}: output {art.name} must be a Grid, got {type(value).__name__}")
-    if tuple(value.channels) != tuple(art.channels):
-        raise StageError(f"stage {stage.name}: output {art.name} has channels {value.channels}, declared {art.channels}")
+    wrong = art.channel_sets(tuple(value.channels))
+    if wrong:
+        raise StageError(f"stage {stage.name}: output {art.name} {wrong}")
     if value.data.dtype != np.dtype(art.dtype):
         raise StageError(f"stage {stage.name}: output {art.name} is {value.data.dtype}, declared {art.dtype}")
     if art.shape == "terrain" and terrain_shape is not None and value.shape != terrain_shape:
@@ -136,6 +251,12 @@ def _check_grid(stage: Stage, art: Artifact, value: Any, terrain_shape: tuple[in
         raise StageError(f"stage {stage.name}: output {art.name} has {int(bad.sum())} non-finite values "
                          f"(first at row {r}, col {c}); not written")
     return value
+
+
+def _declared_file(stage: Stage, name: str) -> bool:
+    """A file in a run's folder that some output declares: its file, or
+    one its `beside` patterns match."""
+    return any(name == a.file or any(fnmatch.fnmatchcase(name, pat) for pat in a.beside) for a in stage.outputs)
 
 
 def _finite_metrics(metrics: dict) -> dict:
@@ -153,7 +274,7 @@ def _finite_metrics(metrics: dict) -> dict:
     return fix(metrics)
 
 
-def run_step(store: Store, ps: PlannedStep, config: WorldConfig, graph: Graph,
+def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
              progress: Callable[[float, str], None]) -> dict:
     """Run one stage into a temporary folder and rename it into place."""
     stage = ps.stage
@@ -161,6 +282,8 @@ def run_step(store: Store, ps: PlannedStep, config: WorldConfig, graph: Graph,
     terrain_shape = None
     for role, (art_name, producer, key) in ps.inputs.items():
         art = graph.producers[art_name][1]
+        if art.optional and store.manifest(producer, key)["outputs"].get(art_name, {}).get("absent"):
+            continue  # the producer wrote nothing for it (its consumers take it as optional)
         inputs[role] = _load_input(store, art, producer, key)
         if art.kind == "grid" and art.shape == "terrain":
             terrain_shape = inputs[role].shape
@@ -169,41 +292,55 @@ def run_step(store: Store, ps: PlannedStep, config: WorldConfig, graph: Graph,
     with store.writing(stage.name, ps.key) as work:
         ctx = RunContext(stage=stage, key=ps.key, out_dir=work, seed=config.seed, provenance=provenance,
                          project_root=config.project_root, progress=progress,
-                         final_dir=store.folder(stage.name, ps.key))
+                         final_dir=store.folder(stage.name, ps.key),
+                         input_artifacts={role: art for role, (art, _, _) in ps.inputs.items() if role in inputs})
         t0 = time.perf_counter()
         try:
             outputs = stage.run(ctx, inputs, config.params[stage.name])
         except FloatingPointError as e:
             raise StageError(f"stage {stage.name}: numerical failure: {e}") from e
         t_run = time.perf_counter() - t0
-        missing = [a.name for a in stage.outputs if a.name not in outputs]
+        missing = [a.name for a in stage.outputs if a.name not in outputs and not a.optional]
         extra = [n for n in outputs if n not in {a.name for a in stage.outputs}]
         if missing or extra:
             raise StageError(f"stage {stage.name}: returned {sorted(outputs)}, declared {[a.name for a in stage.outputs]}")
         t1 = time.perf_counter()
         out_meta = {}
         for art in stage.outputs:
-            value = outputs[art.name]
+            value = outputs.get(art.name)
             target = work / art.file
             meta: dict[str, Any] = {"file": art.file, "kind": art.kind, "units": art.units}
+            if value is None:
+                if not art.optional:
+                    raise StageError(f"stage {stage.name}: output {art.name} is None but not declared optional")
+                out_meta[art.name] = {**meta, "absent": True}
+                continue
             if art.kind == "grid":
                 grid = _check_grid(stage, art, value, terrain_shape)
                 terrain_shape = terrain_shape or (grid.shape if art.shape == "terrain" else None)
-                exr.write_grid(target, grid, provenance)
-                meta.update(channels=list(grid.channels), shape=list(grid.shape), cell_size_m=grid.cell_size_m)
+                units = art.channel_units(tuple(grid.channels))
+                exr.write_grid(target, grid, {**provenance, "units": units})
+                meta.update(channels=list(grid.channels), channel_units=units, shape=list(grid.shape),
+                            cell_size_m=grid.cell_size_m, content=grid_content_hash(grid))
             elif art.kind == "image":
                 exr.write_png(target, value)
             elif art.kind == "json":
                 write_json(target, _finite_metrics(value))
+                meta["content"] = sha256_file(target)
             elif art.kind in ("usd", "texture"):
                 if Path(value).resolve() != target.resolve() or not target.is_file():
                     raise StageError(f"stage {stage.name}: output {art.name} must be written to ctx.path({art.name!r})")
             out_meta[art.name] = meta
         files = {p.relative_to(work).as_posix(): sha256_file(p) for p in sorted(work.rglob("*")) if p.is_file()}
+        undeclared = [f for f in files if not _declared_file(stage, f)]
+        if undeclared:
+            raise StageError(f"stage {stage.name}: wrote files no output declares: {undeclared[:10]} "
+                             f"(declare them as artifacts, or in an artifact's `beside` patterns)")
         manifest = {
             "stage": stage.name, "version": stage.version, "key": ps.key,
             "params": json.loads(ps.params_json), "seed": provenance["seed"],
-            "inputs": {role: {"artifact": a, "stage": s, "key": k} for role, (a, s, k) in ps.inputs.items()},
+            "inputs": {role: {"artifact": a, "stage": s, "key": k, "content": ps.key_material["inputs"][role][1]}
+                       for role, (a, s, k) in ps.inputs.items()},
             "outputs": out_meta, "files": files,
             "timings": {"run_s": round(t_run, 4), "write_s": round(time.perf_counter() - t1, 4)},
             "metrics": _finite_metrics(ctx.metrics),
@@ -216,8 +353,10 @@ def run_step(store: Store, ps: PlannedStep, config: WorldConfig, graph: Graph,
 # --------------------------------------------------------------------------- publishing
 
 
-def publish_world(store: Store, config: WorldConfig, planned: list[PlannedStep]) -> Path:
-    """build/worlds/<name>/: manifest.json naming every artifact key used and,
+def publish_world(store: Store, config: WorldConfig, planned: list[KeyedStep]) -> Path:
+    """build/worlds/<name>/: manifest.json naming every artifact key used
+    (with early cutoff, a cached step may reference the output of an earlier
+    run of its producer: those are named too, so gc keeps them) and,
     when a planned stage publishes a root layer, world.usda composing it by a
     relative path."""
     with store.publishing(config.name) as work:
@@ -234,6 +373,7 @@ def publish_world(store: Store, config: WorldConfig, planned: list[PlannedStep])
             "world": config.name, "config": str(config.path), "variant": config.variant, "seed": config.seed,
             "outputs": list(config.outputs),
             "artifacts": [{"stage": ps.stage.name, "key": ps.key} for ps in planned],
+            "uses": [{"stage": s, "key": k} for s, k in sorted(store.closure({(ps.stage.name, ps.key) for ps in planned}))],
         })
     return store.worlds / config.name
 

@@ -21,24 +21,31 @@ import sys
 from pathlib import Path
 
 from . import usdio
-from .bake import plan_bake
+from .bake import check_world, key_step, plan_bake
 from .executors import bake_worlds
 from .config import list_variants, load_config
 from .errors import DeviceError, InputError, StageError
 from .graph import build_graph
 from .registry import all_stages
-from .store import Store
+from .store import Store, StoreBusy
 
 
 def _configs(args) -> list:
+    """The worlds to bake, after every world of the config file (the base
+    and each variant, baked or not) passed load_config and every planned
+    stage's check: nothing runs before all of them are known good."""
     stages = all_stages()
+    graph = build_graph(stages)
     root = Path(args.project).resolve()
     path = Path(args.config)
-    if args.all_variants:
-        names = [None] + list_variants(path, root)
-    else:
-        names = [args.variant]
-    return [load_config(path, stages, project_root=root, variant=v, sets=args.set) for v in names]
+    every = [None] + list_variants(path, root)
+    if args.variant is not None and args.variant not in every:
+        load_config(path, stages, project_root=root, variant=args.variant, sets=args.set)  # names the problem
+    wanted = every if args.all_variants else [args.variant]
+    configs = {v: load_config(path, stages, project_root=root, variant=v, sets=args.set) for v in every}
+    for config in configs.values():
+        check_world(graph, config)
+    return [configs[v] for v in wanted]
 
 
 def _cmd_plan(args) -> int:
@@ -47,10 +54,19 @@ def _cmd_plan(args) -> int:
     out = []
     for config in _configs(args):
         rows = []
+        keys: dict[str, str] = {}  # stages whose output is in the store now
         for ps in plan_bake(graph, config):
-            status = "cached" if store.has(ps.stage.name, ps.key) else "will run"
-            rows.append({"stage": ps.stage.name, "key": ps.key, "status": status,
-                         "inputs": {r: f"{a}@{k}" for r, (a, _, k) in ps.inputs.items()}})
+            if all(producer in keys for _, producer in ps.inputs.values()):
+                ks = key_step(ps, store, graph, keys)
+                cached = store.has(ps.stage.name, ks.key)
+                if cached:
+                    keys[ps.stage.name] = ks.key
+                rows.append({"stage": ps.stage.name, "key": ks.key, "status": "cached" if cached else "will run",
+                             "inputs": {r: f"{a}@{k}" for r, (a, _, k) in ks.inputs.items()}})
+            else:  # the key hashes what its inputs will hold (early cutoff): known once they are made
+                rows.append({"stage": ps.stage.name, "key": None, "status": "after inputs",
+                             "inputs": {r: f"{a}@?" if p not in keys else f"{a}@{keys[p]}"
+                                        for r, (a, p) in ps.inputs.items()}})
         out.append({"world": config.name, "steps": rows})
     if args.json:
         print(json.dumps(out, indent=2))
@@ -59,7 +75,7 @@ def _cmd_plan(args) -> int:
             print(f"world {world['world']}:")
             for r in world["steps"]:
                 inputs = ", ".join(f"{k} <- {v}" for k, v in r["inputs"].items())
-                print(f"  {r['stage']:<12} {r['key']}  {r['status']:<8}  {inputs}")
+                print(f"  {r['stage']:<12} {r['key'] or '-' * 20}  {r['status']:<12}  {inputs}")
     return 0
 
 
@@ -67,7 +83,7 @@ def _cmd_bake(args) -> int:
     graph = build_graph(all_stages())
     configs = _configs(args)  # every config validated before any work
     store = Store(Path(args.project) / args.build)
-    reports = bake_worlds(store, configs, graph, executor=args.executor)
+    reports = bake_worlds(store, configs, graph, executor=args.executor, checked=True)
     summary = []
     for config in configs:
         world_dir = store.worlds / config.name
@@ -115,7 +131,11 @@ def _cmd_describe(args) -> int:
 
 def _cmd_gc(args) -> int:
     store = Store(Path(args.project) / args.build)
-    removed = store.gc()
+    try:
+        removed = store.gc(wait=not args.no_wait)
+    except StoreBusy as e:
+        print(f"worldbake: gc: {e}; nothing removed (without --no-wait, gc waits for it)", file=sys.stderr)
+        return 1
     for p in removed:
         print(f"removed {p}")
     print(f"{len(removed)} unreferenced artifact folders removed")
@@ -167,7 +187,8 @@ def main(argv: list[str] | None = None) -> int:
                                 "(2 worker processes); tcp://HOST:PORT: a running Dask scheduler")
     p = sub.add_parser("validate", help="run every pxr.UsdValidation validator on a world")
     p.add_argument("path", help="a world folder or USD file")
-    sub.add_parser("gc", help="remove artifacts no world references")
+    p = sub.add_parser("gc", help="remove artifacts no world references (waits for running bakes)")
+    p.add_argument("--no-wait", action="store_true", help="refuse (exit 1) instead of waiting while a bake runs")
     p = sub.add_parser("export", help="a self-contained copy of a baked world: a folder, or a .usdz file")
     p.add_argument("world", help="the world's name (a folder in build/worlds/)")
     p.add_argument("dest", help="a new folder, or a path ending in .usdz")

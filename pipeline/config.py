@@ -3,7 +3,7 @@ every key validated before any work.
 
     name = "default"          # world name: build/worlds/<name>/
     seed = 1                  # the world seed, given to stages that declare uses_seed
-    outputs = ["world"]       # stage or artifact names wanted; the planner runs only what they need
+    outputs = ["world"]       # stage or artifact names wanted (default: the stages publishing a root layer)
     extends = "base.toml"     # optional, relative to this file, inside the project
     [heightmap]               # one table per stage: its params (see README)
     octaves = 8
@@ -18,8 +18,11 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import math
+import re
 import tomllib
 import typing
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,6 +43,41 @@ TOP_LEVEL_KEYS = {
 }
 
 
+# Names that become file or prim names (worlds, variants, species, every
+# key of a table): a safe character set and length. 64 leaves room for
+# "<world>-<variant>" and for USD prim names, which may not start with a digit
+# only in the prim path (the stages prefix where needed).
+SAFE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_-]{0,63}")
+SAFE_NAME_RULE = "1 to 64 letters, digits, - and _ (not starting with -)"
+MAX_DEPTH = 16  # tables nested deeper than this are refused (no config needs more than 4)
+
+
+def check_name(name: Any, where: str, key: str, what: str = "name") -> str:
+    """A name that becomes part of a path: refused unless SAFE_NAME."""
+    if not isinstance(name, str) or not SAFE_NAME.fullmatch(name):
+        shown = repr(name) if len(repr(name)) <= 80 else repr(name)[:77] + "..."
+        raise InputError(f"{where}: {key}: must be {SAFE_NAME_RULE} ({what}), got {shown}")
+    return name
+
+
+def _check_values(tree: Any, origin: dict[str, str], shown: str, prefix: str = "", depth: int = 0) -> None:
+    """Before any schema: tables not too deep, every table key a safe name,
+    every float finite (TOML has nan and inf; no parameter wants them)."""
+    if depth > MAX_DEPTH:
+        raise InputError(f"{origin.get(prefix.rstrip('.'), shown)}: {prefix.rstrip('.')}: tables nested more than "
+                         f"{MAX_DEPTH} deep")
+    items = tree.items() if isinstance(tree, dict) else enumerate(tree) if isinstance(tree, list) else ()
+    for k, v in items:
+        key = f"{prefix}{k}" if isinstance(tree, dict) else f"{prefix.rstrip('.')}[{k}]"
+        where = origin.get(key, origin.get(prefix.rstrip("."), shown))
+        if isinstance(tree, dict):
+            check_name(k, where, key, "a key")
+        if isinstance(v, float) and not math.isfinite(v):
+            raise InputError(f"{where}: {key}: must be a finite number, got {v!r}")
+        if isinstance(v, (dict, list)):
+            _check_values(v, origin, shown, key + ".", depth + 1)
+
+
 @dataclass(frozen=True)
 class WorldConfig:
     path: Path  # the config file given by the user
@@ -50,6 +88,7 @@ class WorldConfig:
     outputs: tuple[str, ...]
     params: dict[str, Params]  # per stage, validated
     file_hashes: dict[str, str]  # "stage.param" -> sha256 of the file a ProjectPath names
+    origin: dict[str, str] = dataclasses.field(default_factory=dict, compare=False)  # key -> the file (or --set) it came from
 
 
 def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -102,14 +141,21 @@ def _read_toml(path: Path, root: Path, seen: tuple[Path, ...], origin: dict[str,
     shown = _display(path, root)
     if path.resolve() in seen:
         raise InputError(f"{shown}: extends forms a cycle: {' -> '.join(_display(p, root) for p in seen + (path,))}")
+    if not _inside(path, root):  # resolved: a symlink to a file outside counts as outside
+        raise InputError(f"{shown}: the config file is outside the project ({root}); copy it in")
     try:
-        raw = tomllib.loads(path.read_text())
+        # utf-8-sig: a byte-order mark some editors write is not part of the TOML
+        raw = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
         raise InputError(f"{shown}: config file not found") from None
+    except IsADirectoryError:
+        raise InputError(f"{shown}: is a folder, not a config file") from None
     except (OSError, UnicodeDecodeError) as e:
         raise InputError(f"{shown}: cannot read: {e}") from None
     except tomllib.TOMLDecodeError as e:
         raise InputError(f"{shown}: not valid TOML: {e}") from None
+    except RecursionError:
+        raise InputError(f"{shown}: not valid TOML: nested too deep") from None
     parent = raw.pop("extends", None)
     if parent is None:
         base: dict = {}
@@ -243,23 +289,28 @@ def load_config(path: Path | str, stages: dict[str, Stage], *, project_root: Pat
         tree = _merge(tree, variants[variant], origin, f"{shown} [variants.{variant}]")
     for assignment in sets:
         key, value = _parse_set(assignment)
+        if key.split(".")[0] in ("extends", "variants"):
+            raise InputError(f"--set {assignment}: {key.split('.')[0]} cannot be set from the command line "
+                             f"(it is read before --set applies); edit the config file")
         _set_dotted(tree, key, value)
         origin[key] = "--set"
+    _check_values(tree, origin, shown)
 
     for key in tree:
         if key not in TOP_LEVEL_KEYS and key not in stages:
             allowed = ", ".join(list(TOP_LEVEL_KEYS) + sorted(stages))
             raise InputError(f"{origin.get(key, shown)}: {key}: unknown key (allowed at the top level: {allowed})")
 
-    name = tree.get("name", path.stem)
-    if not isinstance(name, str) or not name or not all(c.isalnum() or c in "-_" for c in name):
-        raise InputError(f"{origin.get('name', shown)}: name: must be letters, digits, - and _, got {name!r}")
+    name = check_name(tree.get("name", path.stem), origin.get("name", shown), "name", "the world name")
+    for v in variants:
+        check_name(v, shown, f"variants.{v}", "a variant name")
     if variant is not None:
         name = f"{name}-{variant}"
     seed = tree.get("seed", 0)
     if not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed < 2**32:
         raise InputError(f"{origin.get('seed', shown)}: seed: must be an integer in 0 .. 2**32-1, got {seed!r}")
-    outputs = tree.get("outputs", ["world"])
+    # by default, the stages that publish a world root layer
+    outputs = tree.get("outputs", sorted({s.name for s in stages.values() for a in s.outputs if a.publish}))
     if not isinstance(outputs, list) or not outputs or not all(isinstance(o, str) for o in outputs):
         raise InputError(f"{origin.get('outputs', shown)}: outputs: must be a non-empty list of stage or artifact names, got {outputs!r}")
 
@@ -296,8 +347,12 @@ def load_config(path: Path | str, stages: dict[str, Stage], *, project_root: Pat
             listing = ", ".join(f"{name}.{key} = {v!r}" for name, v in values.items())
             raise InputError(f"{shown}: {listing}: these must agree; set it once as shared.{key}")
 
+    if variant is None:
+        # every variant's keys are checked whichever world is baked
+        for other in variants:
+            load_config(path, stages, project_root=root, variant=other, sets=sets)
     return WorldConfig(path=path, project_root=root, name=name, variant=variant, seed=seed,
-                       outputs=tuple(outputs), params=params, file_hashes=file_hashes)
+                       outputs=tuple(outputs), params=params, file_hashes=file_hashes, origin=dict(origin))
 
 
 def canonical_params(model: Params) -> str:

@@ -8,6 +8,7 @@ the models).
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Callable, Literal
@@ -15,6 +16,24 @@ from typing import Annotated, Any, Callable, Literal
 import pydantic
 
 ArtifactKind = Literal["grid", "usd", "texture", "image", "json"]
+
+
+_PLACEHOLDER = re.compile(r"\{([A-Za-z_]+)\}")
+NAME_CHARS = r"[A-Za-z0-9_-]+"  # what a placeholder binds: the safe names of pipeline.config
+
+
+def _placeholder(pattern: str) -> str:
+    found = _PLACEHOLDER.findall(pattern)
+    if len(found) != 1:
+        raise ValueError(f"channel pattern {pattern!r} must hold exactly one {{placeholder}}")
+    return found[0]
+
+
+def _pattern_regex(pattern: str) -> re.Pattern:
+    if "{" not in pattern:
+        return re.compile(re.escape(pattern))
+    head, tail = _PLACEHOLDER.split(pattern, maxsplit=1)[0::2]
+    return re.compile(re.escape(head) + f"({NAME_CHARS})" + re.escape(tail))
 
 
 @dataclass(frozen=True)
@@ -35,12 +54,70 @@ class Artifact:
     kind: ArtifactKind
     file: str  # file name inside the artifact folder, e.g. "height.exr"
     description: str = ""
-    units: str = ""  # units of the values, e.g. "m"
-    channels: tuple[str, ...] = ()  # EXR channel names for grids
+    # units of the values: one for all channels ("m"), or one per channel
+    # pattern, comma-separated ("m^2, m^3/s")
+    units: str = ""
+    # EXR channel names for grids. A name with a {placeholder}
+    # ("density.{species}") declares a channel set: the stage writes one
+    # channel per pattern with that placeholder for each name it binds
+    # (channel_sets checks the written channels against this).
+    channels: tuple[str, ...] = ()
     dtype: str = "float32"
     shape: str = "terrain"  # shape rule: "terrain" = (rows, cols) of the terrain grid, "any"
     publish: bool = False  # a world root layer: the engine publishes it to build/worlds/<name>/
     nodata_nan: bool = False  # grids: NaN marks "no data" here; otherwise any NaN or Inf is a blow-up
+    # usd/texture: glob patterns of the files the stage writes beside `file`
+    # that belong to this artifact (the layers it references, say "*.usdc")
+    beside: tuple[str, ...] = ()
+    # the stage may return None for it (no file is written), e.g. per-species
+    # maps when no species is placed; its consumers must take it as optional
+    optional: bool = False
+
+    def unit_list(self) -> tuple[str, ...]:
+        """The units of each entry of `channels` (one for non-grids)."""
+        parts = tuple(u.strip() for u in self.units.split(",")) if self.units else ("",)
+        n = max(len(self.channels), 1)
+        return parts * n if len(parts) == 1 else parts
+
+    def expand(self, written: tuple[str, ...]) -> dict[str, str]:
+        """The declared channels that `written` binds, each with its unit:
+        the fixed names, and every pattern's set for each name whose set is
+        complete in `written` (a pattern name could fit two sets: the
+        complete one decides)."""
+        written_set = set(written)
+        units = dict(zip(self.channels, self.unit_list()))
+        out = {c: units[c] for c in self.channels if "{" not in c}
+        by_var: dict[str, list[str]] = {}
+        for pat in (c for c in self.channels if "{" in c):
+            by_var.setdefault(_placeholder(pat), []).append(pat)
+        # a name that completes two sets takes the units of the larger (more specific) one: it comes last
+        for var, pats in sorted(by_var.items(), key=lambda item: len(item[1])):
+            bound = {m.group(1) for c in written for p in pats if (m := _pattern_regex(p).fullmatch(c))}
+            for name in sorted(bound):
+                full = {p.replace("{" + var + "}", name): units[p] for p in pats}
+                if full.keys() <= written_set:
+                    out.update(full)
+        return out
+
+    def channel_units(self, written: tuple[str, ...]) -> dict[str, str]:
+        """The unit of each written channel (which must pass channel_sets)."""
+        units = self.expand(written)
+        return {c: units[c] for c in written if c in units}
+
+    def channel_sets(self, written: tuple[str, ...]) -> str | None:
+        """None when `written` is exactly the declared channels: every fixed
+        name once, and for each placeholder every pattern with it for each
+        name bound (a complete set per name); else what is wrong."""
+        if len(set(written)) != len(written):
+            return f"repeats a channel in {list(written)}"
+        declared = self.expand(written)
+        missing = sorted(c for c in self.channels if "{" not in c and c not in written)
+        if missing:
+            return f"misses the declared channels {missing}"
+        extra = sorted(set(written) - declared.keys())
+        if extra:
+            return f"has channels {extra} that are not declared (declared: {list(self.channels)})"
+        return None
 
 
 @dataclass(frozen=True)
@@ -57,6 +134,11 @@ class Input:
     one_of: tuple[str, ...]
     optional: bool = False
     description: str = ""
+    # grids: the channels this stage reads and their units (one for all, or
+    # comma-separated per channel); the graph check holds every producer in
+    # one_of to them
+    channels: tuple[str, ...] = ()
+    units: str = ""
 
 
 @dataclass(frozen=True)
@@ -68,7 +150,7 @@ class Stage:
     outputs: tuple[Artifact, ...]
     params: type[pydantic.BaseModel]
     run: Callable[["RunContext", dict[str, Any], Any], dict[str, Any]]
-    source_dir: Path  # every .py/.cl file in it is part of the cache key
+    source_dir: Path  # stages/<name>: its files and every project module they import are in the key (pipeline.sources)
     uses_seed: bool = False  # the config's seed is part of the key and given in ctx.seed
     uses_opencl: bool = False  # the OpenCL device is part of the key
     # Params that must hold the same value in every stage declaring them (the
@@ -76,6 +158,12 @@ class Stage:
     # same triangles). A config sets them once in [shared]; the engine copies
     # them into each declaring stage and refuses a config where they differ.
     shared_params: tuple[str, ...] = ()
+    # Validation beyond the schema, run for every planned stage before any
+    # stage runs (pipeline.bake.check_world): parse what the params hold,
+    # open the files they name, and estimate the run's memory and work from
+    # the params and the sizes of the input grids. Raises ParamError; returns
+    # a Check. None: the schema is all there is to check.
+    check: Callable[[Any, "CheckContext"], "Check"] | None = None
 
     def output(self, name: str) -> Artifact:
         for a in self.outputs:
@@ -99,6 +187,49 @@ def Param(default: Any, *, units: str = "", description: str = "", **constraints
     return pydantic.Field(default, description=description, json_schema_extra={"units": units}, **constraints)
 
 
+class ParamError(Exception):
+    """A stage's check found a bad value: `key` is the param's dotted name
+    inside the stage's table (e.g. "species.oak.lsystem.rules"), or "" when
+    the message names the keys itself; the engine names the config file and
+    the stage."""
+
+    def __init__(self, key: str, message: str):
+        super().__init__(message)
+        self.key, self.message = key, message
+
+
+@dataclass(frozen=True)
+class GridInfo:
+    """What a check knows of a grid before it exists."""
+
+    shape: tuple[int, int]
+    cell_size_m: float
+
+
+@dataclass(frozen=True)
+class Check:
+    """A stage's answer before it runs: the grids it will write (those of
+    terrain shape default to its terrain input's), the peak memory it will
+    hold and the work it will do, each with how it was estimated."""
+
+    memory_bytes: float = 0.0
+    memory_how: str = ""
+    grids: dict[str, GridInfo] = field(default_factory=dict)  # artifact name -> size
+    work_how: str = ""
+
+
+@dataclass
+class CheckContext:
+    """What a stage's check may use."""
+
+    seed: int
+    project_root: Path
+    inputs: dict[str, GridInfo]  # role -> size of each grid input the plan gives it
+
+    def resolve(self, project_path: str) -> Path:
+        return self.project_root / project_path
+
+
 @dataclass
 class RunContext:
     """What a running stage may use besides its inputs and params."""
@@ -112,6 +243,7 @@ class RunContext:
     progress: Callable[[float, str], None] = field(default=lambda f, m: None)
     metrics: dict[str, Any] = field(default_factory=dict)
     final_dir: Path | None = None  # where out_dir will be renamed to once the run is whole
+    input_artifacts: dict[str, str] = field(default_factory=dict)  # role -> the artifact the plan chose for it
 
     def path(self, artifact_name: str) -> Path:
         """Where an output artifact's file goes."""

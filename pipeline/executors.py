@@ -1,7 +1,9 @@
 """Where stage runs execute: in this process, or on a Dask cluster.
 
-A task is one stage run keyed by its cache key; the same key needed by
-several worlds (variants sharing upstream work) is one task. On Dask, tasks
+A task is one planned step named by its recipe (the config's part of the
+key); the same recipe needed by several worlds (variants sharing upstream
+work) is one task. The task computes its key from its made inputs (early
+cutoff) when its producers are done. On Dask, tasks
 whose inputs are ready run in parallel on the workers, each worker building
 its own OpenCL context; they write into the same store (a shared file system
 for a real cluster), with the same rename-into-place rule, so a Dask bake
@@ -15,24 +17,35 @@ import sys
 import time
 from typing import Any
 
-from .bake import PlannedStep, StepReport, plan_bake, publish_world, run_step, _progress_printer
+from .bake import check_world, KeyedStep, PlannedStep, StepReport, key_step, plan_bake, publish_world, run_step, _progress_printer
 from .config import WorldConfig
 from .errors import InputError
 from .graph import Graph
 from .store import Store
 
 
-def _run_or_reuse(store: Store, ps: PlannedStep, config: WorldConfig, graph: Graph, log) -> StepReport:
-    if store.has(ps.stage.name, ps.key):
-        return StepReport(ps.stage.name, ps.key, "cached", 0.0)
+def _run_or_reuse(store: Store, ps: PlannedStep, config: WorldConfig, graph: Graph, keys: dict[str, str],
+                  log, head: str | None = None) -> StepReport:
+    """Key the step from its made inputs, then reuse a stored run or run it."""
+    ks = key_step(ps, store, graph, keys)
+    cached = store.has(ps.stage.name, ks.key)
+    if head is not None:
+        print(f"{head} {ks.key} {'cached' if cached else 'running'}", file=log, flush=True)
+    if cached:
+        return StepReport(ps.stage.name, ks.key, "cached", 0.0)
     t0 = time.perf_counter()
-    manifest = run_step(store, ps, config, graph, _progress_printer(ps.stage.name, log))
-    return StepReport(ps.stage.name, ps.key, "ran", time.perf_counter() - t0, manifest["metrics"])
+    manifest = run_step(store, ks, config, graph, _progress_printer(ps.stage.name, log))
+    return StepReport(ps.stage.name, ks.key, "ran", time.perf_counter() - t0, manifest["metrics"])
 
 
-def _dask_task(build_dir: str, ps: PlannedStep, config: WorldConfig, graph: Graph, *inputs_done: Any) -> StepReport:
-    # inputs_done only orders this task after its producers
-    return _run_or_reuse(Store(build_dir), ps, config, graph, sys.stderr)
+def _keyed(store: Store, planned: list[PlannedStep], graph: Graph, keys: dict[str, str]) -> list[KeyedStep]:
+    return [key_step(ps, store, graph, keys) for ps in planned]
+
+
+def _dask_task(build_dir: str, ps: PlannedStep, config: WorldConfig, graph: Graph, *inputs_done: StepReport) -> StepReport:
+    # the producers' reports give the keys their runs were stored under
+    keys = {r.stage: r.key for r in inputs_done}
+    return _run_or_reuse(Store(build_dir), ps, config, graph, keys, sys.stderr)
 
 
 def _exit_without_native_teardown() -> None:
@@ -86,8 +99,17 @@ def _client(executor: str):
 
 
 def bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, *, executor: str = "local",
-                log=sys.stderr) -> dict[str, list[StepReport]]:
-    """Bake every config; returns the step reports per world name."""
+                log=sys.stderr, checked: bool = False) -> dict[str, list[StepReport]]:
+    """Bake every config; returns the step reports per world name. Every
+    planned stage's check runs first (unless the caller ran them: checked)."""
+    if not checked:
+        for config in configs:
+            check_world(graph, config)
+    with store.baking():
+        return _bake_worlds(store, configs, graph, executor, log)
+
+
+def _bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, executor: str, log) -> dict[str, list[StepReport]]:
     store.clean_stale()
     plans = [(config, plan_bake(graph, config)) for config in configs]
     reports: dict[str, list[StepReport]] = {}
@@ -95,35 +117,37 @@ def bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, *, execu
         for config, planned in plans:
             print(f"baking world {config.name} from {config.path}", file=log, flush=True)
             done = []
+            keys: dict[str, str] = {}
             for i, ps in enumerate(planned, 1):
-                head = f"[{i}/{len(planned)}] {ps.stage.name} {ps.key}"
-                print(f"{head} {'cached' if store.has(ps.stage.name, ps.key) else 'running'}", file=log, flush=True)
-                report = _run_or_reuse(store, ps, config, graph, log)
+                head = f"[{i}/{len(planned)}] {ps.stage.name}"
+                report = _run_or_reuse(store, ps, config, graph, keys, log, head)
                 if report.status == "ran":
-                    print(f"{head} ran in {report.seconds:.2f} s", file=log, flush=True)
+                    print(f"{head} {report.key} ran in {report.seconds:.2f} s", file=log, flush=True)
+                keys[ps.stage.name] = report.key
                 done.append(report)
-            publish_world(store, config, planned)
+            publish_world(store, config, _keyed(store, planned, graph, keys))
             reports[config.name] = done
         return reports
 
     client, cluster = _client(executor)
     try:
-        futures: dict[tuple[str, str], Any] = {}
+        futures: dict[str, Any] = {}  # recipe -> future of its StepReport
         for config, planned in plans:
+            recipe_of = {ps.stage.name: ps.recipe for ps in planned}
             for ps in planned:
-                task = (ps.stage.name, ps.key)
-                if task in futures:
+                if ps.recipe in futures:
                     continue
-                deps = [futures[(producer, key)] for (_, producer, key) in ps.inputs.values()]
-                futures[task] = client.submit(_dask_task, str(store.build.resolve()), ps, config, graph, *deps,
-                                              key=f"{ps.stage.name}-{ps.key}", pure=False)
+                deps = [futures[recipe_of[producer]] for (_, producer) in ps.inputs.values()]
+                futures[ps.recipe] = client.submit(_dask_task, str(store.build.resolve()), ps, config, graph, *deps,
+                                                   key=f"{ps.stage.name}-{ps.recipe}", pure=False)
         print(f"submitted {len(futures)} stage runs to {client.scheduler.address}", file=log, flush=True)
         results = {task: fut.result() for task, fut in futures.items()}  # re-raises a task's error
-        for task, r in results.items():
+        for r in results.values():
             print(f"{r.stage} {r.key} {r.status}" + (f" in {r.seconds:.2f} s" if r.status == "ran" else ""), file=log)
         for config, planned in plans:
-            publish_world(store, config, planned)
-            reports[config.name] = [results[(ps.stage.name, ps.key)] for ps in planned]
+            reports[config.name] = [results[ps.recipe] for ps in planned]
+            keys = {r.stage: r.key for r in reports[config.name]}
+            publish_world(store, config, _keyed(store, planned, graph, keys))
     finally:
         client.close()
         if cluster is not None:

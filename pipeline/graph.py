@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .contract import Artifact, Stage
+from .contract import Artifact, Input, Stage
 from .errors import InputError
 
 
@@ -34,6 +34,54 @@ def _compatible(consumer_rule: Artifact, produced: Artifact) -> bool:
     return consumer_rule.kind == produced.kind and consumer_rule.dtype == produced.dtype
 
 
+def _check_channel_sets(stage: Stage, art: Artifact) -> None:
+    """Channel names are unique, units are one or one per channel, and no
+    two placeholder sets have the same shape (a written channel set could
+    belong to either: its units would be ambiguous)."""
+    if len(set(art.channels)) != len(art.channels):
+        raise GraphError(f"stage {stage.name}: output {art.name} declares a channel twice")
+    if len(art.unit_list()) != max(len(art.channels), 1):
+        raise GraphError(f"stage {stage.name}: output {art.name} gives {len(art.unit_list())} units for "
+                         f"{len(art.channels)} channels")
+    shapes: dict[frozenset, str] = {}
+    sets: dict[str, set[str]] = {}
+    for pat in art.channels:
+        if "{" in pat:
+            var = pat[pat.index("{") + 1:pat.index("}")]
+            sets.setdefault(var, set()).add(pat.replace("{" + var + "}", "{}"))
+    for var, shape in sets.items():
+        if frozenset(shape) in shapes:
+            raise GraphError(f"stage {stage.name}: output {art.name}: the channel sets {{{shapes[frozenset(shape)]}}} "
+                             f"and {{{var}}} have the same patterns; which one a channel belongs to is ambiguous")
+        shapes[frozenset(shape)] = var
+
+
+def _check_channels(stage: Stage, inp: Input, art: Artifact) -> None:
+    """What the consumer expects to read is what the producer writes: each
+    channel it names is a declared channel (not a pattern) with the units
+    the consumer expects; an optional input's producer may write nothing,
+    a required input's may not."""
+    if art.optional and not inp.optional:
+        raise GraphError(f"stage {stage.name}: input {inp.role} is required, but {art.name} may be absent")
+    if not inp.channels:
+        return
+    if art.kind != "grid":
+        raise GraphError(f"stage {stage.name}: input {inp.role} names channels, but {art.name} is a {art.kind}")
+    produced = dict(zip(art.channels, art.unit_list()))
+    wanted = tuple(u.strip() for u in inp.units.split(",")) if inp.units else ()
+    if len(wanted) == 1:
+        wanted = wanted * len(inp.channels)
+    if wanted and len(wanted) != len(inp.channels):
+        raise GraphError(f"stage {stage.name}: input {inp.role} gives {len(wanted)} units for {len(inp.channels)} channels")
+    for i, ch in enumerate(inp.channels):
+        if ch not in produced:
+            raise GraphError(f"stage {stage.name}: input {inp.role} reads channel {ch!r}, which {art.name} does not "
+                             f"declare (it writes {list(art.channels)})")
+        if wanted and wanted[i] != produced[ch]:
+            raise GraphError(f"stage {stage.name}: input {inp.role} expects {ch!r} in {wanted[i]!r}, "
+                             f"{art.name} writes it in {produced[ch]!r}")
+
+
 def build_graph(stages: dict[str, Stage]) -> Graph:
     producers: dict[str, tuple[Stage, Artifact]] = {}
     for stage in stages.values():
@@ -43,6 +91,8 @@ def build_graph(stages: dict[str, Stage]) -> Graph:
             if art.name in producers:
                 raise GraphError(f"artifact {art.name!r} has two producers: {producers[art.name][0].name} and {stage.name}")
             producers[art.name] = (stage, art)
+            if art.kind == "grid":
+                _check_channel_sets(stage, art)
         files = [a.file for a in stage.outputs]
         if len(set(files)) != len(files):
             raise GraphError(f"stage {stage.name}: two outputs share a file name")
@@ -58,6 +108,7 @@ def build_graph(stages: dict[str, Stage]) -> Graph:
                 if name not in producers:
                     raise GraphError(f"stage {stage.name}: input {inp.role} wants {name!r}, which no stage produces")
                 art = producers[name][1]
+                _check_channels(stage, inp, art)
                 if first is not None and not _compatible(first, art):
                     raise GraphError(f"stage {stage.name}: input {inp.role}: {first.name} and {name} differ in kind or dtype")
                 first = first or art

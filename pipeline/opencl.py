@@ -461,8 +461,13 @@ def load_program(path: Path | str, options: tuple[str, ...] = ()) -> "object":
     `-cl-fp32-correctly-rounded-divide-sqrt` keeps divisions and square roots
     exact so kernels agree with their numpy references; fast-math options are
     never used because they change numbers between devices."""
+    from .sources import CL_INCLUDE_DIR, cl_include_hash
+
     source = Path(path).read_text()
-    opts = BUILD_OPTIONS + tuple(options)
+    # The shared headers' hash is an option too: an edited header must not
+    # be served from this process's cache or PoCL's (keyed on source text
+    # and options).
+    opts = BUILD_OPTIONS + (f"-I{CL_INCLUDE_DIR}", f"-DWORLDBAKE_INCLUDE_HASH=0x{cl_include_hash()[:12]}") + tuple(options)
     return _build(get_cl(), hashlib.sha256(source.encode()).hexdigest(), source, opts)
 
 

@@ -7,14 +7,22 @@
 A folder under artifacts/ exists only once it is complete: runs write into
 build/tmp/ (same file system) and rename, so a killed run leaves nothing in
 artifacts/; `worldbake` removes leftovers of dead runs from build/tmp/.
+
+build/store.lock: a bake holds it shared from its first look at the store
+to the publishing of its worlds (what it made or reuses is named by no world
+until then); gc holds it exclusive, so it waits for running bakes (or, not
+waiting, refuses) and no bake starts while it deletes. flock locks go with
+their process: a killed bake holds nothing.
 """
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import hashlib
 import json
 import os
 import shutil
+import sys
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -43,12 +51,38 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+class StoreBusy(Exception):
+    """gc without waiting while a bake uses the store."""
+
+
 class Store:
     def __init__(self, build_dir: Path | str):
         self.build = Path(build_dir)
         self.artifacts = self.build / "artifacts"
         self.tmp = self.build / "tmp"
         self.worlds = self.build / "worlds"
+        self.lock_path = self.build / "store.lock"
+
+    @contextlib.contextmanager
+    def _locked(self, mode: int, wait: bool, waiting_message: str | None = None) -> Iterator[None]:
+        self.build.mkdir(parents=True, exist_ok=True)
+        with open(self.lock_path, "a+") as f:
+            try:
+                fcntl.flock(f, mode | fcntl.LOCK_NB)
+            except BlockingIOError:
+                if not wait:
+                    raise StoreBusy(f"{self.build}: a bake is using this build folder") from None
+                if waiting_message:
+                    print(waiting_message, file=sys.stderr, flush=True)
+                fcntl.flock(f, mode)
+            try:
+                yield
+            finally:
+                fcntl.flock(f, fcntl.LOCK_UN)
+
+    def baking(self) -> contextlib.AbstractContextManager:
+        """Held by a bake: many bakes at once, but no gc meanwhile."""
+        return self._locked(fcntl.LOCK_SH, True, f"worldbake: waiting for gc in {self.build} to finish")
 
     def folder(self, stage: str, key: str) -> Path:
         return self.artifacts / stage / key
@@ -114,8 +148,24 @@ class Store:
             shutil.rmtree(work, ignore_errors=True)
             shutil.rmtree(old, ignore_errors=True)
 
+    def closure(self, keys: set[tuple[str, str]]) -> set[tuple[str, str]]:
+        """`keys` and every (stage, key) their manifests name as an input,
+        transitively: a run cached by early cutoff may reference (by a USD
+        asset path) the folder of an earlier run of its producer."""
+        todo, seen = list(keys), set()
+        while todo:
+            entry = todo.pop()
+            if entry in seen:
+                continue
+            seen.add(entry)
+            if self.has(*entry):
+                for inp in self.manifest(*entry).get("inputs", {}).values():
+                    todo.append((inp["stage"], inp["key"]))
+        return seen
+
     def referenced_keys(self) -> set[tuple[str, str]]:
-        """(stage, key) pairs named by some world manifest."""
+        """(stage, key) pairs some world uses: named by its manifest, or
+        reached from those through the artifacts' inputs."""
         refs = set()
         if not self.worlds.is_dir():
             return refs
@@ -124,10 +174,17 @@ class Store:
             if m.is_file():
                 for entry in json.loads(m.read_text()).get("artifacts", []):
                     refs.add((entry["stage"], entry["key"]))
-        return refs
+        return self.closure(refs)
 
-    def gc(self) -> list[Path]:
-        """Remove every artifact folder that no world references."""
+    def gc(self, wait: bool = True) -> list[Path]:
+        """Remove every artifact folder that no world references, once no
+        bake uses the store (wait: until then; else StoreBusy)."""
+        if not self.build.is_dir():
+            return []
+        with self._locked(fcntl.LOCK_EX, wait, f"worldbake: gc waits for the bakes using {self.build}"):
+            return self._gc()
+
+    def _gc(self) -> list[Path]:
         keep = self.referenced_keys()
         removed = []
         if not self.artifacts.is_dir():
@@ -165,9 +222,9 @@ class Store:
         shutil.rmtree(work, ignore_errors=True)
         try:
             shutil.copytree(src, work / "worlds" / world)
-            for entry in json.loads((src / MANIFEST).read_text())["artifacts"]:
-                shutil.copytree(self.folder(entry["stage"], entry["key"]),
-                                work / "artifacts" / entry["stage"] / entry["key"])
+            named = {(e["stage"], e["key"]) for e in json.loads((src / MANIFEST).read_text())["artifacts"]}
+            for stage, key in sorted(self.closure(named)):
+                shutil.copytree(self.folder(stage, key), work / "artifacts" / stage / key)
             os.rename(work, dest)
         finally:
             shutil.rmtree(work, ignore_errors=True)

@@ -14,10 +14,8 @@ from .physics import G, THERMAL_C, Physics, StepConstants, talus_thresholds
 from .state import Diag
 
 KERNELS = Path(__file__).parent / "kernels.cl"
-# the roofline copies of `profile`: plain float4, 8 float16 per work-item, streaming stores
-COPY_KERNELS = ("copy4", "copy16x8", "copy16_stream")
 KERNEL_NAMES = ("flux", "update", "boundary_out", "halo", "thermal_send", "thermal_apply", "diag_rows",
-                "velocity") + COPY_KERNELS
+                "velocity")
 X0 = 16  # padded column of cell column 0 (the west halo at X0 - 1): rows of cells start on 64 bytes
 ALIGN = 16  # the pitch is a multiple of this many floats (64 bytes)
 VW_THERMAL = 8  # cells per work-item of the talus rule (float8: fastest measured on PoCL/AVX-512)
@@ -41,11 +39,6 @@ def storm_tile(device) -> tuple[int, int]:
 
     return (16, 128) if device.type & cl.device_type.CPU else (1, 1)
 
-# bytes each kernel must move per cell (compulsory traffic: every array read and written once)
-BYTES_PER_CELL = {"flux": 4 * (3 + 4 + 4), "update": 4 * (4 + 4 + 2 + 5), "thermal": 4 * (3 + 2) + 4 * (5 + 1)}
-# distinct arrays one storm step (flux + update) touches: Tb, dT, W, S, QE, QS, QW, QN, M, EA
-# and the new dT, W, S; the roofline copy's buffers add up to as many padded arrays
-WORKING_SET_ARRAYS = 13
 
 
 def program(boundary_code: int, vw: int, nv: int = 1, avx512: bool = False, nr: int = 1):
@@ -233,78 +226,4 @@ class DeviceSim:
         self.k["velocity"](self.queue, self.gsize1, (16, 1), *self.Q, self.W[self.cw], VX, VZ, self.R, self.C, self.P)
         out["vx"], out["vz"] = self._read(VX), self._read(VZ)
         out["F"] = np.stack([self._read(q) for q in self.Q], axis=-1)
-        return out
-
-    # -- measurement (bench) ---------------------------------------------------
-    def profile(self, k: StepConstants, reps: int = 10, rounds: int = 5) -> dict[str, float | list[float] | str]:
-        """Seconds per launch of each per-step kernel, and of the roofline copy
-        kernel, measured back to back in interleaved rounds (a load spike from
-        another process hits all of them alike); each entry is the best round,
-        and `rounds_<name>` holds every round. Runs on scratch copies of the
-        state: the simulation is not advanced.
-
-        The copy of each round is the fastest of three copy kernels (plain
-        float4, 8 float16 per work-item, streaming stores; `copy_kernel` names
-        the best). It reads one buffer and writes another whose sizes add up to the
-        step's working set (WORKING_SET_ARRAYS padded arrays), so the copy runs
-        from the same level of the memory hierarchy as flux + update (both from
-        the 32 MB L3 at 512^2, both from DRAM at 1024^2 and above). Its source
-        is written first, so its reads are real memory (never-written pages all
-        map to one zero page and would read from cache). Each
-        timed block of `reps` launches follows one untimed launch of the same
-        kernel, so every kernel, the copies included, starts its block with its
-        own arrays where its timed launches will find them (at 512^2 in the
-        L3, which the kernel timed before would otherwise have partly evicted)."""
-        import time
-
-        import pyopencl as cl
-
-        q = self.queue
-        R, C, P = self.R, self.C, self.P
-        d, w = self.cd, self.cw
-        ctx = self.cl.ctx
-        mf = cl.mem_flags
-        scratch = [cl.Buffer(ctx, mf.READ_WRITE, 4 * self.npad) for _ in range(3)]
-        for b in scratch:
-            cl.enqueue_fill_buffer(q, b, np.float32(0), 0, 4 * self.npad)
-        # float4 per buffer: the two together hold the working set (a whole number of 8-float16 blocks)
-        n4 = WORKING_SET_ARRAYS * self.npad // 8 // 32 * 32
-        ca = cl.Buffer(ctx, mf.READ_WRITE, 16 * n4)
-        cb = cl.Buffer(ctx, mf.READ_WRITE, 16 * n4)
-        cl.enqueue_fill_buffer(q, ca, np.float32(1), 0, 16 * n4)
-        cl.enqueue_fill_buffer(q, cb, np.float32(0), 0, 16 * n4)
-        Qs = [cl.Buffer(ctx, mf.READ_WRITE, 4 * self.npad) for _ in range(4)]
-        for src, dst in zip(self.Q, Qs):
-            cl.enqueue_copy(q, dst, src)
-        M2 = cl.Buffer(ctx, mf.READ_WRITE, 4 * self.npad)
-        EA2 = cl.Buffer(ctx, mf.READ_WRITE, 4 * self.npad)
-        cl.enqueue_copy(q, M2, self.M)
-        cl.enqueue_copy(q, EA2, self.EA)
-        launches = {
-            "copy4": lambda: self.k["copy4"](q, (n4,), (256,) if n4 % 256 == 0 else None, ca, cb, np.int32(n4)),
-            "copy16x8": lambda: self.k["copy16x8"](q, (n4 // 32,), None, ca, cb),
-            "copy16_stream": lambda: self.k["copy16_stream"](q, (n4 // 4,), None, ca, cb),
-            "flux": lambda: self._flux(k, Qs, scratch[0], want_wave=False),
-            "update": lambda: self._update(k, Qs, M2, EA2, *scratch),
-            "thermal_send": lambda: self._run("thermal_send", self.Tb, self.dT[d], self.W[w], scratch[0], scratch[1],
-                                              R, C, P, self.t_ax, self.t_dg, np.float32(THERMAL_C), np.float32(-1)),
-            "thermal_apply": lambda: self._run("thermal_apply", self.Tb, self.dT[d], self.W[w], scratch[0], scratch[1],
-                                               scratch[2], R, C, P, self.t_ax, self.t_dg, np.float32(-1)),
-        }
-        times: dict[str, list[float]] = {name: [] for name in launches}
-        for _ in range(rounds):  # rounds of `reps` launches each, interleaved
-            for name, f in launches.items():
-                f()  # one launch outside the clock (first touch; its arrays are where the timed ones find them)
-                q.finish()
-                t = time.perf_counter()
-                for _ in range(reps):
-                    f()
-                q.finish()
-                times[name].append((time.perf_counter() - t) / reps)
-        # the roofline copy of each round: the fastest of the three (they differ by memory level)
-        times["copy"] = [min(times[c][r] for c in COPY_KERNELS) for r in range(rounds)]
-        out: dict[str, float | list[float] | str] = {name: min(v) for name, v in times.items()}
-        out.update({f"rounds_{name}": v for name, v in times.items()})
-        out["copy_bytes"] = 32.0 * n4
-        out["copy_kernel"] = min(COPY_KERNELS, key=lambda c: out[c])
         return out

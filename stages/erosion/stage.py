@@ -17,7 +17,7 @@ from typing import Any, Literal, Optional
 
 import numpy as np
 
-from pipeline.contract import Artifact, Input, Param, Params, RunContext, Stage
+from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, RunContext, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
 from pipeline.preview import hillshade
@@ -280,13 +280,34 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[
     return outputs
 
 
+BYTES_PER_CELL_STORM = 200  # the device state (about 30 float32 fields, double-buffered) and the host copies
+BYTES_PER_CELL_GEOLOGY = 96  # the stream-power solve's float64 fields and the flow routing's
+
+
+def check(params: ErosionParams, ctx: CheckContext) -> Check:
+    """The run plan on the input's cell size (step counts within their
+    limits) and the memory from its cells, before any stage runs."""
+    height = ctx.inputs.get("height")
+    if height is None:
+        return Check()
+    dx = height.cell_size_m
+    try:
+        plan_for(params, dx, physics_for(params, dx))
+    except InputError as e:
+        raise ParamError("", str(e).removeprefix("erosion: ")) from None
+    cells = height.shape[0] * height.shape[1]
+    per_cell = BYTES_PER_CELL_STORM + (BYTES_PER_CELL_GEOLOGY if params.geological_years > 0 else 0)
+    return Check(memory_bytes=per_cell * cells, memory_how=f"the terrain's {cells:,} cells x {per_cell} B")
+
+
 STAGE = Stage(
     name="erosion",
     version=1,
     description="Optional geological time (stream-power incision with uplift, implicit Braun-Willett scheme), "
     "thermal weathering (talus angle, Olsen's rule) and hydraulic erosion on the virtual-pipe "
     "shallow-water model with mass-conserving sediment transport, on the OpenCL device",
-    inputs=(Input("height", one_of=("heightmap.height",), description="the terrain to erode"),),
+    inputs=(Input("height", one_of=("heightmap.height",), description="the terrain to erode", channels=("height",),
+                  units="m"),),
     outputs=(
         Artifact("erosion.height", kind="grid", file="height.exr", channels=("height",), units="m",
                  description="eroded terrain height, float32, one value per cell"),
@@ -306,6 +327,7 @@ STAGE = Stage(
     ),
     params=ErosionParams,
     run=run,
+    check=check,
     source_dir=Path(__file__).resolve().parent,
     uses_seed=False,
     uses_opencl=True,

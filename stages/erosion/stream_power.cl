@@ -12,13 +12,12 @@
 // delta = (h_i - h_r') / (1 + F). A cell not above its receiver's new
 // height (inside a depression) is not eroded (fastscapelib's rule).
 //
-// Codes: D8 codes 0..7 (N, NE, E, SE, S, SW, W, NW, as the hydrology stage);
+// Codes: D8 codes 0..7 (N, NE, E, SE, S, SW, W, NW: worldbake_d8.h);
 // any negative code is base level (map edge, no-data, pit): height fixed.
 
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 
-__constant int SP_DR[8] = {-1, -1, 0, 1, 1, 1, 0, -1};
-__constant int SP_DC[8] = {0, 1, 1, 1, 0, -1, -1, -1};
+#include "worldbake_d8.h"
 
 #define NEWTON_TOL 1e-10
 #define NEWTON_MAX 100
@@ -34,7 +33,7 @@ __kernel void stream_power_step(__global double* h, __global const char* code, _
     for (int i = 0; i < n; ++i) ndon[i] = 0;
     for (int i = 0; i < n; ++i) {
         char k = code[i];
-        if (k >= 0) ndon[i + SP_DR[(int)k] * cols + SP_DC[(int)k]]++;
+        if (k >= 0) ndon[i + DR[(int)k] * cols + DC[(int)k]]++;
     }
     int acc = 0;
     for (int i = 0; i < n; ++i) {
@@ -45,7 +44,7 @@ __kernel void stream_power_step(__global double* h, __global const char* code, _
     for (int i = 0; i < n; ++i) {
         char k = code[i];
         if (k < 0) continue;
-        int r = i + SP_DR[(int)k] * cols + SP_DC[(int)k];
+        int r = i + DR[(int)k] * cols + DC[(int)k];
         donors[first[r] + ndon[r]++] = i;
     }
     // stack order: base-level cells in index order, then breadth first up the tree
@@ -62,7 +61,7 @@ __kernel void stream_power_step(__global double* h, __global const char* code, _
         int i = order[q];
         char k = code[i];
         if (k < 0) continue;
-        int r = i + SP_DR[(int)k] * cols + SP_DC[(int)k];
+        int r = i + DR[(int)k] * cols + DC[(int)k];
         double hr = h[r];
         double d0 = h[i] - hr;
         if (d0 <= 0.0) continue;  // in a depression: not eroded

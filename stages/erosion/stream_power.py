@@ -26,10 +26,9 @@ from typing import Callable
 import numpy as np
 
 from pipeline.errors import StageError
+from pipeline.flow.reference import DC, DR
 
 KERNELS = Path(__file__).with_name("stream_power.cl")
-DR = np.array([-1, -1, 0, 1, 1, 1, 0, -1])
-DC = np.array([0, 1, 1, 1, 0, -1, -1, -1])
 NEWTON_TOL = 1e-10
 NEWTON_MAX = 100
 SECONDS_PER_YEAR = 365.25 * 86400.0
@@ -161,8 +160,8 @@ def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, 
         step_fn: Callable | None = None) -> StreamPowerResult:
     """Erode `height` (m, finite) for `years`; k in m^(1-2m)/year, uplift in
     m/year. step_fn replaces the device solve (tests pass reference_step)."""
-    from stages.hydrology import device as flow
-    from stages.hydrology import reference as flowref
+    from pipeline.flow import device as flow
+    from pipeline.flow import reference as flowref
 
     h = np.asarray(height, np.float64).copy()
     if not np.isfinite(h).all():

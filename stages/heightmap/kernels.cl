@@ -99,16 +99,8 @@ typedef CAT(uint, VW) uintv;
 #define HX 0x8da6b343u
 #define HZ 0xd8163841u
 
-/* lowbias32 (Chris Wellons): a full-avalanche 32-bit mixer */
-INLINE uintv mix32(uintv h)
-{
-    h ^= h >> 16;
-    h *= 0x7feb352du;
-    h ^= h >> 15;
-    h *= 0x846ca68bu;
-    h ^= h >> 16;
-    return h;
-}
+#define HASH_UINT uintv
+#include "worldbake_hash.h"
 
 /* dot(g, (fx, fz)) with g one of 16 unit vectors picked by 4 hash bits:
  * bit 3 picks the 11.25 or 33.75 degree pair, bit 2 swaps x and z (78.75,

@@ -8,22 +8,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.hashing import mix32
+
 from .noise import TerrainSpec
 
 F = np.float32
 GA1, GB1, GA2, GB2 = F(0.98078528), F(0.19509032), F(0.83146961), F(0.55557023)
 NOISE_SCALE = F(1.41421356)
 HX, HZ = np.uint32(0x8DA6B343), np.uint32(0xD8163841)
-
-
-def mix32(h: np.ndarray) -> np.ndarray:
-    """lowbias32 on uint32 arrays (wrapping multiplication)."""
-    h = h ^ (h >> np.uint32(16))
-    h = h * np.uint32(0x7FEB352D)
-    h = h ^ (h >> np.uint32(15))
-    h = h * np.uint32(0x846CA68B)
-    h = h ^ (h >> np.uint32(16))
-    return h
 
 
 def grad(h: np.ndarray, fx: np.ndarray, fz: np.ndarray) -> np.ndarray:

@@ -16,12 +16,14 @@ from typing import Any, Literal, Optional
 import numpy as np
 import pydantic
 
-from pipeline.contract import Artifact, Param, Params, ProjectPath, RunContext, Stage
-from pipeline.errors import StageError
+from pipeline.contract import Artifact, Check, CheckContext, GridInfo, Param, ParamError, Params, ProjectPath, RunContext, Stage
+from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
 from pipeline.preview import hillshade
 
-from . import dem, noise
+from pipeline import dem
+
+from . import noise
 
 
 class HeightmapParams(Params):
@@ -201,6 +203,27 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HeightmapParams) -> dic
     return {"heightmap.height": grid, "heightmap.hillshade": shade}
 
 
+BYTES_PER_CELL = 48  # float32 height, float64 DEM resampling rows, hillshade RGB, the device band, the EXR write
+
+
+def check(params: HeightmapParams, ctx: CheckContext) -> Check:
+    """The grid it will write; an imported DEM opened, sized and checked for
+    finite values now, so a bad file is named before any stage runs."""
+    res = params.resolution
+    cols, rows = (params.window[2], params.window[3]) if params.window else (res, res)
+    memory = BYTES_PER_CELL * rows * cols
+    how = f"heightmap.resolution = {res}: {rows} x {cols} cells x {BYTES_PER_CELL} B"
+    if params.generator == "dem":
+        try:
+            src = dem.read_dem(ctx.resolve(params.dem_path), params.dem_min_m, params.dem_max_m)
+        except InputError as e:
+            raise ParamError("dem_path", str(e)) from None
+        memory += 16 * src.size
+        how += f" + the DEM's {src.shape[1]} x {src.shape[0]} pixels x 16 B"
+    return Check(memory_bytes=memory, memory_how=how,
+                 grids={"heightmap.height": GridInfo((rows, cols), params.size_m / res)})
+
+
 STAGE = Stage(
     name="heightmap",
     version=1,
@@ -219,6 +242,7 @@ STAGE = Stage(
     ),
     params=HeightmapParams,
     run=run,
+    check=check,
     source_dir=Path(__file__).resolve().parent,
     uses_seed=True,
     uses_opencl=True,

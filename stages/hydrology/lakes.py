@@ -28,7 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import reference as ref
+from pipeline.flow import reference as ref
+from pipeline.flow.reference import MergeTree, merge_tree_reference  # noqa: F401 (the lakes' names)
 
 
 @dataclass
@@ -50,95 +51,6 @@ def terminals(rcv: np.ndarray) -> np.ndarray:
         if np.array_equal(nt, t):
             return t
         t = nt
-
-
-@dataclass
-class MergeTree:
-    """The depression merge tree: nodes in creation order (children before
-    parents); leaves are pits, an inner node is born at a saddle."""
-    parent: np.ndarray  # int64, -1 at roots
-    child_a: np.ndarray  # int64, -1 at leaves (the child with the smaller id)
-    child_b: np.ndarray
-    birth: np.ndarray  # float64 height at which the node is born
-    entry_a: np.ndarray  # int64 node where spill water from b enters a's side (-1 at leaves)
-    entry_b: np.ndarray  # int64 node where spill water from a enters b's side
-    cell_node: np.ndarray  # int64 per cell: the node it joined, -1 outside depressions
-
-
-def merge_tree_reference(cells: np.ndarray, h: np.ndarray, term: np.ndarray, cols: int) -> MergeTree:
-    """The union-find sweep in pure Python: cells (depression cells, interior
-    only) in increasing (height, index); a cell joins the components of its
-    already swept 8-neighbours, merging them pairwise in node order at its
-    height; spill water between two merged basins enters each at the node of
-    the pit that the lowest neighbour of the saddle cell drains to (term)."""
-    hl = np.asarray(h, np.float64).ravel().tolist()
-    n = len(hl)
-    uf = {}
-    comp_node = {}
-    parent_n, child_a, child_b, birth, entry_a, entry_b = [], [], [], [], [], []
-    cell_node_l = {}
-
-    def find(x):
-        root = x
-        while uf[root] != root:
-            root = uf[root]
-        while uf[x] != root:
-            uf[x], x = root, uf[x]
-        return root
-
-    def new_node(a, b, lev, ea, eb):
-        parent_n.append(-1)
-        child_a.append(a)
-        child_b.append(b)
-        birth.append(lev)
-        entry_a.append(ea)
-        entry_b.append(eb)
-        return len(parent_n) - 1
-
-    offs = [(int(dr), int(dc)) for dr, dc in zip(ref.DR, ref.DC)]
-    for c in cells.tolist():
-        r, cc = divmod(c, cols)
-        hc = hl[c]
-        roots = []
-        low = {}  # per neighbouring component: its lowest neighbour of c (entry for spill water)
-        for dr, dc in offs:
-            nb = (r + dr) * cols + cc + dc
-            if nb in uf:
-                k = find(nb)
-                if k not in low:
-                    roots.append(k)
-                    low[k] = nb
-                elif (hl[nb], nb) < (hl[low[k]], low[k]):
-                    low[k] = nb
-        uf[c] = c
-        if not roots:
-            node = new_node(-1, -1, hc, -1, -1)
-        else:
-            roots.sort(key=lambda k: comp_node[k])
-            k0 = roots[0]
-            node = comp_node[k0]
-            for k in roots[1:]:
-                other = comp_node[k]
-                ea = cell_node_l[int(term[low[k0]])]
-                eb = cell_node_l[int(term[low[k]])]
-                p = new_node(node, other, hc, ea, eb)
-                parent_n[node] = p
-                parent_n[other] = p
-                node = p
-            for k in roots:
-                uf[k] = c
-            uf[c] = c
-        comp_node[find(c)] = node
-        cell_node_l[c] = node
-    cell_node = np.full(n, -1, np.int64)
-    if cell_node_l:
-        cell_node[np.fromiter(cell_node_l.keys(), np.int64, len(cell_node_l))] = np.fromiter(
-            cell_node_l.values(), np.int64, len(cell_node_l))
-    def i64(x):
-        return np.array(x, np.int64)
-
-    return MergeTree(i64(parent_n), i64(child_a), i64(child_b), np.array(birth, np.float64), i64(entry_a),
-                     i64(entry_b), cell_node)
 
 
 def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.ndarray, code_raw: np.ndarray,
@@ -164,7 +76,7 @@ def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.nd
 
     # 2. lake routing and inflows
     code_lake = np.where(D, code_raw, code_main).astype(np.int8)
-    from .device import quantize
+    from pipeline.flow.device import quantize
 
     q, scale = quantize(runoff)
     acc = accumulate(code_lake, q).astype(np.float64).ravel() / scale

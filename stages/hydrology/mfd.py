@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import reference as ref
+from pipeline.flow import reference as ref
 
 
 def edges(z: np.ndarray, kind: np.ndarray, dx: float, p: float):

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import reference as ref
+from pipeline.flow import reference as ref
 
 
 def topo_levels(rcv: np.ndarray, cells: np.ndarray | None = None) -> list[np.ndarray]:

@@ -29,19 +29,19 @@ from typing import Any, Literal, Optional
 
 import numpy as np
 
-from pipeline.contract import Artifact, Input, Param, Params, ProjectPath, RunContext, Stage
+from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, ProjectPath, RunContext, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
+from stages.common import TERRAIN_SOURCES
 from pipeline.preview import hillshade
 
-from . import device as dev
+from pipeline.flow import device as dev
 from . import lakes as lakes_mod
 from . import mfd
-from . import reference as ref
+from pipeline.flow import reference as ref
 from . import rivers as rivers_mod
 
 SECONDS_PER_YEAR = 365.25 * 86400.0
-TERRAIN_SOURCES = ("erosion.height", "heightmap.height")
 
 
 class HydrologyParams(Params):
@@ -98,7 +98,7 @@ def rain_from_map(path: Path, rows: int, cols: int) -> np.ndarray:
     """Yearly rain (mm/year, float64) from an image file, stretched over the
     rows x cols terrain (cell-centred bilinear); clear errors for a missing,
     corrupt, integer, non-finite or negative map."""
-    from stages.heightmap.dem import read_dem, resample
+    from pipeline.dem import read_dem, resample
 
     try:
         src = read_dem(path, label="rain map")
@@ -207,7 +207,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
     t0 = time.perf_counter()
     mesh = None
     if rows >= 2 and cols >= 2:
-        from stages.world.terrain_mesh import build_terrain_mesh
+        from pipeline.terrain_mesh import build_terrain_mesh
 
         mesh = build_terrain_mesh(Grid(np.nan_to_num(h, nan=hmin), dx, ("height",), terrain.origin_m), params.mesh_max_vertices)
     ground = np.nan_to_num(h, nan=hmin).astype(np.float64)
@@ -216,7 +216,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
                              params.river_velocity_max_m_s, params.river_min_slope, params.river_width_depth_ratio,
                              params.river_lift_m)
     if mesh is not None and riv.curves:
-        from stages.world.terrain_mesh import height_on_mesh
+        from pipeline.terrain_mesh import height_on_mesh
 
         used = np.unique(np.concatenate(riv.curves))
         ox, oz = terrain.origin_m
@@ -346,14 +346,32 @@ def _grid(name, file, channels, units, description, nodata_nan=False):
                     nodata_nan=nodata_nan)
 
 
+BYTES_PER_CELL = 160  # about 20 float64/float32 fields: heights, fills, codes, accumulation, lakes, rivers, moisture
+
+
+def check(params: HydrologyParams, ctx: CheckContext) -> Check:
+    """The rain map opened, sized and checked (finite, not negative) now;
+    the memory from the terrain's cells."""
+    if params.rain_map_path is not None:
+        try:
+            rain_from_map(ctx.resolve(params.rain_map_path), 2, 2)
+        except InputError as e:
+            raise ParamError("rain_map_path", str(e).removeprefix("hydrology: ")) from None
+    terrain = ctx.inputs.get("terrain")
+    if terrain is None:
+        return Check()
+    cells = terrain.shape[0] * terrain.shape[1]
+    return Check(memory_bytes=BYTES_PER_CELL * cells, memory_how=f"the terrain's {cells:,} cells x {BYTES_PER_CELL} B")
+
+
 STAGE = Stage(
     name="hydrology",
     version=1,
     description="Water: depression filling or breaching, D8 flow and accumulation, rivers with widths and Strahler "
     "order, lakes by Fill-Spill-Merge (seed 003 algorithm 2), wetness index and moisture, and a USD water layer",
     inputs=(
-        Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height"),
-        Input("erosion_moisture", one_of=("erosion.moisture",), optional=True,
+        Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height", channels=("height",), units="m"),
+        Input("erosion_moisture", one_of=("erosion.moisture",), optional=True, channels=("moisture",), units="1",
               description="where water stood during the erosion storm, 0..1"),
     ),
     outputs=(
@@ -363,11 +381,11 @@ STAGE = Stage(
         _grid("hydrology.flow", "flow.exr", ("flow.x", "flow.z", "flow.d8"), "1",
               "D8 flow direction: unit vector (x east, z south) and code (0..7 = N, NE, E, SE, S, SW, W, NW as in "
               "pysheds; -1 outlet; NaN no-data)", nodata_nan=True),
-        _grid("hydrology.accumulation", "accumulation.exr", ("flow.accumulation", "flow.discharge"), "m^2",
+        _grid("hydrology.accumulation", "accumulation.exr", ("flow.accumulation", "flow.discharge"), "m^2, m^3/s",
               "D8 drainage area (m^2) and mean discharge (m^3/s) from rain * runoff"),
-        _grid("hydrology.lakes", "lakes.exr", ("lake.depth", "lake.level", "lake.id"), "m",
+        _grid("hydrology.lakes", "lakes.exr", ("lake.depth", "lake.level", "lake.id"), "m, m, 1",
               "lake water depth (m), water level (m, NaN where dry) and lake id (0 = dry)", nodata_nan=True),
-        _grid("hydrology.rivers", "rivers.exr", ("river.mask", "river.width", "river.order"), "m",
+        _grid("hydrology.rivers", "rivers.exr", ("river.mask", "river.width", "river.order"), "1, m, 1",
               "river mask (0/1), channel width (m) and Strahler order"),
         _grid("hydrology.wetness", "wetness.exr", ("wetness",), "ln(m)", "topographic wetness index ln(a / tan b)"),
         _grid("hydrology.moisture", "moisture.exr", ("moisture",), "1",
@@ -381,6 +399,7 @@ STAGE = Stage(
     ),
     params=HydrologyParams,
     run=run,
+    check=check,
     source_dir=Path(__file__).resolve().parent,
     uses_opencl=True,
     shared_params=("mesh_max_vertices",),

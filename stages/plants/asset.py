@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import usdio
+from stages.common import PLANTS_ROOT, plant_asset_prim
 
 from .mesh import Part
 
@@ -155,9 +156,9 @@ def write_species(path: Path, name: str, spec, lods: list[dict[str, Part]], lod_
 def write_top(path: Path, species_files: dict[str, str], provenance: dict, summary: dict) -> None:
     from pxr import UsdGeom
 
-    stage, root = usdio.create_stage(path, provenance, root="/Plants", kind="group")
+    stage, root = usdio.create_stage(path, provenance, root=PLANTS_ROOT, kind="group")
     for name, rel in species_files.items():
-        prim = UsdGeom.Xform.Define(stage, f"/Plants/{name}").GetPrim()
+        prim = UsdGeom.Xform.Define(stage, plant_asset_prim(name)).GetPrim()
         prim.GetReferences().AddReference(rel)
     root.SetCustomDataByKey("worldbake:species", json.dumps(summary, sort_keys=True))
     stage.GetRootLayer().Save()

@@ -14,20 +14,11 @@ KERNELS = Path(__file__).with_name("kernels.cl")
 LOCAL = 64
 
 
-_KERNELS: dict = {}
-
-
 def _kernel(name: str):
-    """Each kernel object once per program (pyopencl warns on re-retrieval)."""
-    import pyopencl as cl
-
+    from pipeline.clhost import kernel
     from pipeline.opencl import load_program
 
-    prg = load_program(KERNELS)
-    key = (id(prg), name)
-    if key not in _KERNELS:
-        _KERNELS[key] = cl.Kernel(prg, name)
-    return _KERNELS[key]
+    return kernel(load_program(KERNELS), name)
 
 
 def _run(kernel_name: str, n_items: int, out_rows: int, scalars: list, arrays: list[np.ndarray]) -> np.ndarray:

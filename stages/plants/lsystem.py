@@ -21,7 +21,7 @@ import ast
 import math
 import random
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 from pipeline.errors import InputError
 
@@ -215,6 +215,22 @@ class LSystem:
                 progress(it + 1, len(s))
         return s
 
+    def _evaluate(self, rule: "_Rule", env: dict, evaluate: Callable[[], Any]) -> Any:
+        """A rule's condition or successor values, or an InputError naming the
+        species and the rule: division by zero, overflow, math domain errors
+        and results that are not finite numbers."""
+        try:
+            value = evaluate()
+        except (ArithmeticError, ValueError, TypeError) as e:
+            raise InputError(f"species {self.name!r}, lsystem.rules[{rule.index}] ({rule.text}): {e} "
+                             f"(with {_shown(env, self.consts)})") from None
+        values = [value] if not isinstance(value, list) else [v for _, args in value for v in args]
+        if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+            raise InputError(f"species {self.name!r}, lsystem.rules[{rule.index}] ({rule.text}): gives "
+                             f"{[v for v in values if not (isinstance(v, (int, float)) and math.isfinite(v))][0]!r}, "
+                             f"not a finite number (with {_shown(env, self.consts)})")
+        return value
+
     # one parallel rewriting step
     def _step(self, s: list[Module], rng: random.Random, it: int, iterations: int, max_modules: int) -> list[Module]:
         match = _bracket_match(s) if self.has_context else None
@@ -241,7 +257,7 @@ class LSystem:
                     continue
                 if r.right and not _match_right(s, i, r.right, self.ignore, match, e):
                     continue
-                if r.cond is not None and not r.cond(e, rng):
+                if r.cond is not None and not self._evaluate(r, e, lambda: r.cond(e, rng)):
                     continue
                 pool.append((r, e))
                 tier = r.tier
@@ -262,7 +278,8 @@ class LSystem:
             if chosen is None:  # probability left over: the module stays
                 append(mod)
                 continue
-            extend([(sym, tuple(a(env, rng) for a in args)) for sym, args in chosen.succ])
+            extend(self._evaluate(chosen, env, lambda: [(sym, tuple(a(env, rng) for a in args))
+                                                         for sym, args in chosen.succ]))
             if len(out) > max_modules:
                 done = i + 1
                 projected = len(s) * len(out) / done
@@ -274,6 +291,11 @@ class LSystem:
                     f"{projected:,.0f} at the end of this iteration, about {final:.3g} after all {iterations}). "
                     f"Lower lsystem.iterations or raise plants.max_modules.")
         return out
+
+
+def _shown(env: dict, consts: dict) -> str:
+    shown = ", ".join(f"{k} = {v!r}" for k, v in env.items() if k not in consts or consts[k] != v)
+    return shown or "no parameters"
 
 
 def _bracket_match(s: list[Module]) -> list[int]:
@@ -421,8 +443,11 @@ def compile_lsystem(spec, name: str) -> LSystem:
             if sym in arities and len(args) not in arities[sym]:
                 raise ExprError(f"{sym} is given {len(args)} parameter(s) but its rules take "
                                 f"{' or '.join(str(a) for a in sorted(arities[sym]))}")
-            axiom.append((sym, tuple(compile_expr(a, list(consts))(consts, rng) for a in args)))
-    except ExprError as e:
+            values = tuple(compile_expr(a, list(consts))(consts, rng) for a in args)
+            if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+                raise ExprError(f"{sym}{values} holds a value that is not a finite number")
+            axiom.append((sym, values))
+    except (ExprError, ArithmeticError, ValueError, TypeError) as e:
         raise InputError(f"{where}: {e}") from None
     ignore = frozenset(spec.ignore) - {"[", "]"}
     return LSystem(axiom, rules, ignore, has_context, name, consts)

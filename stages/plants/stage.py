@@ -22,11 +22,12 @@ from typing import Any
 import pydantic
 
 from pipeline import usdio
-from pipeline.contract import Input, Artifact, Param, Params, RunContext, Stage
-from pipeline.errors import StageError
+from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, RunContext, Stage
+from pipeline.errors import InputError, StageError
 
 from .asset import write_species, write_top
-from .plant import Settings, build_plant
+from .lsystem import compile_lsystem
+from .plant import Settings, build_plant, species_seeds
 from .species import SpeciesShape, preset_tables, resolve_species
 
 
@@ -126,18 +127,39 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: PlantsParams) -> dict[s
     return {"plants.assets": top}
 
 
+def check(params: PlantsParams, ctx: CheckContext) -> Check:
+    """Every species to build: its L-system compiled and derived with the
+    bake's seed (exactly what run() will derive), so a rule that divides by
+    zero, overflows, gives NaN or grows past max_modules is found before any
+    stage runs, naming the species and the rule."""
+    modules = 0
+    for name in params.build:
+        spec = params.species[name]
+        if spec.kind != "lsystem":
+            continue
+        try:
+            system = compile_lsystem(spec.lsystem, name)
+            modules += len(system.derive(spec.lsystem.iterations, species_seeds(ctx.seed, name)[0], params.max_modules))
+        except InputError as e:
+            raise ParamError(f"species.{name}.lsystem", str(e)) from None
+    # the largest string, its skeleton and meshes: about 1 KiB per module is
+    # an upper bound seen on the presets (mesh buffers dominate)
+    return Check(memory_bytes=1024.0 * modules, memory_how=f"{modules:,} L-system modules x 1 KiB")
+
+
 STAGE = Stage(
     name="plants",
     version=1,
     description="plant assets in USD: L-system trees and shrubs (watertight woody solid, leaves) and grass tufts, "
     "with a measured lod variant set, wind primvars and materials",
-    inputs=(Input("placed", one_of=("vegetation.species",), optional=True,
+    inputs=(Input("placed", one_of=("vegetation.placed",), optional=True,
                   description="the species the vegetation map placed; only those are built"),),
-    outputs=(Artifact("plants.assets", kind="usd", file="plants.usda", shape="any",
+    outputs=(Artifact("plants.assets", kind="usd", file="plants.usda", shape="any", beside=("*.usdc",),
                       description="/Plants (kind group): one prim per built species referencing ./<species>.usdc "
                       "(kind component, lod variant set LOD0..LODn, extentsHint, UsdPreviewSurface, wind primvars)"),),
     params=PlantsParams,
     run=run,
+    check=check,
     source_dir=Path(__file__).parent,
     uses_seed=True,
     uses_opencl=True,

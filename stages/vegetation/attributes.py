@@ -63,11 +63,10 @@ def compute(height: np.ndarray, dx: float, params, backend, local=None) -> dict[
     nd = params.horizon_directions
     kc = max(1, int(round(params.curvature_scale_m / dx)))
     sun0, sun1, inv = sun_table(params.latitude_deg, nd)
-    kwargs = {"local": local} if backend.__name__.endswith("device") else {}
     slope, aspect, grad, curv, sky, sun = backend.attributes(
         height, dx, kc, 1.0 / (kc * dx) ** 2, directions(nd),
         march_steps(dx, params.horizon_distance_m, params.horizon_step_growth), sun0, sun1, inv,
-        params.diffuse_fraction, **kwargs)
+        params.diffuse_fraction, local=local)
     return {"slope": slope, "aspect": aspect, "grad": grad, "curvature": curv, "sky_view": sky, "sunlight": sun}
 
 

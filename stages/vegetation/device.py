@@ -11,18 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.clhost import Buffers, kernel
+
 from . import reference as ref
 
 KERNELS = Path(__file__).with_name("kernels.cl")
 F = np.float32
-
-
-def _cl():
-    import pyopencl as cl
-
-    from pipeline.opencl import get_cl
-
-    return cl, get_cl()
 
 
 def program(nb: int = 2):
@@ -31,53 +25,14 @@ def program(nb: int = 2):
     return _Kernels(load_program(KERNELS, (f"-DNB={int(nb)}", f"-DPN={ref.PN}")))
 
 
-_KERNELS: dict = {}
-
-
 class _Kernels:
-    """Kernel objects of a program, retrieved once (each retrieval would
-    build a new kernel object)."""
+    """Kernel objects of a program by attribute (pipeline.clhost.kernel)."""
 
     def __init__(self, prg):
         self.prg = prg
 
     def __getattr__(self, name):
-        import pyopencl as cl
-
-        key = (id(self.prg), name)
-        if key not in _KERNELS:
-            _KERNELS[key] = (self.prg, cl.Kernel(self.prg, name))
-        return _KERNELS[key][1]
-
-
-def _gs(shape, local):
-    from pipeline.opencl import global_size
-
-    return global_size(tuple(shape), local)
-
-
-class Buffers:
-    """Small helper: device buffers from arrays, and back."""
-
-    def __init__(self):
-        self.cl, self.env = _cl()
-
-    def arr(self, a, write=False):
-        mf = self.cl.mem_flags
-        a = np.ascontiguousarray(a)
-        flags = (mf.READ_WRITE if write else mf.READ_ONLY) | mf.COPY_HOST_PTR
-        return self.cl.Buffer(self.env.ctx, flags, hostbuf=a if a.nbytes else np.zeros(1, a.dtype))
-
-    def empty(self, nbytes):
-        return self.cl.Buffer(self.env.ctx, self.cl.mem_flags.READ_WRITE, max(int(nbytes), 4))
-
-    def get(self, buf, shape, dtype):
-        out = np.empty(shape, dtype)
-        self.cl.enqueue_copy(self.env.queue, out, buf)
-        return out
-
-    def run(self, kernel, gsize, local, *args):
-        kernel(self.env.queue, _gs(gsize, local), local, *args)
+        return kernel(self.prg, name)
 
 
 def attributes(h, dx, kc, inv_kc2, dirs, steps, sun0, sun1, inv_direct, diffuse, local=None):

@@ -165,8 +165,7 @@ def simulate(suit: np.ndarray, grid: SimGrid, params: VegetationParams, names: l
     t0 = time.perf_counter()
     tab, nb = species_table(params, names, grid.g, seed)
     sp0, birth0 = initial_state(suit, params, names, seed, grid.g)
-    kwargs = {"local": local} if backend.__name__.endswith("device") else {}
-    sim = backend.Sim(sp0, birth0, suit, tab, nb, **kwargs)
+    sim = backend.Sim(sp0, birth0, suit, tab, nb, local=local)
     key = ref.stream_key(seed, "ecosystem-stress")
     dt = params.step_years
     stress = min(1.0, dt * params.stress_mortality)

@@ -73,8 +73,7 @@ def place_tufts(params: VegetationParams, name: str | None, density: np.ndarray,
     sp, expected = tuft_spacing(params, name, density, dom.dx)
     nx, nz = int(dom.width // sp) + 1, int(dom.depth // sp) + 1
     key = ref.stream_key(seed, "tufts", name)
-    kwargs = {"local": local} if backend.__name__.endswith("device") else {}
-    out = backend.grass_tufts(density, dom.dx, nx, nz, sp, params.grass_jitter, dom.width, dom.depth, key, **kwargs)
+    out = backend.grass_tufts(density, dom.dx, nx, nz, sp, params.grass_jitter, dom.width, dom.depth, key, local=local)
     idx = np.nonzero(out[:, 3] > 0)[0]
     pts = out[idx]
     min_dist = (1.0 - params.grass_jitter) * sp

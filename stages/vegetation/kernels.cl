@@ -20,16 +20,7 @@
 
 #define INLINE inline __attribute__((always_inline))
 
-/* lowbias32 (Chris Wellons): a 32-bit integer finaliser */
-INLINE uint mix32(uint h)
-{
-    h ^= h >> 16;
-    h *= 0x7FEB352Du;
-    h ^= h >> 15;
-    h *= 0x846CA68Bu;
-    h ^= h >> 16;
-    return h;
-}
+#include "worldbake_hash.h"
 
 INLINE uint hash4(uint k, uint a, uint b, uint c)
 {

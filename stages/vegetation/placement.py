@@ -167,8 +167,7 @@ def poisson_sample(rad: np.ndarray, r_lo: float, dom: Domain, passes: int, key: 
     if obstacles is None:
         obstacles = (np.zeros(2, np.int32), np.zeros((1, 4), F), 0, 0, 1.0)
     start, obs, onx, onz, oc = obstacles
-    kwargs = {"local": local} if backend.__name__.endswith("device") else {}
-    sampler = backend.Poisson(nx, nz, c, dom.width, dom.depth, rad, dom.dx, MARGIN_M, start, obs, onx, onz, oc, **kwargs)
+    sampler = backend.Poisson(nx, nz, c, dom.width, dom.depth, rad, dom.dx, MARGIN_M, start, obs, onx, onz, oc, local=local)
     t0 = time.perf_counter()
     P = ref.PN + 1
     for k in range(passes):
@@ -297,7 +296,7 @@ def keep_allowed(inst: Instances, allowed: np.ndarray, dom: Domain) -> tuple[Ins
 def world_positions(x: np.ndarray, z: np.ndarray, dom: Domain, mesh) -> np.ndarray:
     """float32 world positions on the terrain mesh: x, z rounded to float32
     first, then the height of the mesh triangle under that exact point."""
-    from stages.world.terrain_mesh import height_on_mesh
+    from pipeline.terrain_mesh import height_on_mesh
 
     wx = (dom.x0 + x.astype(np.float64)).astype(F)
     wz = (dom.z0 + z.astype(np.float64)).astype(F)

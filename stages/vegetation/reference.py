@@ -13,6 +13,12 @@ import zlib
 
 import numpy as np
 
+from pipeline.hashing import mix32
+
+# Every function and class here has the signature of its twin in device.py,
+# so a caller picks either module and calls it the same way; `local` (the
+# work-group size) is accepted and means nothing here.
+
 F = np.float32
 U = np.uint32
 INV24 = F(5.9604645e-08)
@@ -23,17 +29,6 @@ PN = 3  # Poisson neighbourhood (cells) and phase period PN + 1
 
 
 # --------------------------------------------------------------------------- hashing
-
-def mix32(h):
-    """lowbias32 on uint32 (arrays or scalars), wrapping."""
-    h = np.asarray(h, dtype=U)
-    with np.errstate(over="ignore"):
-        h = h ^ (h >> U(16))
-        h = h * U(0x7FEB352D)
-        h = h ^ (h >> U(15))
-        h = h * U(0x846CA68B)
-        h = h ^ (h >> U(16))
-    return h
 
 
 def hash4(k, a, b, c):
@@ -91,7 +86,7 @@ def bilinear(h, fr, fc):
 
 # --------------------------------------------------------------------------- attributes
 
-def attributes(h, dx, kc, inv_kc2, dirs, steps, sun0, sun1, inv_direct, diffuse):
+def attributes(h, dx, kc, inv_kc2, dirs, steps, sun0, sun1, inv_direct, diffuse, local=None):
     """The attributes kernel: (slope deg, aspect deg, gradient m/m,
     curvature 1/m, sky view, sunlight), each (rows, cols) float32."""
     h = np.asarray(h, F)
@@ -152,7 +147,7 @@ def attributes(h, dx, kc, inv_kc2, dirs, steps, sun0, sun1, inv_direct, diffuse)
     return slope, aspect, g, curv, svf, sunlight
 
 
-def moisture_filter(m, jitter, key):
+def moisture_filter(m, jitter, key, local=None):
     m = np.asarray(m, F)
     rows, cols = m.shape
     i = np.arange(rows * cols, dtype=np.int64).reshape(rows, cols)
@@ -181,7 +176,7 @@ def _ramp(d, inv):
     return np.where(d > F(0), F(1), F(0)).astype(F)
 
 
-def suitability(alt, slope, moist, sun, curv, blocked, prefs):
+def suitability(alt, slope, moist, sun, curv, blocked, prefs, local=None):
     """prefs: (nsp, NPREF, 4) float32 (min, max, inv_edge, 0). Returns (nsp, ...)."""
     v = [np.asarray(a, F) for a in (alt, slope, moist, sun, curv)]
     out = np.zeros((len(prefs),) + v[0].shape, F)
@@ -194,7 +189,7 @@ def suitability(alt, slope, moist, sun, curv, blocked, prefs):
     return out
 
 
-def splat(alt, slope, grad, moist, water, p):
+def splat(alt, slope, grad, moist, water, p, local=None):
     """p: 19 float32 (see kernels.cl). Returns (..., 6): rock, scree, grass, dry_grass, mud, snow."""
     a, s, m, g = (np.asarray(x, F) for x in (alt, slope, moist, grad))
     p = np.asarray(p, F)
@@ -263,7 +258,7 @@ class Sim:
     the same on the OpenCL device). sp, birth: int32 (nz, nx); suit:
     float32 (nsp, nz, nx)."""
 
-    def __init__(self, sp, birth, suit, tab, nb: int):
+    def __init__(self, sp, birth, suit, tab, nb: int, local=None):
         self.sp = np.array(sp, np.int32)
         self.birth = np.array(birth, np.int32)
         self.suit = np.asarray(suit, F)
@@ -417,7 +412,7 @@ class Poisson:
     """Dart throwing by grid phases on numpy (device.DevicePoisson is the same
     on the OpenCL device). pts: (nz, nx, 4) float32 (x, z, r, key)."""
 
-    def __init__(self, nx, nz, c, wdom, ddom, rad, dx, margin, obs_start, obs, onx, onz, oc):
+    def __init__(self, nx, nz, c, wdom, ddom, rad, dx, margin, obs_start, obs, onx, onz, oc, local=None):
         self.nx, self.nz, self.c = nx, nz, F(c)
         self.wdom, self.ddom = F(wdom), F(ddom)
         self.rad = np.asarray(rad, F)
@@ -478,7 +473,7 @@ class Poisson:
 
 # --------------------------------------------------------------------------- grass tufts
 
-def grass_tufts(dens, dx, nx, nz, sp, jitter, wdom, ddom, key):
+def grass_tufts(dens, dx, nx, nz, sp, jitter, wdom, ddom, key, local=None):
     """(nz * nx, 4) float32: x, z, random, kept."""
     dens = np.asarray(dens, F)
     rows, cols = dens.shape

@@ -20,6 +20,7 @@ without overlap, instanced in USD.
 """
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -27,16 +28,16 @@ from typing import Any
 import numpy as np
 
 from pipeline import exr
-from pipeline.contract import Artifact, Input, RunContext, Stage
+from pipeline.contract import Artifact, Check, CheckContext, Input, ParamError, RunContext, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
+from stages.common import TERRAIN_SOURCES, prototype_prim
 from pipeline.preview import hillshade
 
 from . import attributes as attrs
 from . import ecosystem, grass, placement, usd_layer
 from .params import NPREF_ORDER, VegetationParams
 
-TERRAIN_SOURCES = ("erosion.height", "heightmap.height")
 SPECIES_MAPS = "species.exr"
 ATTR_CHANNELS = ("attr.slope", "attr.aspect", "attr.curvature", "attr.sky_view", "attr.sunlight", "attr.moisture")
 SPLAT_CHANNELS = ("splat.rock", "splat.scree", "splat.grass", "splat.dry_grass", "splat.mud", "splat.snow")
@@ -106,16 +107,12 @@ def preview(height: Grid, splat: np.ndarray, gdens: np.ndarray, water: np.ndarra
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)
 
 
-def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> dict[str, Any]:
-    from stages.world.terrain_mesh import build_terrain_mesh
+HA = 1e4  # m^2 per hectare
 
-    T: dict[str, float] = {}
-    t_all = time.perf_counter()
 
-    def lap(name, t0):
-        T[name] = round(time.perf_counter() - t0, 4)
-
-    terrain: Grid = inputs["terrain"]
+def _terrain(terrain: Grid) -> tuple[np.ndarray, np.ndarray, float, tuple[float, float]]:
+    """Heights with no-data cells at the lowest height, the no-data mask,
+    the cell size and the origin."""
     h_raw = terrain.channel(terrain.channels[0]).astype(F)
     rows, cols = h_raw.shape
     if rows < 2 or cols < 2:
@@ -124,8 +121,79 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
     if nodata.all():
         raise InputError("vegetation: the terrain has no finite height")
     h = np.where(nodata, np.float32(np.nanmin(h_raw)), h_raw).astype(F)
-    dx = float(terrain.cell_size_m)
-    origin = tuple(terrain.origin_m)
+    return h, nodata, float(terrain.cell_size_m), tuple(terrain.origin_m)
+
+
+def _moisture(ctx: RunContext, inputs: dict[str, Any], h: np.ndarray, dx: float,
+              params: VegetationParams) -> tuple[np.ndarray, str]:
+    """Moisture 0..1 and where it came from: the input (hydrology's, else
+    the erosion storm's), else the topographic position."""
+    moist = _optional_channel(inputs, "moisture", "moisture", h.shape)
+    source = ctx.input_artifacts.get("moisture", "")
+    if moist is None:
+        moist = attrs.fallback_moisture(h, dx, params.moisture_fallback_radius_m, params.moisture_fallback_scale_m)
+        source = "topographic position"
+    return np.clip(moist, 0.0, 1.0).astype(F), source
+
+
+def _water(inputs: dict[str, Any], shape: tuple[int, int]) -> np.ndarray:
+    """Where lakes or rivers are (nothing grows there)."""
+    lakes = _optional_channel(inputs, "lakes", "lake.depth", shape)
+    rivers = _optional_channel(inputs, "rivers", "river.mask", shape)
+    water = np.zeros(shape, bool)
+    if lakes is not None:
+        water |= lakes > 0
+    if rivers is not None:
+        water |= rivers > 0.5
+    return water
+
+
+def _species_maps(plants, gname, sets, dom, suit, share, n_t, gsuit, gdens, g) -> Grid | None:
+    """vegetation.species_maps: per plant species suitability, relative
+    yield, target and placed density (plants per ha); for the grass species
+    suitability and tuft density. None when no species grows."""
+    rows, cols = dom.rows, dom.cols
+    per_species_channels, per_species = [], []
+    for s, name in enumerate(plants):
+        counts = np.zeros((rows, cols))
+        if len(sets[name]):
+            np.add.at(counts, dom.world_cell(sets[name].positions), 1.0)
+        per_species += [suit[s], share[s], n_t[s] * HA, counts * HA / (dom.dx * dom.dx)]
+        per_species_channels += [f"suitability.{name}", f"yield.{name}", f"density.{name}", f"placed.{name}"]
+    if gname:
+        per_species += [gsuit, gdens]
+        per_species_channels += [f"suitability.{gname}", f"density.{gname}"]
+    return g(np.stack(per_species, -1), tuple(per_species_channels)) if per_species else None
+
+
+def _species_report(params: VegetationParams, sets, placed, tuft_stats) -> dict[str, dict]:
+    """Per species to grow: its kind, instances, whether placed, and the
+    target and shortfall (plants) or the tuft spacing (grass)."""
+    species_report = {}
+    for name in params.grow:
+        e = params.species[name]
+        n = len(sets[name]) if name in sets else 0
+        rep = {"kind": e.kind, "instances": int(n), "placed": bool(n > 0)}
+        if e.kind == "plant":
+            rep.update(target_instances=round(placed[name].stats.get("target_plants", 0.0), 1),
+                       shortfall=int(placed[name].stats.get("shortfall_plants", 0)))
+        else:
+            rep.update(tuft_spacing_m=tuft_stats.get("tuft_spacing_m"))
+        species_report[name] = rep
+    return species_report
+
+
+def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> dict[str, Any]:
+    from pipeline.terrain_mesh import build_terrain_mesh
+
+    T: dict[str, float] = {}
+    t_all = time.perf_counter()
+
+    def lap(name, t0):
+        T[name] = round(time.perf_counter() - t0, 4)
+
+    h, nodata, dx, origin = _terrain(inputs["terrain"])
+    rows, cols = h.shape
     be = backend_modules(True)
     seed = int(ctx.seed)
 
@@ -133,22 +201,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
     t0 = time.perf_counter()
     a = attrs.compute(h, dx, params, be)
     lap("attributes_s", t0)
-    moist = _optional_channel(inputs, "moisture", "moisture", h.shape)
-    source = "hydrology"
-    if moist is None:
-        moist = _optional_channel(inputs, "erosion_moisture", "moisture", h.shape)
-        source = "erosion"
-    if moist is None:
-        moist = attrs.fallback_moisture(h, dx, params.moisture_fallback_radius_m, params.moisture_fallback_scale_m)
-        source = "topographic position"
-    moist = np.clip(moist, 0.0, 1.0).astype(F)
-    lakes = _optional_channel(inputs, "lakes", "lake.depth", h.shape)
-    rivers = _optional_channel(inputs, "rivers", "river.mask", h.shape)
-    water = np.zeros(h.shape, bool)
-    if lakes is not None:
-        water |= lakes > 0
-    if rivers is not None:
-        water |= rivers > 0.5
+    moist, source = _moisture(ctx, inputs, h, dx, params)
+    water = _water(inputs, h.shape)
     blocked = (water | nodata).astype(np.uint8)
 
     ctx.progress(0.05, "splat weights")
@@ -247,45 +301,23 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
     def g(data, channels):
         return Grid(np.ascontiguousarray(data, dtype=F), dx, channels, origin)
 
-    ha = 1e4
-    per_species_channels, per_species = [], []
-    for s, name in enumerate(plants):
-        counts = np.zeros((rows, cols))
-        if len(sets[name]):
-            np.add.at(counts, dom.world_cell(sets[name].positions), 1.0)
-        per_species += [suit[s], share[s], n_t[s] * ha, counts * ha / (dx * dx)]
-        per_species_channels += [f"suitability.{name}", f"yield.{name}", f"density.{name}", f"placed.{name}"]
-    if gname:
-        per_species += [gsuit, gdens]
-        per_species_channels += [f"suitability.{gname}", f"density.{gname}"]
-    if per_species:
-        exr.write_grid(Path(ctx.out_dir) / SPECIES_MAPS, g(np.stack(per_species, -1), tuple(per_species_channels)),
-                       ctx.provenance)
-    total_density = n_t.sum(axis=0) * ha if len(plants) else np.zeros((rows, cols))
+    species_maps = _species_maps(plants, gname, sets, dom, suit, share, n_t, gsuit, gdens, g)
+    per_species_channels = list(species_maps.channels) if species_maps is not None else []
+    total_density = n_t.sum(axis=0) * HA if len(plants) else np.zeros((rows, cols))
     lap("maps_s", t0)
 
     # statistics and the species report
     errors_by_species = {}
     for s, name in enumerate(plants):
         errors_by_species[name] = placement.density_error(placed[name].x, placed[name].z, n_t[s], dom)
-    species_report = {}
-    for name in params.grow:
-        e = params.species[name]
-        n = len(sets[name]) if name in sets else 0
-        rep = {"kind": e.kind, "instances": int(n), "placed": bool(n > 0)}
-        if e.kind == "plant":
-            rep.update(target_instances=round(placed[name].stats.get("target_plants", 0.0), 1),
-                       shortfall=int(placed[name].stats.get("shortfall_plants", 0)))
-        else:
-            rep.update(tuft_spacing_m=tuft_stats.get("tuft_spacing_m"))
-        species_report[name] = rep
+    species_report = _species_report(params, sets, placed, tuft_stats)
     placed_names = [n for n in params.grow if species_report[n]["placed"]]
     unplaced = [n for n in params.grow if not species_report[n]["placed"]]
     report = {
         "placed": placed_names,
         "unplaced": unplaced,
         "species": species_report,
-        "prototypes": {n: f"/World/Vegetation/Prototypes/{n}" for n in placed_names},
+        "prototypes": {n: prototype_prim(n) for n in placed_names},
         "maps": {"file": SPECIES_MAPS, "channels": per_species_channels,
                  "units": "suitability, yield (relative yield from the simulation): 1; density (target), placed: plants per ha; grass density: 1"},
     }
@@ -323,6 +355,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
         "vegetation.canopy": g(np.stack([cover, total_density], -1), ("canopy.cover", "canopy.density")),
         "vegetation.instances": usd_path,
         "vegetation.species": report,
+        "vegetation.species_maps": species_maps,
+        "vegetation.placed": {"placed": placed_names, "prototypes": report["prototypes"]},
         "vegetation.stats": stats,
         "vegetation.preview": preview(Grid(h, dx, ("height",), origin), splat, gdens, water, sets, dom, grow),
     }
@@ -330,6 +364,39 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
 
 def _grid(name, file, channels, units, description):
     return Artifact(name, kind="grid", file=file, channels=channels, units=units, description=description)
+
+
+# Memory: about 60 float32/float64 fields a terrain cell (attributes,
+# moisture, splat, grass, canopy, the horizon scan's buffers) and 6 per
+# species (suitability, yield, densities, placed counts); the simulation
+# grid holds about 12 float64 values a simulation cell and 2 per species.
+BYTES_PER_CELL, BYTES_PER_CELL_SPECIES = 320, 48
+BYTES_PER_SIM_CELL, BYTES_PER_SIM_CELL_SPECIES = 96, 16
+MAX_HORIZON_SAMPLES = 256  # samples per direction of the horizon scan (growth 1.3 over 1500 m of 1 m cells: 28)
+
+
+def check(params: VegetationParams, ctx: CheckContext) -> Check:
+    """The horizon scan's samples and the memory of the maps and of the
+    simulation grid, from the terrain's size, before any stage runs."""
+    terrain = ctx.inputs.get("terrain")
+    if terrain is None:
+        return Check()
+    rows, cols = terrain.shape
+    dx = terrain.cell_size_m
+    limit = max(params.horizon_distance_m / dx, 1.0)
+    samples = int(math.log(limit) / math.log(params.horizon_step_growth)) + 1
+    if samples > MAX_HORIZON_SAMPLES:
+        raise ParamError("horizon_step_growth", f"{params.horizon_step_growth:g} takes {samples:,} samples per "
+                         f"direction to reach horizon_distance_m = {params.horizon_distance_m:g} on {dx:g} m cells "
+                         f"(at most {MAX_HORIZON_SAMPLES}); raise it or lower horizon_distance_m")
+    sim = ecosystem.sim_grid(cols, rows, dx, params.sim_cell_m)
+    n = len(params.grow)
+    memory = (rows * cols * (BYTES_PER_CELL + BYTES_PER_CELL_SPECIES * n)
+              + sim.nx * sim.nz * (BYTES_PER_SIM_CELL + BYTES_PER_SIM_CELL_SPECIES * n))
+    return Check(memory_bytes=memory,
+                 memory_how=f"the terrain's {rows * cols:,} cells x ({BYTES_PER_CELL} + {BYTES_PER_CELL_SPECIES} x {n} "
+                 f"species) B + vegetation.sim_cell_m = {params.sim_cell_m:g}: {sim.nx * sim.nz:,} simulation cells x "
+                 f"({BYTES_PER_SIM_CELL} + {BYTES_PER_SIM_CELL_SPECIES} x {n}) B")
 
 
 STAGE = Stage(
@@ -340,12 +407,14 @@ STAGE = Stage(
     "density and tufts, terrain splat weights (seed 004, fixed), and the instances as UsdGeom.PointInstancers in "
     "quadtree tiles",
     inputs=(
-        Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height"),
-        Input("moisture", one_of=("hydrology.moisture",), optional=True, description="moisture 0..1"),
-        Input("lakes", one_of=("hydrology.lakes",), optional=True, description="lake depth: nothing grows in lakes"),
-        Input("rivers", one_of=("hydrology.rivers",), optional=True, description="river mask: nothing grows in rivers"),
-        Input("erosion_moisture", one_of=("erosion.moisture",), optional=True,
-              description="moisture from the erosion storm, used when hydrology is off"),
+        Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height", channels=("height",), units="m"),
+        Input("moisture", one_of=("hydrology.moisture", "erosion.moisture"), optional=True, channels=("moisture",),
+              units="1", description="moisture 0..1: hydrology's, else the erosion storm's, else none (the stage "
+              "derives it from the topographic position)"),
+        Input("lakes", one_of=("hydrology.lakes",), optional=True, description="lake depth: nothing grows in lakes",
+              channels=("lake.depth",), units="m"),
+        Input("rivers", one_of=("hydrology.rivers",), optional=True, description="river mask: nothing grows in rivers",
+              channels=("river.mask",), units="1"),
     ),
     outputs=(
         _grid("vegetation.attributes", "attributes.exr", ATTR_CHANNELS, "deg, deg, 1/m, 1, 1, 1",
@@ -364,6 +433,15 @@ STAGE = Stage(
         Artifact("vegetation.species", kind="json", file="species.json", shape="any",
                  description="the placed species with instance counts (the plants stage builds only these), the "
                  "unplaced ones, the prototype prim paths and the per-species maps in species.exr"),
+        Artifact("vegetation.species_maps", kind="grid", file=SPECIES_MAPS, optional=True,
+                 channels=("suitability.{plant}", "yield.{plant}", "density.{plant}", "placed.{plant}",
+                           "suitability.{grass}", "density.{grass}"), units="1, 1, 1/ha, 1/ha, 1, 1",
+                 description="per placed species: suitability (0..1), relative yield of the simulation (plants only), "
+                 "target density and placed density (plants per ha); for the grass species suitability and tuft "
+                 "density (0..1); absent when no species grows"),
+        Artifact("vegetation.placed", kind="json", file="placed.json", shape="any",
+                 description="only the names of the placed species and their prototype prims: what the plants stage "
+                 "reads, so a bake that places the same species again builds no plant (early cutoff)"),
         Artifact("vegetation.stats", kind="json", file="stats.json", shape="any",
                  description="ecosystem history and stability, placement and density errors, splat checks, timings"),
         Artifact("vegetation.preview", kind="image", file="preview.png", dtype="uint8",
@@ -371,6 +449,7 @@ STAGE = Stage(
     ),
     params=VegetationParams,
     run=run,
+    check=check,
     source_dir=Path(__file__).resolve().parent,
     uses_seed=True,
     uses_opencl=True,

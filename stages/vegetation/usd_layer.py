@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stages.common import VEGETATION_PROTOTYPES, plant_asset_prim, prototype_prim
+
 from .placement import Instances
 
 PALETTE = {  # displayColor of the placeholders and preview dots
@@ -100,16 +102,16 @@ def write(path: Path, provenance: dict, sets: dict[str, Instances], heights: dic
     stage, _ = usdio.create_stage(path, provenance)
     veg = UsdGeom.Xform.Define(stage, "/World/Vegetation")
     Usd.ModelAPI(veg).SetKind(Kind.Tokens.group)
-    protos = stage.DefinePrim("/World/Vegetation/Prototypes", "Scope")
+    protos = stage.DefinePrim(VEGETATION_PROTOTYPES, "Scope")
     protos.SetSpecifier(Sdf.SpecifierClass)
     names = [n for n in sets if len(sets[n])]
     bounds = {}
     for k, name in enumerate(names):
         h = float(heights[name])
-        cls = UsdGeom.Xform.Define(stage, f"/World/Vegetation/Prototypes/{name}")
+        cls = UsdGeom.Xform.Define(stage, prototype_prim(name))
         Usd.ModelAPI(cls).SetKind(Kind.Tokens.component)
-        cls.GetPrim().SetCustomDataByKey("worldbake:asset", {"layer": "plants.usda", "prim": f"/Plants/{name}"})
-        cone = UsdGeom.Cone.Define(stage, f"/World/Vegetation/Prototypes/{name}/Placeholder")
+        cls.GetPrim().SetCustomDataByKey("worldbake:asset", {"layer": "plants.usda", "prim": plant_asset_prim(name)})
+        cone = UsdGeom.Cone.Define(stage, prototype_prim(name) + "/Placeholder")
         radius = (0.45 if kinds[name] == "grass" else 0.3) * h
         cone.CreateHeightAttr(h)
         cone.CreateRadiusAttr(radius)
@@ -147,7 +149,7 @@ def write(path: Path, provenance: dict, sets: dict[str, Instances], heights: dic
                 scope = UsdGeom.Scope.Define(stage, f"{ipath}/Prototypes")
                 Usd.ModelAPI(scope).SetKind(Kind.Tokens.group)
                 proto = UsdGeom.Xform.Define(stage, f"{ipath}/Prototypes/{name}")
-                proto.GetPrim().GetInherits().AddInherit(f"/World/Vegetation/Prototypes/{name}")
+                proto.GetPrim().GetInherits().AddInherit(prototype_prim(name))
                 pi.CreatePrototypesRel().SetTargets([proto.GetPath()])
                 n = len(ii)
                 pi.CreatePositionsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(inst.positions[ii])))

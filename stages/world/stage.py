@@ -16,12 +16,12 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import exr, usdio
-from pipeline.contract import Artifact, Input, Param, Params, RunContext, Stage
+from pipeline.contract import Artifact, Check, CheckContext, Input, Param, Params, RunContext, Stage
 from pipeline.grid import Grid
+from stages.common import TERRAIN_SOURCES, plant_asset_prim
 
-from .terrain_mesh import bilinear, build_terrain_mesh
+from pipeline.terrain_mesh import bilinear, build_terrain_mesh
 
-TERRAIN_SOURCES = ("erosion.height", "heightmap.height")
 # Upstream USD layers composed into the world, strongest first; absent when
 # their stage is disabled or not needed.
 LAYER_INPUTS = (
@@ -31,7 +31,7 @@ LAYER_INPUTS = (
 )
 # The plant assets that replace the vegetation placeholders.
 ASSET_INPUTS = (
-    Input("placed", one_of=("vegetation.species",), optional=True, description="which species were placed, where their prototypes are"),
+    Input("placed", one_of=("vegetation.placed",), optional=True, description="which species were placed, where their prototypes are"),
     Input("plants", one_of=("plants.assets",), optional=True, description="the plant assets (plants.usda)"),
 )
 
@@ -138,7 +138,7 @@ def bind_plant_assets(root_path: Path, placed: dict, plants_layer: Path, ctx: Ru
     layer = Sdf.Layer.FindOrOpen(str(root_path))
     bound = {}
     for species, proto_path in placed.get("prototypes", {}).items():
-        asset_prim = Sdf.Path(f"/Plants/{species}")
+        asset_prim = Sdf.Path(plant_asset_prim(species))
         if not assets.GetPrimAtPath(asset_prim):
             continue
         spec = Sdf.CreatePrimInLayer(layer, Sdf.Path(proto_path))
@@ -177,11 +177,27 @@ def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
     return {"world.root": root_path, "world.terrain": terrain_path, "world.albedo": albedo_path}
 
 
+def check(params: WorldParams, ctx: CheckContext) -> Check:
+    """Memory: the albedo computed at texture resolution (ground_colour
+    holds about 20 float64 values a texel at its peak, with the RGB blends,
+    and maketx copies the result: 256 B a texel) and the terrain mesh
+    (points, normals, uvs, indices: about 80 B a vertex)."""
+    texels = params.texture_size ** 2
+    vertices = params.mesh_max_vertices ** 2
+    terrain = ctx.inputs.get("terrain")
+    if terrain is not None:
+        vertices = min(terrain.shape[0], params.mesh_max_vertices) * min(terrain.shape[1], params.mesh_max_vertices)
+    return Check(memory_bytes=256 * texels + 80 * vertices,
+                 memory_how=f"world.texture_size = {params.texture_size}: {texels:,} texels x 256 B, "
+                 f"+ {vertices:,} vertices x 80 B")
+
+
 STAGE = Stage(
     name="world",
     version=1,
     description="Assemble world.usda: the terrain mesh and material, and every upstream USD layer.",
-    inputs=(Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height"),) + LAYER_INPUTS + ASSET_INPUTS,
+    inputs=(Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height", channels=("height",),
+                  units="m"),) + LAYER_INPUTS + ASSET_INPUTS,
     outputs=(
         Artifact("world.root", kind="usd", file="world.usda", shape="any", publish=True,
                  description="the root layer composing every layer of the world"),
@@ -192,6 +208,7 @@ STAGE = Stage(
     ),
     params=WorldParams,
     run=run,
+    check=check,
     source_dir=Path(__file__).parent,
     shared_params=("mesh_max_vertices",),
 )

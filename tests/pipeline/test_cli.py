@@ -58,7 +58,8 @@ def assert_store_whole(build: Path) -> None:
 
 
 def test_bake_caches_and_reruns_only_what_changed(project):
-    assert set(plan_json(project).values()) == {"will run"}
+    plan = plan_json(project)  # a key hashes its inputs' content: known once they are made
+    assert plan["heightmap"] == "will run" and set(plan.values()) == {"will run", "after inputs"}
     first = bake_json(project)
     stages = set(first)
     assert {"heightmap", "world"} <= stages and {v["status"] for v in first.values()} == {"ran"}
@@ -73,10 +74,12 @@ def test_bake_caches_and_reruns_only_what_changed(project):
     assert {s: v["status"] for s, v in bake_json(project, *world_change).items()} == \
         {s: "ran" if s == "world" else "cached" for s in stages}
 
-    # everything downstream of the heightmap re-runs: here, every stage
+    # everything downstream of the heightmap re-runs but the plants: the
+    # same species are placed, so their input's content is the same (early cutoff)
     hm_change = ["--set", "heightmap.relief_m=1234.0"]
-    assert plan_json(project, *hm_change) == expect(stages)
-    assert {v["status"] for v in bake_json(project, *hm_change).values()} == {"ran"}
+    assert plan_json(project, *hm_change) == {s: "will run" if s == "heightmap" else "after inputs" for s in stages}
+    statuses = {s: v["status"] for s, v in bake_json(project, *hm_change).items()}
+    assert statuses == {s: "cached" if s == "plants" else "ran" for s in stages}
 
     world = project / "build" / "worlds" / "default" / "world.usda"
     assert usdio.validate(world) == []
@@ -271,7 +274,7 @@ def test_with_only_heightmap_and_world_a_heightmap_change_reruns_just_those(proj
             "--set", "vegetation.enabled=false", "--set", "plants.enabled=false"]
     first = bake_json(project, *only)
     assert set(first) == {"heightmap", "world"}
-    assert plan_json(project, *only, "--set", "heightmap.octaves=6") == {"heightmap": "will run", "world": "will run"}
+    assert plan_json(project, *only, "--set", "heightmap.octaves=6") == {"heightmap": "will run", "world": "after inputs"}
     assert plan_json(project, *only, "--set", "world.roughness=0.2") == {"heightmap": "cached", "world": "will run"}
     assert usdio.validate(project / "build" / "worlds" / "default" / "world.usda") == []
 
@@ -282,3 +285,27 @@ def test_unknown_opencl_device_is_a_clear_error(project):
                           env={**os.environ, "WORLDBAKE_CL_DEVICE": "no-such-gpu"})
     assert proc.returncode == 3 and "WORLDBAKE_CL_DEVICE='no-such-gpu' matches no device" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_two_worlds_placing_the_same_species_share_the_plant_meshes(project):
+    """Early cutoff: world b differs from a in vegetation params only, and
+    places the same species with the same plant params: the plants stage
+    reads only which species were placed, so b's bake builds no plant mesh."""
+    (project / "configs" / "a.toml").write_text('extends = "default.toml"\nname = "a"\n')
+    (project / "configs" / "b.toml").write_text('extends = "default.toml"\nname = "b"\n[vegetation]\nlatitude_deg = 20.0\n')
+    small = [*SMALL[:-1], 'plants.build=["grass", "shrub"]']
+    a = worldbake(project, "bake", "configs/a.toml", *small, "--json")
+    plan = worldbake(project, "plan", "configs/b.toml", *small, "--json")
+    b = worldbake(project, "bake", "configs/b.toml", *small, "--json")
+    steps_a = {s["stage"]: s for s in json.loads(a.stdout)[0]["steps"]}
+    steps_b = {s["stage"]: s for s in json.loads(b.stdout)[0]["steps"]}
+    planned_b = {s["stage"]: s["status"] for s in json.loads(plan.stdout)[0]["steps"]}
+    assert planned_b["vegetation"] == "will run" and planned_b["plants"] == "after inputs"
+    assert steps_b["vegetation"]["status"] == "ran" and steps_b["vegetation"]["key"] != steps_a["vegetation"]["key"]
+    assert steps_b["plants"]["status"] == "cached" and steps_b["plants"]["key"] == steps_a["plants"]["key"]
+    # and `plan` now says so
+    again = {s["stage"]: s["status"] for s in json.loads(worldbake(project, "plan", "configs/b.toml", *small,
+                                                                   "--json").stdout)[0]["steps"]}
+    assert set(again.values()) == {"cached"}
+    for world in ("a", "b"):
+        assert usdio.validate(project / "build" / "worlds" / world / "world.usda") == []

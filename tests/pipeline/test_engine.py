@@ -13,7 +13,7 @@ from pipeline.config import load_config
 from pipeline.contract import Artifact, Input, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.graph import GraphError, build_graph
-from pipeline.store import Store
+from pipeline.store import Store, StoreBusy
 
 from . import toy_stages
 from .toy_stages import TOY
@@ -41,6 +41,12 @@ def do_bake(project, path, **kw):
     store = Store(project / "build")
     reports = bake_worlds(store, [config], build_graph(TOY), log=open("/dev/null", "w"))[config.name]
     return {r.stage: r.status for r in reports}, store, config
+
+
+def baked_keys(project, path, **kw) -> dict[str, str]:
+    config = load(project, path, **kw)
+    reports = bake_worlds(Store(project / "build"), [config], build_graph(TOY), log=open("/dev/null", "w"))[config.name]
+    return {r.stage: r.key for r in reports}
 
 
 BASE = 'name = "w"\nseed = 3\noutputs = ["assemble"]\n[source]\nsize = 8\n'
@@ -77,23 +83,42 @@ def test_second_bake_runs_nothing_and_changes_rerun_only_downstream(project):
 def test_keys_are_stable_and_depend_on_what_matters(project):
     path = write(project, BASE)
     graph = build_graph(TOY)
-    k1 = [p.key for p in plan_bake(graph, load(project, path))]
-    assert k1 == [p.key for p in plan_bake(graph, load(project, path))]
-    k2 = [p.key for p in plan_bake(graph, load(project, path, sets=["shift.amount_m=1.5"]))]
-    assert k2[0] == k1[0] and k2[1] != k1[1] and k2[2] != k1[2]
+    r1 = [p.recipe for p in plan_bake(graph, load(project, path))]
+    assert r1 == [p.recipe for p in plan_bake(graph, load(project, path))]
+    k1 = baked_keys(project, path)
+    assert k1 == baked_keys(project, path)
+    k2 = baked_keys(project, path, sets=["shift.amount_m=1.5"])
+    assert k2["source"] == k1["source"] and k2["shift"] != k1["shift"] and k2["assemble"] != k1["assemble"]
+
+
+def test_early_cutoff_an_upstream_rerun_with_the_same_bytes_reruns_nothing_downstream(project):
+    """The source adds seed % 7: seeds 3 and 10 give the same bytes under
+    two keys (the seed is in the source's key). Downstream keys hash the
+    content of their inputs, so nothing downstream re-runs."""
+    path = write(project, BASE)
+    first = baked_keys(project, path, sets=["seed=3"])
+    toy_stages.CALLS.clear()
+    second = baked_keys(project, path, sets=["seed=10"])
+    assert toy_stages.CALLS == ["source"]
+    assert second["source"] != first["source"]
+    assert second["shift"] == first["shift"] and second["assemble"] == first["assemble"]
+    # the cached shift names the first source run as its input: gc keeps it for the world
+    store = Store(project / "build")
+    assert store.gc() == []
+    assert store.has("source", first["source"]) and store.has("source", second["source"])
 
 
 def test_artifacts_manifest_provenance_and_world(project):
     status, store, config = do_bake(project, write(project, BASE))
-    for ps in plan_bake(build_graph(TOY), config):
-        folder = store.folder(ps.stage.name, ps.key)
+    keys = baked_keys(project, write(project, BASE))
+    for stage, key in keys.items():
+        folder = store.folder(stage, key)
         manifest = json.loads((folder / "manifest.json").read_text())
-        assert manifest["key"] == ps.key
+        assert manifest["key"] == key
         for f, digest in manifest["files"].items():
             assert (folder / f).is_file()
-    src = plan_bake(build_graph(TOY), config)[0]
-    attrs = exr.read_attributes(store.folder("source", src.key) / "height.exr")
-    assert attrs["worldbake:stage"] == "source" and attrs["worldbake:key"] == src.key
+    attrs = exr.read_attributes(store.folder("source", keys["source"]) / "height.exr")
+    assert attrs["worldbake:stage"] == "source" and attrs["worldbake:key"] == keys["source"]
     assert json.loads(attrs["worldbake:params"])["size"] == 8
     world = store.worlds / "w"
     assert usdio.validate(world / "world.usda") == []
@@ -122,6 +147,41 @@ def test_non_finite_output_is_refused(project):
     assert not (project / "build" / "artifacts" / "source").exists()
 
 
+@pytest.mark.parametrize("mode, message", [
+    ("extra_file", r"source: wrote files no output declares: \['notes.txt'\]"),
+    ("extra_channel", r"source.height has channels \['height2'\] that are not declared"),
+])
+def test_undeclared_files_and_channels_are_refused(project, mode, message):
+    with pytest.raises(StageError, match=message):
+        do_bake(project, write(project, BASE + f'mode = "{mode}"\n'))
+    assert not (project / "build" / "artifacts" / "source").exists()
+
+
+def test_channel_patterns_and_units():
+    art = Artifact("v.maps", "grid", "maps.exr", units="1, 1/ha, 1, 1, 1",
+                   channels=("suitability.{plant}", "density.{plant}", "yield.{plant}",
+                             "suitability.{grass}", "density.{grass}"))
+    good = ("suitability.oak", "density.oak", "yield.oak", "suitability.meadow", "density.meadow")
+    assert art.channel_sets(good) is None
+    assert art.channel_units(good)["density.oak"] == "1/ha" and art.channel_units(good)["density.meadow"] == "1"
+    assert "not declared" in art.channel_sets(("suitability.oak",))  # an incomplete set
+    assert "not declared" in art.channel_sets(good + ("height",))
+    fixed = Artifact("v.h", "grid", "h.exr", channels=("height", "water"), units="m")
+    assert "misses" in fixed.channel_sets(("height",))
+
+
+def test_graph_compares_what_consumers_read_with_what_producers_write():
+    src = _stage("a", outputs=(Artifact("a.h", "grid", "h.exr", channels=("height",), units="m"),))
+    for inp, message in ((Input("t", ("a.h",), channels=("depth",)), "reads channel 'depth'"),
+                         (Input("t", ("a.h",), channels=("height",), units="ft"), "expects 'height' in 'ft'")):
+        with pytest.raises(GraphError, match=message):
+            build_graph({"a": src, "b": _stage("b", inputs=(inp,))})
+    build_graph({"a": src, "b": _stage("b", inputs=(Input("t", ("a.h",), channels=("height",), units="m"),))})
+    same_shape = Artifact("a.m", "grid", "m.exr", channels=("d.{x}", "d.{y}"), units="1, m")
+    with pytest.raises(GraphError, match="ambiguous"):
+        build_graph({"a": _stage("a", outputs=(same_shape,))})
+
+
 def test_gc_keeps_referenced_artifacts(project):
     path = write(project, BASE)
     do_bake(project, path)
@@ -130,6 +190,41 @@ def test_gc_keeps_referenced_artifacts(project):
     assert len(list((store.artifacts / "assemble").iterdir())) == 2
     removed = store.gc()
     assert len(removed) == 1 and len(list((store.artifacts / "assemble").iterdir())) == 1
+
+
+def test_gc_refuses_or_waits_while_a_bake_holds_the_store(project):
+    path = write(project, BASE)
+    do_bake(project, path)
+    do_bake(project, path, sets=["assemble.label=two"])  # the first assemble is now unreferenced
+    store = Store(project / "build")
+    with store.baking():
+        with pytest.raises(StoreBusy):
+            store.gc(wait=False)
+        assert len(list((store.artifacts / "assemble").iterdir())) == 2
+    assert len(store.gc(wait=False)) == 1
+
+
+def test_gc_during_a_bake_leaves_the_bakes_result_intact(project, monkeypatch):
+    """The bake stops in its last stage, when its first stages' artifacts
+    exist but no world names them yet; gc starts then and must wait."""
+    import threading
+
+    running, release = threading.Event(), threading.Event()
+    monkeypatch.setitem(toy_stages.HOOKS, "assemble", lambda: (running.set(), release.wait(60)))
+    path = write(project, BASE)
+    bake = threading.Thread(target=do_bake, args=(project, path))
+    bake.start()
+    assert running.wait(60)
+    removed: list = []
+    gc = threading.Thread(target=lambda: removed.extend(Store(project / "build").gc()))
+    gc.start()
+    release.set()
+    bake.join(60)
+    gc.join(60)
+    assert removed == []
+    store = Store(project / "build")
+    for entry in json.loads((store.worlds / "w" / "manifest.json").read_text())["artifacts"]:
+        assert store.has(entry["stage"], entry["key"])
 
 
 def test_stale_tmp_from_a_dead_run_is_removed(project):
@@ -196,9 +291,9 @@ def test_extends_cycle(project):
 def test_project_path_content_is_in_the_key(project):
     (project / "data.bin").write_bytes(b"abc")
     path = write(project, BASE + 'data = "data.bin"\n')
-    k1 = plan_bake(build_graph(TOY), load(project, path))[0].key
+    k1 = plan_bake(build_graph(TOY), load(project, path))[0].recipe
     (project / "data.bin").write_bytes(b"abcd")
-    assert plan_bake(build_graph(TOY), load(project, path))[0].key != k1
+    assert plan_bake(build_graph(TOY), load(project, path))[0].recipe != k1
 
 
 # ----------------------------------------------------------------- graph validation

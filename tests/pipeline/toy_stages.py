@@ -12,12 +12,13 @@ from pipeline.grid import Grid
 
 HERE = Path(__file__).parent
 CALLS: list[str] = []  # which stages actually ran, in order
+HOOKS: dict = {}  # stage name -> a function called when it starts (tests of concurrency)
 
 
 class SourceParams(Params):
     size: int = Param(8, ge=2, le=64, units="cells", description="cells per side")
     level_m: float = Param(1.0, ge=-100.0, le=100.0, units="m", description="base level")
-    mode: Literal["ramp", "flat", "nan"] = Param("ramp", description="what to generate")
+    mode: Literal["ramp", "flat", "nan", "extra_file", "extra_channel"] = Param("ramp", description="what to generate")
     data: ProjectPath | None = Param(None, description="optional file whose bytes are added")
 
 
@@ -31,6 +32,10 @@ def run_source(ctx, inputs, params):
     if params.data:
         h += len(ctx.resolve(params.data).read_bytes())
     h += ctx.seed % 7
+    if params.mode == "extra_file":
+        (ctx.out_dir / "notes.txt").write_text("not declared")
+    if params.mode == "extra_channel":
+        return {"source.height": Grid(np.stack([h, h], -1), 10.0, ("height", "height2"))}
     return {"source.height": Grid(h, 10.0)}
 
 
@@ -42,8 +47,8 @@ class ShiftParams(Params):
 def run_shift(ctx, inputs, params):
     CALLS.append("shift")
     g = inputs["terrain"]
-    (ctx.out_dir / "scratch.txt").write_text("half")
     if params.fail_after_write:
+        (ctx.out_dir / "scratch.txt").write_text("half")
         raise RuntimeError("boom")
     return {"shift.height": Grid(g.data + np.float32(params.amount_m), g.cell_size_m)}
 
@@ -54,6 +59,8 @@ class AssembleParams(Params):
 
 def run_assemble(ctx, inputs, params):
     CALLS.append("assemble")
+    if "assemble" in HOOKS:
+        HOOKS["assemble"]()
     stage, _ = usdio.create_stage(ctx.path("assemble.root"), ctx.provenance)
     stage.GetRootLayer().Save()
     return {"assemble.root": ctx.path("assemble.root"),

@@ -4,7 +4,7 @@ import OpenImageIO as oiio
 import pytest
 
 from pipeline.errors import InputError
-from stages.heightmap import dem
+from pipeline import dem
 from stages.heightmap.stage import HeightmapParams, heights
 
 

@@ -15,7 +15,7 @@ from pipeline.contract import Params, RunContext, Stage
 from pipeline.grid import Grid
 from stages.vegetation import STAGE, VegetationParams
 from stages.vegetation import placement as pl
-from stages.world.terrain_mesh import build_terrain_mesh, height_on_mesh
+from pipeline.terrain_mesh import build_terrain_mesh, height_on_mesh
 
 from .conftest import synthetic_height
 
@@ -29,7 +29,8 @@ def test_contract():
     assert STAGE.uses_seed and STAGE.uses_opencl and "mesh_max_vertices" in STAGE.shared_params
     roles = {i.role: i for i in STAGE.inputs}
     assert roles["terrain"].one_of == ("erosion.height", "heightmap.height") and not roles["terrain"].optional
-    assert all(roles[r].optional for r in ("moisture", "lakes", "rivers", "erosion_moisture"))
+    assert all(roles[r].optional for r in ("moisture", "lakes", "rivers"))
+    assert roles["moisture"].one_of == ("hydrology.moisture", "erosion.moisture")
     s = STAGE.output("vegetation.splat")
     assert s.channels == ("splat.rock", "splat.scree", "splat.grass", "splat.dry_grass", "splat.mud", "splat.snow")
     assert STAGE.output("vegetation.instances").kind == "usd"
@@ -156,7 +157,7 @@ def test_outputs_and_maps(baked):
     assert w.min() >= 0 and w.max() <= 1 and np.abs(w.sum(-1) - 1).max() <= 1e-6
     gd = out["vegetation.grass"].channel("grass.density")
     assert gd.min() >= 0 and gd.max() <= 1
-    maps = exr.read_grid(ctx.out_dir / "species.exr")
+    maps = out["vegetation.species_maps"]
     assert set(out["vegetation.species"]["maps"]["channels"]) == set(maps.channels)
     assert out["vegetation.preview"].dtype == np.uint8 and out["vegetation.preview"].shape == (N, N, 3)
     json.dumps(out["vegetation.stats"], default=float)
@@ -238,7 +239,7 @@ def test_instances_on_the_mesh_and_where_they_may_grow(baked):
     mesh = build_terrain_mesh(terrain, params.mesh_max_vertices)
     dom = pl.Domain(N, N, DX, terrain.origin_m)
     attrs = out["vegetation.attributes"]
-    maps = exr.read_grid(ctx.out_dir / "species.exr")
+    maps = out["vegetation.species_maps"]
     water = (world_inputs()["lakes"].channel("lake.depth") > 0) | (world_inputs()["rivers"].channel("river.mask") > 0.5)
     found = collect(out["vegetation.instances"])
     h = terrain.data
@@ -261,7 +262,7 @@ def test_density_and_distances(baked):
     out, ctx, params = baked
     terrain = world_inputs()["terrain"]
     dom = pl.Domain(N, N, DX, terrain.origin_m)
-    maps = exr.read_grid(ctx.out_dir / "species.exr")
+    maps = out["vegetation.species_maps"]
     found = collect(out["vegetation.instances"])
     judged = 0
     pts = {}

@@ -8,7 +8,7 @@ from pipeline import exr, usdio
 from pipeline.contract import RunContext
 from pipeline.grid import Grid
 from stages.world import STAGE
-from stages.world.terrain_mesh import build_terrain_mesh, height_on_mesh
+from pipeline.terrain_mesh import build_terrain_mesh, height_on_mesh
 
 
 def _terrain(rows=33, cols=40, cell=25.0):

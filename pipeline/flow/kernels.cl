@@ -1,12 +1,11 @@
-// Hydrology kernels. Grids are row-major, row 0 north. Cell kinds:
+// Flow routing kernels. Grids are row-major, row 0 north. Cell kinds:
 //   0 interior data cell, 1 edge cell (map border or 8-adjacent to no-data: a
 //   Priority-Flood seed and an outlet), 2 no-data.
 // D8 codes follow pysheds' neighbour order N, NE, E, SE, S, SW, W, NW (0..7);
 // -1 outlet (edge cell), -2 no-data, -3 pit/flat (no strictly lower neighbour).
 // Every result is exact: min/max on floats, integer sums. No atomics.
 
-__constant int DR[8] = {-1, -1, 0, 1, 1, 1, 0, -1};
-__constant int DC[8] = {0, 1, 1, 1, 0, -1, -1, -1};
+#include "worldbake_d8.h"
 
 #ifndef ACC_T
 #define ACC_T uint
@@ -448,8 +447,8 @@ __kernel void breach_serial(__global float* z, __global const uchar* kind, __glo
     }
 }
 
-// ---- The lakes' merge tree: union-find sweep, serial (one work-item) ----
-// lakes.merge_tree_reference step for step: cells in increasing (height,
+// ---- The depressions' merge tree: union-find sweep, serial (one work-item) ----
+// reference.merge_tree_reference step for step: cells in increasing (height,
 // index); each joins the components of its already swept 8-neighbours (it is
 // an interior cell, so every neighbour is on the map), which merge pairwise
 // in node order at its height. Path compression as in the reference, so the

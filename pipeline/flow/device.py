@@ -33,16 +33,11 @@ def _env():
 
 
 def _buf(a: np.ndarray, write: bool = False):
-    import pyopencl as cl
+    from pipeline.clhost import Buffers
 
-    env = _env()
-    mf = cl.mem_flags
-    a = np.ascontiguousarray(a)
-    if write:
-        return cl.Buffer(env.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=a)
     # read-only inputs are used in place (no copy on a CPU device); the
     # buffer keeps a reference to the array, which nobody writes meanwhile
-    return cl.Buffer(env.ctx, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=a)
+    return Buffers().arr(a, write=write, in_place=not write)
 
 
 def _ceil(n: int, local: int | None) -> tuple[int, ...]:
@@ -130,11 +125,9 @@ def breach(h: np.ndarray, kind: np.ndarray) -> np.ndarray:
 
 
 def merge_sweep(cells: np.ndarray, h: np.ndarray, term: np.ndarray, cols: int):
-    """The lakes' union-find sweep (lakes.merge_tree_reference, node for
-    node) as one serial work-item: about 40x the Python loop."""
+    """The depressions' union-find sweep (reference.merge_tree_reference,
+    node for node) as one serial work-item: about 40x the Python loop."""
     import pyopencl as cl
-
-    from .lakes import MergeTree
 
     env = _env()
     prg = _program()
@@ -163,7 +156,7 @@ def merge_sweep(cells: np.ndarray, h: np.ndarray, term: np.ndarray, cols: int):
     cl.enqueue_copy(env.queue, cn, cell_node)
     parent, child_a, child_b, birth, entry_a, entry_b = out
     i64 = np.int64
-    return MergeTree(parent.astype(i64), child_a.astype(i64), child_b.astype(i64), birth.astype(np.float64),
+    return ref.MergeTree(parent.astype(i64), child_a.astype(i64), child_b.astype(i64), birth.astype(np.float64),
                      entry_a.astype(i64), entry_b.astype(i64), cn.astype(i64))
 
 

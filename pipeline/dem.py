@@ -23,6 +23,10 @@ import numpy as np
 from pipeline.errors import InputError
 
 _ROW_CHUNK = 256  # output rows per resampling step (bounds temporary memory)
+# The most pixels an input raster may declare: 16384^2 (2 GiB as float64).
+# Checked from the header, before a byte of pixels is read: a small
+# compressed file can declare a huge image.
+MAX_PIXELS = 16384 * 16384
 
 
 def read_dem(path: str | Path, dem_min_m: float | None = None, dem_max_m: float | None = None,
@@ -41,6 +45,9 @@ def read_dem(path: str | Path, dem_min_m: float | None = None, dem_max_m: float 
         spec = inp.spec()
         if spec.width < 1 or spec.height < 1 or spec.nchannels < 1:
             raise InputError(f"{label} {path} is empty ({spec.width}x{spec.height}, {spec.nchannels} channels)")
+        if spec.width * spec.height > MAX_PIXELS:
+            raise InputError(f"{label} {path} declares {spec.width}x{spec.height} pixels, more than the "
+                             f"{MAX_PIXELS:,} an input raster may have (16384^2); downsample it first")
         raw = inp.read_image(0, 0, 0, 1, spec.format)  # first channel, in the file's own pixel type
         if raw is None or inp.has_error:
             raise InputError(f"{label} {path} is corrupt: {inp.geterror() or oiio.geterror() or 'read failed'}")

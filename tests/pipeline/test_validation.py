@@ -1,0 +1,169 @@
+"""Bad input is refused before any work: exit 2, one message naming the file
+and the key, nothing written. Each case a new user tried (issue 21) is kept
+here; `worldbake` runs in-process on a copy of configs/."""
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import main
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture
+def project(tmp_path):
+    shutil.copytree(REPO / "configs", tmp_path / "configs")
+    return tmp_path
+
+
+def refused(project: Path, capsys, *args: str, config: str = "configs/bad.toml") -> str:
+    """Run `worldbake bake`; assert exit 2, one line on stderr, nothing written."""
+    status = main(["--project", str(project), "bake", str(project / config) if not Path(config).is_absolute()
+                   else config, *args])
+    err = capsys.readouterr().err
+    assert status == 2, err
+    assert len(err.strip().splitlines()) == 1, err
+    assert not (project / "build").exists()
+    return err
+
+
+def bad(project: Path, text: str, name: str = "bad.toml") -> None:
+    (project / "configs" / name).write_bytes(text.encode() if isinstance(text, str) else text)
+
+
+@pytest.mark.parametrize("text, pattern", [
+    ('extends = "default.toml"\nname = "../up"\n', r"bad.toml: name: must be .*got '../up'"),
+    ('extends = "default.toml"\nname = "a/b"\n', r"bad.toml: name: must be"),
+    ('extends = "default.toml"\nname = "' + "x" * 300 + '"\n', r"bad.toml: name: must be 1 to 64"),
+    ('extends = "default.toml"\n[variants."../x"]\nworld.roughness = 0.5\n', r"variants.../x: must be"),
+    ('extends = "default.toml"\n[variants.' + "v" * 100 + ']\nworld.roughness = 0.5\n', r"variants.v+: must be"),
+    ('extends = "default.toml"\n[plants.species."a/b"]\npreset = "shrub"\n', r"plants.species.a/b: must be"),
+    ('extends = "default.toml"\n[world]\nroughness = nan\n', r"bad.toml: world.roughness: must be a finite number"),
+    ('extends = "default.toml"\n[heightmap]\nsize_m = inf\n', r"bad.toml: heightmap.size_m: must be a finite number"),
+    ('extends = "default.toml"\n[variants.v]\nworld.bogus = 1\n', r"world.bogus: unknown key"),
+    ('extends = "default.toml"\n[variants.v]\nworld.roughness = 7.0\n', r"\[variants.v\]: world.roughness"),
+    ("x = " + "[" * 50000 + "]" * 50000 + "\n", r"bad.toml: (not valid TOML|x: tables nested)"),
+    ("[" + ".".join(["a"] * 40) + "]\n", r"bad.toml: a(\.a)*: tables nested more than 16 deep"),
+])
+def test_bad_config_is_refused_before_work(project, capsys, text, pattern):
+    bad(project, text)
+    err = refused(project, capsys)
+    assert re.search(pattern, err), err
+
+
+def test_variants_are_checked_when_the_base_world_is_baked(project, capsys):
+    bad(project, 'extends = "default.toml"\n[variants.v]\nheightmap.no_such = 1\n')
+    assert "heightmap.no_such: unknown key" in refused(project, capsys)
+
+
+@pytest.mark.parametrize("assignment", ['extends="default.toml"', "variants.x.world.roughness=0.5"])
+def test_set_cannot_change_extends_or_variants(project, capsys, assignment):
+    err = refused(project, capsys, "--set", assignment, config="configs/default.toml")
+    assert re.search(r"--set .*cannot be set from the command line", err), err
+
+
+def test_config_outside_the_project_is_refused(project, tmp_path_factory, capsys):
+    outside = tmp_path_factory.mktemp("elsewhere") / "w.toml"
+    outside.write_text((project / "configs" / "default.toml").read_text())
+    assert "outside the project" in refused(project, capsys, config=str(outside))
+    (project / "configs" / "link.toml").symlink_to(outside)
+    assert "outside the project" in refused(project, capsys, config="configs/link.toml")
+
+
+def test_a_utf8_byte_order_mark_is_accepted(project, capsys):
+    bad(project, b"\xef\xbb\xbf" + b'extends = "default.toml"\nname = "bom"\n', "bom.toml")
+    status = main(["--project", str(project), "plan", str(project / "configs" / "bom.toml")])
+    assert status == 0, capsys.readouterr().err
+    assert "world bom:" in capsys.readouterr().out
+
+
+BAD_SPECIES = '''extends = "default.toml"
+[plants]
+build = ["grass", "bad"]
+[plants.species.bad]
+preset = "shrub"
+[plants.species.bad.lsystem]
+axiom = "S(1)"
+iterations = 3
+[[plants.species.bad.lsystem.rules]]
+pred = "S(s)"
+succ = "F(s) S(SUCC)"
+'''
+
+
+@pytest.mark.parametrize("succ, pattern", [
+    ("s/(s-1)", r"float division by zero \(with s = 1.0\)"),
+    ("exp(s*1000)", r"math range error"),
+    ("s*1e300*1e300", r"gives inf, not a finite number"),
+    ("s+", r"cannot parse expression 's\+'"),
+    ("q", r"unknown name 'q'"),
+])
+def test_lsystem_rules_are_evaluated_before_work(project, capsys, succ, pattern):
+    bad(project, BAD_SPECIES.replace("SUCC", succ))
+    err = refused(project, capsys)
+    assert re.search(r"bad.toml: plants.species.bad.lsystem: species 'bad', lsystem.rules\[0\] \(S\(s\) -> ", err), err
+    assert re.search(pattern, err), err
+
+
+def test_nan_tropism_is_refused_naming_the_key(project, capsys):
+    bad(project, 'extends = "default.toml"\n[plants.species.shrub]\npreset = "shrub"\n'
+                 '[plants.species.shrub.lsystem]\ntropism_strength = nan\n')
+    assert "plants.species.shrub.lsystem.tropism_strength: must be a finite number" in refused(project, capsys)
+
+
+def _raster(path: Path, data) -> None:
+    import numpy as np
+
+    from pipeline import exr
+    from pipeline.grid import Grid
+    exr.write_grid(path, Grid(np.asarray(data, np.float32), 1.0))
+
+
+def test_dem_is_opened_and_checked_at_validation_naming_the_key(project, capsys):
+    import numpy as np
+    dem = np.full((16, 16), 100.0)
+    dem[3, 4] = np.nan
+    _raster(project / "dem.exr", dem)
+    bad(project, 'extends = "default.toml"\n[heightmap]\ngenerator = "dem"\ndem_path = "dem.exr"\n')
+    err = refused(project, capsys)
+    assert re.search(r"bad.toml: heightmap.dem_path: DEM file .*dem.exr contains 1 NaN .* row 3, column 4", err), err
+
+
+def test_a_raster_declaring_too_many_pixels_is_refused_before_reading(project, capsys, monkeypatch):
+    import numpy as np
+
+    from pipeline import dem
+    monkeypatch.setattr(dem, "MAX_PIXELS", 100)  # a 16x16 file stands for a 32768^2 one
+    _raster(project / "dem.exr", np.zeros((16, 16)))
+    bad(project, 'extends = "default.toml"\n[heightmap]\ngenerator = "dem"\ndem_path = "dem.exr"\n')
+    assert re.search(r"heightmap.dem_path: DEM file .* declares 16x16 pixels, more than the 100", refused(project, capsys))
+
+
+@pytest.mark.parametrize("value, pattern", [(-1.0, r"has negative rain"), (float("nan"), r"contains 1 NaN")])
+def test_rain_map_is_checked_at_validation_naming_the_key(project, capsys, value, pattern):
+    import numpy as np
+    rain = np.full((8, 8), 800.0)
+    rain[2, 2] = value
+    _raster(project / "rain.exr", rain)
+    bad(project, 'extends = "default.toml"\n[hydrology]\nrain_map_path = "rain.exr"\n')
+    err = refused(project, capsys)
+    assert re.search(r"bad.toml: hydrology.rain_map_path: rain map .*rain.exr " + pattern, err), err
+
+
+@pytest.mark.parametrize("assignment, pattern", [
+    ("heightmap.resolution=16384", r"the run would hold about [\d.]+ GiB \(the terrain's 268,435,456 cells"),
+    ("world.texture_size=16384", r"--set: world: the run would hold about 64.0 GiB \(world.texture_size = 16384"),
+    ("heightmap.size_m=1000000", r"vegetation: the run would hold about [\d.]+ GiB .*15,625,000,000 simulation cells"),
+    ("vegetation.sim_cell_m=0.01", r"vegetation: the run would hold .*vegetation.sim_cell_m = 0.01"),
+    ("vegetation.horizon_step_growth=1.0001", r"--set: vegetation.horizon_step_growth: 1.0001 takes 52,341 samples"),
+    ("erosion.geological_years=1e9", r"erosion: geological_years = 1e\+09 .* is 1e\+05 steps"),
+    ("erosion.dt_s=100", r"erosion: dt_s = 100 s breaks the CFL limit"),
+])
+def test_runs_too_large_are_refused_with_the_estimate(project, capsys, monkeypatch, assignment, pattern):
+    monkeypatch.setenv("WORLDBAKE_MAX_MEMORY_GB", "16")  # the same answer on any machine
+    err = refused(project, capsys, "--set", assignment, config="configs/default.toml")
+    assert re.search(pattern, err), err
