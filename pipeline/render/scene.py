@@ -33,6 +33,7 @@ class Camera:
     up: tuple[float, float, float] = (0.0, 1.0, 0.0)
     ortho_height_m: float = 0.0
     fov_y_deg: float = 40.0
+    ortho_width_m: float = 0.0  # 0: the image's aspect; else texels are stretched (a card's texture)
 
     @property
     def orthographic(self) -> bool:
@@ -52,7 +53,7 @@ class Camera:
         u = np.cross(r, f)
         aspect = width / height
         half_h = 0.5 * self.ortho_height_m if self.orthographic else math.tan(math.radians(0.5 * self.fov_y_deg))
-        half_w = half_h * aspect
+        half_w = 0.5 * self.ortho_width_m if self.orthographic and self.ortho_width_m > 0 else half_h * aspect
         rec = np.zeros(16, np.float32)
         rec[0:3], rec[3:6], rec[6:9], rec[9:12] = self.eye, f, r * half_w, u * half_h
         rec[12] = 1.0 if self.orthographic else 0.0

@@ -110,7 +110,8 @@ def test_same_seed_same_bytes_other_seed_other_plant(tmp_path, small_run):
     out3, _ = run_stage(tmp_path / "b", SMALL, seed=2)
 
     def digests(top):
-        return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(top.parent.iterdir())}
+        return {p.relative_to(top.parent).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+                for p in sorted(top.parent.rglob("*")) if p.is_file()}
 
     d1, d2, d3 = digests(out1["plants.assets"]), digests(out2["plants.assets"]), digests(out3["plants.assets"])
     assert d1 == d2
