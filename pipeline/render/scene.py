@@ -160,11 +160,14 @@ class Image:
     ao: np.ndarray
 
     def shaded(self, sun=(0.4, 0.8, 0.45), sky: float = 0.45, background=(0.55, 0.65, 0.8)) -> np.ndarray:
-        """A display picture (linear RGB): albedo x (sun Lambert + sky x AO) over a background."""
+        """A display picture (linear RGB): albedo x (sun Lambert, a third of it
+        through surfaces facing away, as thin leaves pass light, + sky x AO)
+        over a background."""
         s = np.asarray(sun, np.float32)
         s /= np.linalg.norm(s)
         n = self.normal / np.maximum(np.linalg.norm(self.normal, axis=2, keepdims=True), 1e-6)
-        lam = np.clip(n @ s, 0.0, 1.0)
+        cos = n @ s
+        lam = np.clip(cos, 0.0, 1.0) + 0.33 * np.clip(-cos, 0.0, 1.0)
         light = (1.1 * lam + sky * self.ao)[..., None]
         bg = np.asarray(background, np.float32)[None, None, :]
         return self.albedo * light + (1.0 - self.alpha[..., None]) * bg

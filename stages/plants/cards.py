@@ -149,7 +149,7 @@ def bake(spec, seed: int, size: int = 256) -> CardBake:
     # the card is the cluster's bounding rectangle; its square texture stretches to fit
     cam = Camera((float(centre[0]), float(centre[1]), zmax), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0),
                  ortho_height_m=float(span[1]), ortho_width_m=float(span[0]))
-    img = render(scene, cam, Settings(size, size, samples=4, ao_rays=8, ao_radius_m=0.15 * float(span.max()),
+    img = render(scene, cam, Settings(size, size, samples=4, ao_rays=4, ao_radius_m=0.15 * float(span.max()),
                                       seed=seed & 0xFFFFFFFF))
     alpha = img.alpha
     straight = img.albedo / np.maximum(alpha, 1e-6)[..., None]

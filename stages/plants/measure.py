@@ -125,7 +125,7 @@ def _inside_hull(mask: np.ndarray) -> np.ndarray:
 
 
 def crown_opacity(parts: dict[str, Part], spec, card_rgba: np.ndarray | None, azimuths: int = 8,
-                  size: int = 160) -> dict:
+                  size: int = 128) -> dict:
     """Crown opacity from the side (module docstring) and its value per azimuth."""
     pts = np.concatenate([p.verts[:, 0:3] for p in parts.values() if p.n_tris]).astype(np.float64)
     full = plant_scene(parts, spec, card_rgba, None)
@@ -134,9 +134,10 @@ def crown_opacity(parts: dict[str, Part], spec, card_rgba: np.ndarray | None, az
         return {"mean": 0.0, "per_azimuth": [0.0] * azimuths}
     pf, pl = Prepared(full), Prepared(foliage)
     s = Settings(size, size, samples=2)
+    s_hull = Settings(size, size, samples=1)  # the hull needs only which pixels the crown reaches
     values = []
     for cam in side_cameras(pts, azimuths):
-        crown = pl.render(cam, s).alpha >= 0.5
+        crown = pl.render(cam, s_hull).alpha >= 0.5
         hull = _inside_hull(crown)
         covered = pf.render(cam, s).alpha >= 0.5
         values.append(float((covered & hull).sum() / max(hull.sum(), 1)))

@@ -34,7 +34,8 @@ Colour = pydantic.conlist(pydantic.confloat(ge=0.0, le=1.0), min_length=3, max_l
 
 
 class Spec(pydantic.BaseModel):
-    model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
+    # NaN and Inf are refused in every number of a species (TOML can write them: nan, inf)
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Rule(Spec):
@@ -70,6 +71,13 @@ class LSystemSpec(Spec):
     length_ratio: float = Param(0.9, units="", description="' multiplies the length by this, \" divides", gt=0.0, le=10.0)
     width_ratio: float = Param(0.7, units="", description="! multiplies the radius by this, ? divides", gt=0.0, le=10.0)
     angle_ratio: float = Param(0.9, units="", description=": multiplies the angle by this, ; divides", gt=0.0, le=10.0)
+
+    @pydantic.field_validator("axiom")
+    @classmethod
+    def _axiom_not_empty(cls, v: str) -> str:
+        if not v.strip():
+            raise ValueError("the axiom is empty: an L-system needs at least one module to start from")
+        return v
 
     @pydantic.field_validator("rules", mode="before")
     @classmethod
