@@ -41,15 +41,15 @@ def _resized(img: np.ndarray, size: int) -> np.ndarray:
 
 def load_species(usdc: Path, size: int = 256):
     """Per LOD a render Scene of the asset (texture 0: foliage cards, 1: bark,
-    2: blades; untextured meshes in their displayColor)."""
+    2: blades, 3: grass slices; untextured meshes in their displayColor)."""
     from pxr import Usd, UsdGeom, UsdShade
 
     from pipeline.render import Scene
 
     stage = Usd.Stage.Open(str(usdc))
     root = stage.GetDefaultPrim()
-    stack = np.ones((3, size, size, 4), np.float32)
-    slot = {"FoliageCards": 0, "Bark": 1, "Blades": 2}
+    stack = np.ones((4, size, size, 4), np.float32)
+    slot = {"FoliageCards": 0, "Bark": 1, "Blades": 2, "GrassSlices": 3}
     for look, k in slot.items():
         tex = stage.GetPrimAtPath(root.GetPath().AppendPath(f"Looks/{look}/AlbedoTexture"))
         if tex:

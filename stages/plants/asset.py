@@ -9,7 +9,8 @@
     /<species>/Looks/Bark, /Looks/FoliageCards, /Looks/Blades: UsdPreviewSurface
       reading textures/ (UsdUVTexture: albedo PNG sRGB, its alpha as opacity
       with opacityThreshold 0.5 on cards, tangent-space normal EXR raw);
-      /Looks/Foliage reads primvars:displayColor (grass slice tufts, untextured species);
+      /Looks/GrassSlices: the slice tuft's atlas (cards.bake_grass_slices);
+      /Looks/Foliage reads primvars:displayColor (untextured species);
     every mesh: subdivisionScheme none, normals (primvars:normals), primvars:st,
       extent, and the wind primvars (vertex interpolation):
         primvars:wind:branchWeight  bend weight, 0 at the root of the plant, 1 at the outermost tips
@@ -192,7 +193,9 @@ def write_species(path: Path, name: str, spec, lods: list[dict[str, Part]], lod_
                if "foliage" in looks else plain)
     blades = (_textured_material(stage, f"/{name}/Looks/Blades", looks["blades"], spec.roughness)
               if "blades" in looks else plain)
-    material_of = {"Leaves": foliage, "Blades": blades, "Cards": plain}
+    slices = (_textured_material(stage, f"/{name}/Looks/GrassSlices", looks["slices"], spec.roughness)
+              if "slices" in looks else plain)
+    material_of = {"Leaves": foliage, "Blades": blades, "Cards": slices}
     vset = root.GetVariantSets().AddVariantSet("lod")
     for k, parts in enumerate(lods):
         vname = f"LOD{k}"

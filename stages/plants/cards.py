@@ -175,3 +175,44 @@ def bake(spec, seed: int, size: int = 256) -> CardBake:
                          tris)
     return CardBake(albedo.astype(np.float32), alpha.astype(np.float32), n.astype(np.float32), coverage, tmpl,
                     scene.n_triangles, leaf_tex)
+
+
+@dataclass
+class SliceBake:
+    """The atlas of seed 001's slice tuft: a 4:1 strip, one quarter per
+    vertical quad of grass.slice_cards (u in [i/4, (i+1)/4]), each the whole
+    tuft seen orthographically through that quad. The horizontal quad's uv
+    (v in [1, 2]) falls past the strip's top, where the clamped texture is
+    transparent: seen from above the tuft is its vertical quads."""
+
+    albedo: np.ndarray  # (n, 4n, 3) linear, straight alpha, dilated
+    alpha: np.ndarray  # (n, 4n)
+    normal: np.ndarray  # (n, 4n, 3) tangent space of each quad
+
+
+def bake_grass_slices(blades_scene: Scene, slice_part, size: int = 128, seed: int = 0) -> SliceBake:
+    """Render the tuft (blades_scene) through each vertical quad of the slice tuft."""
+    albedo, alpha, normal = [], [], []
+    v = slice_part.verts
+    for i in range(4):
+        q = v[4 * i: 4 * i + 4, 0:3].astype(np.float64)
+        right, up = q[1] - q[0], q[3] - q[0]
+        w, h = float(np.linalg.norm(right)), float(np.linalg.norm(up))
+        right, up = right / w, up / h
+        forward = np.cross(up, right)  # the camera's right is then the quad's u direction
+        centre = q.mean(0)
+        cam = Camera(tuple(centre - forward * (10.0 * max(w, h))), tuple(forward), tuple(up), ortho_height_m=h, ortho_width_m=w)
+        img = render(blades_scene, cam, Settings(size, size, samples=4, ao_rays=4, ao_radius_m=0.1 * h, seed=seed + i))
+        a = img.alpha
+        rgb = img.albedo / np.maximum(a, 1e-6)[..., None] * (0.6 + 0.4 * img.ao)[..., None]
+        # world normal to the quad's tangent frame (x = u, y = v, z = toward the viewer)
+        n = img.normal @ np.stack([right, up, -forward], 1)
+        n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-6)
+        n[a <= 0] = (0.0, 0.0, 1.0)
+        n[n[..., 2] < 0] *= -1.0
+        albedo.append(np.clip(rgb, 0, 1))
+        alpha.append(a)
+        normal.append(n)
+    a = np.concatenate(alpha, 1)
+    rgb = textures.dilate_colour(np.concatenate(albedo, 1), a)
+    return SliceBake(rgb.astype(np.float32), a.astype(np.float32), np.concatenate(normal, 1).astype(np.float32))

@@ -57,10 +57,13 @@ def leaf_area_index(parts: dict[str, Part], card_coverage: float | None) -> floa
 
 
 def plant_scene(parts: dict[str, Part], spec, card_rgba: np.ndarray | None, bark_rgb: np.ndarray | None,
-                foliage_only: bool = False, size: int = 256) -> Scene:
+                foliage_only: bool = False, size: int = 256, slices_rgba: np.ndarray | None = None) -> Scene:
     """A render scene of one LOD: wood with its bark texture, foliage cards
-    with their card texture (alpha-tested), other foliage in its colours."""
-    stack = [np.ones((size, size, 4), np.float32), np.ones((size, size, 4), np.float32)]
+    with their card texture (alpha-tested), the grass slice tuft with its
+    atlas, other foliage in its colours."""
+    stack = [np.ones((size, size, 4), np.float32), np.ones((size, size, 4), np.float32), np.ones((size, size, 4), np.float32)]
+    if slices_rgba is not None:
+        stack[2] = _resized(slices_rgba, size)
     if card_rgba is not None:
         stack[0] = _resized(card_rgba, size)
     if bark_rgb is not None:
@@ -74,6 +77,8 @@ def plant_scene(parts: dict[str, Part], spec, card_rgba: np.ndarray | None, bark
             tint, tex = (1.0, 1.0, 1.0) if bark_rgb is not None else spec.bark_color, 1 if bark_rgb is not None else -1
         elif name == "Leaves" and card_rgba is not None:
             tint, tex = (1.0, 1.0, 1.0), 0
+        elif name == "Cards" and slices_rgba is not None:
+            tint, tex = (1.0, 1.0, 1.0), 2
         else:  # blades, slice cards, leaf meshes: root to tip colour per triangle
             fl = v[part.tris, 9].mean(1)[:, None]
             tint = (1 - fl) * np.asarray(spec.leaf_color) + fl * np.asarray(spec.leaf_tip_color)
@@ -125,11 +130,11 @@ def _inside_hull(mask: np.ndarray) -> np.ndarray:
 
 
 def crown_opacity(parts: dict[str, Part], spec, card_rgba: np.ndarray | None, azimuths: int = 8,
-                  size: int = 128) -> dict:
+                  size: int = 128, slices_rgba: np.ndarray | None = None) -> dict:
     """Crown opacity from the side (module docstring) and its value per azimuth."""
     pts = np.concatenate([p.verts[:, 0:3] for p in parts.values() if p.n_tris]).astype(np.float64)
-    full = plant_scene(parts, spec, card_rgba, None)
-    foliage = plant_scene(parts, spec, card_rgba, None, foliage_only=True)
+    full = plant_scene(parts, spec, card_rgba, None, slices_rgba=slices_rgba)
+    foliage = plant_scene(parts, spec, card_rgba, None, foliage_only=True, slices_rgba=slices_rgba)
     if foliage.n_triangles == 0:
         return {"mean": 0.0, "per_azimuth": [0.0] * azimuths}
     pf, pl = Prepared(full), Prepared(foliage)

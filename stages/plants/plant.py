@@ -44,6 +44,7 @@ class PlantResult:
     metrics: dict = field(default_factory=dict)
     cards: "cards.CardBake | None" = None  # the foliage card texture the Leaves carry
     bark: "np.ndarray | None" = None  # the bark albedo, once written (renders of the plant use it)
+    slices: "cards.SliceBake | None" = None  # the grass slice tuft's atlas
 
 
 def species_seeds(world_seed: int, name: str, n: int = 6) -> list[int]:
@@ -335,7 +336,16 @@ def _build_grass(name, spec, seeds, cfg: Settings, m: dict) -> PlantResult:
             lods.append({"Blades": part})
         times.append(time.perf_counter() - t)
     m["lod_plan"] = [list(p) for p in plan]
+    slices = None
+    card_parts = [p["Cards"] for p in lods if "Cards" in p]
+    if card_parts:
+        from . import measure  # the blades as a render scene, coloured as measure renders them
+        from .cards import bake_grass_slices
+
+        t = time.perf_counter()
+        slices = bake_grass_slices(measure.plant_scene({"Blades": b0}, spec, None, None), card_parts[0], seed=seeds[5] & 0xFFFF)
+        m["seconds_foliage_textures"] = time.perf_counter() - t
     t = time.perf_counter()
     info = _measure(name, lods, cfg, m, times)
     m["seconds_measure"] = time.perf_counter() - t
-    return PlantResult(name, lods, info)
+    return PlantResult(name, lods, info, slices=slices)

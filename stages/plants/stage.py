@@ -119,6 +119,10 @@ def _write_textures(out_dir: Path, layer: Path, name: str, spec, res: PlantResul
                             "normal": rel(normal(f"{name}_foliage_normal", c.normal)), "wrap": "clamp", "alpha_test": True}
         if c.leaf_texture is not None:  # the blade texture the cluster was rendered with (not read by the asset)
             colour(f"{name}_leaf_albedo", c.leaf_texture)
+    if res.slices is not None:
+        sl = res.slices
+        looks["slices"] = {"albedo": rel(colour(f"{name}_slices_albedo", sl.albedo, sl.alpha)),
+                           "normal": rel(normal(f"{name}_slices_normal", sl.normal)), "wrap": "clamp", "alpha_test": True}
     if any(p.get("Blades") is not None and p["Blades"].n_tris for p in res.lods):
         blade = textures.blade_texture(TEXTURE_SIZE, spec.leaf_color, spec.leaf_tip_color, seed)
         looks["blades"] = {"albedo": rel(colour(f"{name}_blade_albedo", blade)), "wrap": "clamp"}
@@ -129,9 +133,10 @@ def _measure_looks(spec, res: PlantResult) -> dict:
     """Foliage / wood area, LAI and crown opacity at every LOD (measure.py)."""
     cov = res.cards.coverage if res.cards is not None else None
     rgba = np.concatenate([res.cards.albedo, res.cards.alpha[..., None]], -1) if res.cards is not None else None
+    slices = (np.concatenate([res.slices.albedo, res.slices.alpha[..., None]], -1) if res.slices is not None else None)
     levels = []
     for k, parts in enumerate(res.lods):
-        co = measure.crown_opacity(parts, spec, rgba)
+        co = measure.crown_opacity(parts, spec, rgba, slices_rgba=slices)
         levels.append({"level": k, "crown_opacity": co["mean"], "crown_opacity_per_azimuth": co["per_azimuth"],
                        "foliage_area_m2": measure.foliage_area(parts, cov),
                        "wood_area_m2": measure.surface_area(parts.get("Wood"))})

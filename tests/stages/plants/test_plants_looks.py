@@ -140,3 +140,19 @@ def test_asset_materials_read_existing_textures(small_run):
         surf = UsdShade.Shader(layer.GetPrimAtPath(f"/{name}/Looks/FoliageCards/Surface"))
         assert mat and surf.GetInput("opacityThreshold").Get() == 0.5
         assert surf.GetInput("opacity").HasConnectedSource() and surf.GetInput("normal").HasConnectedSource()
+    grass = Usd.Stage.Open(str(top.parent / "grass.usdc"))
+    vset = grass.GetDefaultPrim().GetVariantSets().GetVariantSet("lod")
+    vset.SetVariantSelection(vset.GetVariantNames()[-1])
+    cards_prim = grass.GetPrimAtPath("/grass/Geom/Cards")
+    assert cards_prim, "the last grass LOD is the slice tuft"
+    mat, _ = UsdShade.MaterialBindingAPI(cards_prim).ComputeBoundMaterial()
+    assert mat.GetPrim().GetName() == "GrassSlices"
+
+
+def test_grass_slice_atlas_shows_the_tuft(preset_builds):
+    sl = preset_builds["grass"].slices
+    assert sl.albedo.shape[1] == 4 * sl.albedo.shape[0]
+    n = sl.alpha.shape[0]
+    for i in range(4):  # every quarter holds a tuft: covered at the bottom, open at the top corners
+        q = sl.alpha[:, i * n:(i + 1) * n]
+        assert 0.1 < q.mean() < 0.9 and q[-4:].mean() > q[:4].mean()
