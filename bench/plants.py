@@ -4,17 +4,22 @@
     python -m bench.plants --quick    # smaller kernel inputs, fewer sweep points
 
 It prints, in one run on the same device:
-1. per preset (one tree each, world seed --seed): seconds to build (L-system,
-   turtle, tubes, union, leaves, LOD chain, Hausdorff) and the triangles of
-   every LOD with its measured Hausdorff error (fraction of the bounding-box
-   diagonal) and its simplification time;
+1. per preset (one tree each, world seed --seed): bake seconds split into
+   mesh (L-system, turtle, tubes, union, leaves), foliage textures (card
+   cluster render, bark / card / blade textures written as EXR + PNG), LODs
+   (chain and Hausdorff) and look measures (crown opacity at 8 azimuths per
+   LOD); the foliage and wood areas, LAI and crown opacity per LOD; the
+   triangles of every LOD with its Hausdorff error and simplification time;
 2. the mesh builder: triangles per second of each vertex kernel (tube rings,
    leaf instances, grass blades) against its numpy reference, kernel-only
    (buffers resident) and end to end (with host transfers), plus the
    achieved write bandwidth against a copy kernel measured in the same run;
 3. LOD error against simplification time: pymeshlab quadric edge collapse of
    the broadleaf's woody solid to falling triangle targets, each with its
-   time and symmetric Hausdorff error.
+   time and symmetric Hausdorff error;
+4. the renderer the foliage cards and crown measures use (bench.render):
+   kernel against its numpy reference, rays per second (and Embree's on the
+   same rays when embreex is installed).
 """
 from __future__ import annotations
 
@@ -51,6 +56,7 @@ def presets(seed: int) -> dict:
         lod_s = sum(e["simplify_seconds"] for e in m["lods"])
         print(f"{name:10s} {dt:6.2f} s/tree   LOD0 {res.lod_info[0]['triangles']:7d} triangles   "
               f"diag {m['bbox_diagonal_m']:.2f} m   [{parts}, LOD chain {lod_s:.2f}]")
+        _looks(name, spec, res, seed, dt)
         if "wood_check" in m:
             c = m["wood_check"]
             print(f"{'':10s} wood: {m['segments']} segments, {m['tubes']} tubes, {m['tube_triangles']} tube triangles -> "
@@ -61,6 +67,32 @@ def presets(seed: int) -> dict:
                   f"error {100 * e['hausdorff_fraction']:6.3f} % ({1000 * e['hausdorff_m']:7.2f} mm)   "
                   f"simplify {e['simplify_seconds']:.2f} s")
     return out
+
+
+def _looks(name, spec, res, seed, build_seconds) -> None:
+    """The stage's texture writing and look measures for one species, timed."""
+    import tempfile
+    from pathlib import Path
+
+    from stages.plants import stage as plants_stage
+
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        plants_stage._write_textures(Path(tmp), Path(tmp) / f"{name}.usdc", name, spec, res, {}, seed)
+        t_write = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    looks = plants_stage._measure_looks(spec, res)
+    t_measure = time.perf_counter() - t0
+    m = res.metrics
+    tex = m.get("seconds_foliage_textures", 0.0) + t_write
+    lods = m.get("seconds_measure", 0.0) + sum(e["simplify_seconds"] for e in m["lods"])
+    mesh_s = build_seconds - m.get("seconds_foliage_textures", 0.0) - lods
+    print(f"{'':10s} bake: mesh {mesh_s:6.2f} s   foliage textures {tex:6.2f} s   LODs {lods:6.2f} s   "
+          f"look measures {t_measure:6.2f} s")
+    ratio = looks["foliage_to_wood"]
+    print(f"{'':10s} foliage {looks['foliage_area_m2']:7.2f} m2   wood {looks['wood_area_m2']:6.2f} m2   "
+          f"ratio {ratio if ratio is None else round(ratio, 2)}   LAI {looks['leaf_area_index']:6.2f}   crown opacity "
+          + " / ".join(f"LOD{e['level']} {e['crown_opacity']:.3f}" for e in looks["levels"]))
 
 
 def _device_time(kernel_name: str, n_items: int, scalars: list, arrays: list[np.ndarray], out_bytes: int, repeat: int) -> float:
@@ -200,6 +232,11 @@ def main(argv=None) -> None:
     res = presets(args.seed)
     builder(args.quick, args.repeat)
     lod_sweep(res["broadleaf"], args.quick)
+    from bench import render as render_bench
+
+    print("\n== 4. the renderer (bench.render)")
+    render_bench.tiny(args.repeat)
+    render_bench.tree(args.quick, args.repeat)
 
 
 if __name__ == "__main__":

@@ -6,8 +6,11 @@
       /<species>/Geom/Leaves  leaves and needles (doubleSided)
       /<species>/Geom/Blades  grass blades (doubleSided), /Geom/Cards the slice tuft
       and the model's extentsHint for that level;
-    /<species>/Looks/Bark, /Looks/Foliage: UsdPreviewSurface materials; the
-      foliage one reads primvars:displayColor (root to tip colour);
+    /<species>/Looks/Bark, /Looks/FoliageCards, /Looks/Blades: UsdPreviewSurface
+      reading textures/ (UsdUVTexture: albedo PNG sRGB, its alpha as opacity
+      with opacityThreshold 0.5 on cards, tangent-space normal EXR raw);
+      /Looks/GrassSlices: the slice tuft's atlas (cards.bake_grass_slices);
+      /Looks/Foliage reads primvars:displayColor (untextured species);
     every mesh: subdivisionScheme none, normals (primvars:normals), primvars:st,
       extent, and the wind primvars (vertex interpolation):
         primvars:wind:branchWeight  bend weight, 0 at the root of the plant, 1 at the outermost tips
@@ -15,7 +18,9 @@
         primvars:wind:phase         per branch / leaf / blade random phase in [0, 1)
         primvars:wind:pivot         the point the part swings about: branch base, leaf stalk, blade root
     customData worldbake:lods: per level its triangles, Hausdorff error (m and
-      fraction of the bounding-box diagonal) and simplification time.
+      fraction of the bounding-box diagonal) and simplification time;
+    customData worldbake:measures: foliage and wood area, leaf area index,
+      crown opacity (LOD0 and per level), card coverage (measure.py).
 plants.usda (the stage's artifact), defaultPrim /Plants (kind group), one
   child per built species referencing "./<species>.usdc": the prototypes a
   world layer's PointInstancers point to.
@@ -51,6 +56,53 @@ def _material(stage, path: str, colour, roughness: float, read_display_color: bo
         rd.CreateInput("fallback", Sdf.ValueTypeNames.Float3).Set(Gf.Vec3f(*map(float, colour)))
         col.ConnectToSource(rd.ConnectableAPI(), "result")
         rd.CreateOutput("result", Sdf.ValueTypeNames.Float3)
+    return mat
+
+
+def _textured_material(stage, path: str, look: dict, roughness: float):
+    """UsdPreviewSurface reading its textures through UsdUVTexture: diffuse
+    colour from an 8-bit sRGB PNG (sourceColorSpace sRGB), opacity from that
+    PNG's alpha with opacityThreshold (the alpha test of foliage cards),
+    normal from a linear EXR tangent-space normal map (sourceColorSpace raw,
+    stored as 0.5 n + 0.5, so scale 2 and bias -1). `look`: albedo, normal
+    (paths relative to the layer), wrap ("repeat" for bark, "clamp" for
+    cards), alpha_test (bool)."""
+    from pxr import Gf, Sdf, UsdShade
+
+    mat = UsdShade.Material.Define(stage, path)
+    surf = UsdShade.Shader.Define(stage, f"{path}/Surface")
+    surf.CreateIdAttr("UsdPreviewSurface")
+    surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(float(roughness))
+    surf.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(0.0)
+    mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
+    st = UsdShade.Shader.Define(stage, f"{path}/TexCoord")
+    st.CreateIdAttr("UsdPrimvarReader_float2")
+    st.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
+    st_out = st.CreateOutput("result", Sdf.ValueTypeNames.Float2)
+
+    def texture(name: str, file: str, colour_space: str):
+        tex = UsdShade.Shader.Define(stage, f"{path}/{name}")
+        tex.CreateIdAttr("UsdUVTexture")
+        tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(Sdf.AssetPath(file))
+        tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set(colour_space)
+        tex.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set(look["wrap"])
+        tex.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set(look["wrap"])
+        tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(st_out)
+        return tex
+
+    albedo = texture("AlbedoTexture", look["albedo"], "sRGB")
+    surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
+        albedo.CreateOutput("rgb", Sdf.ValueTypeNames.Float3))
+    if look.get("alpha_test"):
+        surf.CreateInput("opacity", Sdf.ValueTypeNames.Float).ConnectToSource(
+            albedo.CreateOutput("a", Sdf.ValueTypeNames.Float))
+        surf.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(0.5)
+    if look.get("normal"):
+        normal = texture("NormalTexture", look["normal"], "raw")
+        normal.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(2.0, 2.0, 2.0, 1.0))
+        normal.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(-1.0, -1.0, -1.0, 0.0))
+        surf.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(
+            normal.CreateOutput("rgb", Sdf.ValueTypeNames.Float3))
     return mat
 
 
@@ -122,15 +174,29 @@ def write_mesh(stage, path: str, part: Part, material, double_sided: bool, colou
     return mesh
 
 
-def write_species(path: Path, name: str, spec, lods: list[dict[str, Part]], lod_info: list[dict], provenance: dict) -> None:
-    """lods[k] maps 'Wood' / 'Leaves' / 'Blades' / 'Cards' to a Part."""
+def write_species(path: Path, name: str, spec, lods: list[dict[str, Part]], lod_info: list[dict], provenance: dict,
+                  looks: dict | None = None, measures: dict | None = None) -> None:
+    """lods[k] maps 'Wood' / 'Leaves' / 'Blades' / 'Cards' to a Part; looks
+    names the textures of 'bark', 'foliage' (cards) and 'blades' (see
+    _textured_material); measures goes into customData worldbake:measures."""
+    looks = looks or {}
     from pxr import UsdGeom
 
     stage, root = usdio.create_stage(path, provenance, root=f"/{name}", kind="component")
     UsdGeom.Scope.Define(stage, f"/{name}/Looks")
     has_wood = any(parts.get("Wood") is not None and parts["Wood"].n_tris for parts in lods)
-    bark = _material(stage, f"/{name}/Looks/Bark", spec.bark_color, spec.roughness, False) if has_wood else None
-    foliage = _material(stage, f"/{name}/Looks/Foliage", spec.leaf_color, spec.roughness, True)
+    bark = None
+    if has_wood:
+        bark = (_textured_material(stage, f"/{name}/Looks/Bark", looks["bark"], spec.roughness) if "bark" in looks
+                else _material(stage, f"/{name}/Looks/Bark", spec.bark_color, spec.roughness, False))
+    plain = _material(stage, f"/{name}/Looks/Foliage", spec.leaf_color, spec.roughness, True)
+    foliage = (_textured_material(stage, f"/{name}/Looks/FoliageCards", looks["foliage"], spec.roughness)
+               if "foliage" in looks else plain)
+    blades = (_textured_material(stage, f"/{name}/Looks/Blades", looks["blades"], spec.roughness)
+              if "blades" in looks else plain)
+    slices = (_textured_material(stage, f"/{name}/Looks/GrassSlices", looks["slices"], spec.roughness)
+              if "slices" in looks else plain)
+    material_of = {"Leaves": foliage, "Blades": blades, "Cards": slices}
     vset = root.GetVariantSets().AddVariantSet("lod")
     for k, parts in enumerate(lods):
         vname = f"LOD{k}"
@@ -143,13 +209,15 @@ def write_species(path: Path, name: str, spec, lods: list[dict[str, Part]], lod_
                 if part.n_tris == 0:
                     continue
                 wood = pname == "Wood"
-                write_mesh(stage, f"/{name}/Geom/{pname}", part, bark if wood else foliage, not wood,
+                write_mesh(stage, f"/{name}/Geom/{pname}", part, bark if wood else material_of.get(pname, plain), not wood,
                            spec.bark_color if wood else spec.leaf_color, None if wood else spec.leaf_tip_color)
                 allpos.append(part.welded()[0])
             if allpos:
                 UsdGeom.ModelAPI(root).SetExtentsHint(_extent(np.concatenate(allpos)))
     vset.SetVariantSelection("LOD0")
     root.SetCustomDataByKey("worldbake:lods", json.dumps(lod_info, sort_keys=True))
+    if measures is not None:
+        root.SetCustomDataByKey("worldbake:measures", json.dumps(measures, sort_keys=True))
     stage.GetRootLayer().Save()
 
 

@@ -33,7 +33,7 @@ class Template:
         return len(self.tris)
 
 
-def _finish(pos: np.ndarray, uv: np.ndarray, flutter: np.ndarray, tris: np.ndarray) -> Template:
+def finish_template(pos: np.ndarray, uv: np.ndarray, flutter: np.ndarray, tris: np.ndarray) -> Template:
     """Orient triangles to face +z (U) where the face has a z component,
     and give vertices area-weighted normals."""
     tris = np.asarray(tris, np.int64)
@@ -61,7 +61,7 @@ def card_of(t: Template) -> Template:
     pos = np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]], float)
     uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
     span = max(y1 - y0, 1e-9)
-    return _finish(pos, uv, (pos[:, 1] - y0) / span, [[0, 1, 2], [0, 2, 3]])
+    return finish_template(pos, uv, (pos[:, 1] - y0) / span, [[0, 1, 2], [0, 2, 3]])
 
 
 def make_template(leaf) -> Template | None:
@@ -72,7 +72,7 @@ def make_template(leaf) -> Template | None:
     if leaf.shape == "card":
         pos = np.array([[-W / 2, P, 0], [W / 2, P, 0], [W / 2, P + L, 0], [-W / 2, P + L, 0]], float)
         uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
-        return _finish(pos, uv, (pos[:, 1] - P) / L, [[0, 1, 2], [0, 2, 3]])
+        return finish_template(pos, uv, (pos[:, 1] - P) / L, [[0, 1, 2], [0, 2, 3]])
     if leaf.shape == "ellipse":
         m = leaf.segments
         fold = math.tan(math.radians(leaf.fold))
@@ -103,7 +103,7 @@ def make_template(leaf) -> Template | None:
                 pass
             prev = cur
         pos = np.asarray(pos, float)
-        return _finish(pos, np.asarray(uv, float), (pos[:, 1] - P) / L, tris)
+        return finish_template(pos, np.asarray(uv, float), (pos[:, 1] - P) / L, tris)
     if leaf.shape == "needles":
         k = leaf.needles
         sp = math.radians(leaf.spread)
@@ -122,7 +122,7 @@ def make_template(leaf) -> Template | None:
             tris.append([n0, n0 + 1, n0 + 2])
         pos = np.asarray(pos, float)
         fl = np.tile([0.0, 0.0, 1.0], k)
-        t = _finish(pos, np.asarray(uv, float), fl, tris)
+        t = finish_template(pos, np.asarray(uv, float), fl, tris)
         return t
     raise ValueError(leaf.shape)
 

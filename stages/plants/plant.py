@@ -17,7 +17,7 @@ import numpy as np
 
 from pipeline.errors import InputError, StageError
 
-from . import grass, leaves, lod, mesh
+from . import cards, grass, leaves, lod, mesh
 from .lsystem import compile_lsystem
 from .mesh import Part
 from .turtle import interpret, path_length, pipe_radii
@@ -42,6 +42,9 @@ class PlantResult:
     lods: list[dict[str, Part]]
     lod_info: list[dict]
     metrics: dict = field(default_factory=dict)
+    cards: "cards.CardBake | None" = None  # the foliage card texture the Leaves carry
+    bark: "np.ndarray | None" = None  # the bark albedo, once written (renders of the plant use it)
+    slices: "cards.SliceBake | None" = None  # the grass slice tuft's atlas
 
 
 def species_seeds(world_seed: int, name: str, n: int = 6) -> list[int]:
@@ -136,8 +139,21 @@ def _build_lsystem(name, spec, seeds, cfg: Settings, m: dict, progress) -> Plant
     t = time.perf_counter()
     start_len, end_len = path_length(sk)
     bw_seg = np.clip(end_len / max(float(end_len.max()) if len(end_len) else 1.0, 1e-9), 0, 1) ** 1.5
-    tmpl = leaves.make_template(spec.leaf)
-    rec = leaves.leaf_records(sk, spec.leaf, bw_seg, np.random.default_rng(seeds[3])) if tmpl is not None else None
+    bake = None
+    leaf_spec = spec.leaf
+    if spec.foliage.cards and spec.leaf.shape != "none":
+        t_cards = time.perf_counter()
+        bake = cards.bake(spec, seeds[3])
+        tmpl = bake.template
+        card_len = float(np.ptp(tmpl.rows[:, 1]))
+        # a card droops over its own length as a leaf does over its blade
+        leaf_spec = spec.leaf.model_copy(update={"length": card_len, "petiole": 0.0})
+        m["seconds_foliage_textures"] = time.perf_counter() - t_cards
+        m["card_coverage"] = bake.coverage
+        m["card_cluster_triangles"] = bake.cluster_triangles
+    else:
+        tmpl = leaves.make_template(spec.leaf)
+    rec = leaves.leaf_records(sk, leaf_spec, bw_seg, np.random.default_rng(seeds[3])) if tmpl is not None else None
     leaf0 = leaves.instance(tmpl, rec, cfg.use_opencl) if tmpl is not None and len(rec) else Part.empty()
     polys = leaves.polygon_part(sk, bw_seg)
     m["seconds_leaves"] = time.perf_counter() - t
@@ -156,7 +172,7 @@ def _build_lsystem(name, spec, seeds, cfg: Settings, m: dict, progress) -> Plant
     t = time.perf_counter()
     info = _measure(name, lods, cfg, m, times, errors)
     m["seconds_measure"] = time.perf_counter() - t
-    return PlantResult(name, lods, info)
+    return PlantResult(name, lods, info, cards=bake)
 
 
 def _require_solid(name: str, level: int, c: dict) -> None:
@@ -320,7 +336,16 @@ def _build_grass(name, spec, seeds, cfg: Settings, m: dict) -> PlantResult:
             lods.append({"Blades": part})
         times.append(time.perf_counter() - t)
     m["lod_plan"] = [list(p) for p in plan]
+    slices = None
+    card_parts = [p["Cards"] for p in lods if "Cards" in p]
+    if card_parts:
+        from . import measure  # the blades as a render scene, coloured as measure renders them
+        from .cards import bake_grass_slices
+
+        t = time.perf_counter()
+        slices = bake_grass_slices(measure.plant_scene({"Blades": b0}, spec, None, None), card_parts[0], seed=seeds[5] & 0xFFFF)
+        m["seconds_foliage_textures"] = time.perf_counter() - t
     t = time.perf_counter()
     info = _measure(name, lods, cfg, m, times)
     m["seconds_measure"] = time.perf_counter() - t
-    return PlantResult(name, lods, info)
+    return PlantResult(name, lods, info, slices=slices)

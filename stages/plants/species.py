@@ -34,7 +34,8 @@ Colour = pydantic.conlist(pydantic.confloat(ge=0.0, le=1.0), min_length=3, max_l
 
 
 class Spec(pydantic.BaseModel):
-    model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
+    # NaN and Inf are refused in every number of a species (TOML can write them: nan, inf)
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Rule(Spec):
@@ -70,6 +71,13 @@ class LSystemSpec(Spec):
     length_ratio: float = Param(0.9, units="", description="' multiplies the length by this, \" divides", gt=0.0, le=10.0)
     width_ratio: float = Param(0.7, units="", description="! multiplies the radius by this, ? divides", gt=0.0, le=10.0)
     angle_ratio: float = Param(0.9, units="", description=": multiplies the angle by this, ; divides", gt=0.0, le=10.0)
+
+    @pydantic.field_validator("axiom")
+    @classmethod
+    def _axiom_not_empty(cls, v: str) -> str:
+        if not v.strip():
+            raise ValueError("the axiom is empty: an L-system needs at least one module to start from")
+        return v
 
     @pydantic.field_validator("rules", mode="before")
     @classmethod
@@ -121,6 +129,28 @@ class LeafSpec(Spec):
     size_jitter: float = Param(0.2, units="", description="relative random change of leaf size (seeded)", ge=0.0, le=0.9)
 
 
+class FoliageSpec(Spec):
+    """Foliage cards (seed 002): a cluster of `leaves_per_card` leaves of the
+    [leaf] model on a short stem is rendered once into the species' card
+    texture, and every L of the L-system carries one such card (two crossed
+    ones if `crossed`). An optional flower head sits at the stem's tip."""
+
+    cards: bool = Param(True, description="foliage as textured alpha-tested cards (false: one leaf mesh per L)")
+    leaves_per_card: int = Param(7, units="", description="leaves (needle bundles) on one card's cluster", ge=1, le=64)
+    stem_length: float = Param(0.2, units="m", description="length of the cluster's stem (the card's size follows)", gt=0.0, le=10.0)
+    stem_width: float = Param(0.004, units="m", description="width of the cluster's stem", gt=0.0, le=1.0)
+    leaf_start: float = Param(0.15, units="", description="share of the stem below the first leaf", ge=0.0, le=0.95)
+    leaf_angle: float = Param(50.0, units="deg", description="angle between a leaf and the stem", ge=0.0, le=120.0)
+    divergence: float = Param(137.5, units="deg", description="turn about the stem from one leaf to the next (180: two ranks, a flat spray)",
+                              ge=0.0, le=360.0)
+    taper: float = Param(0.3, units="", description="leaves near the stem's tip are smaller by this share", ge=0.0, le=0.9)
+    crossed: bool = Param(True, description="two crossed cards per cluster (reads from the side), else one")
+    flower_petals: int = Param(0, units="", description="petals of a flower head at the stem's tip (0: none)", ge=0, le=64)
+    flower_petal_length: float = Param(0.02, units="m", description="petal length", gt=0.0, le=1.0)
+    flower_color: Colour = Param([0.75, 0.7, 0.15], description="linear RGB of the petals")
+    flower_center_color: Colour = Param([0.5, 0.3, 0.05], description="linear RGB of the flower's centre")
+
+
 class GrassSpec(Spec):
     """Bezier blades (seed 000) on a round tuft footprint; the last LOD is the
     5-quad slice tuft of seed 001."""
@@ -148,6 +178,7 @@ class SpeciesShape(Spec):
     wood: WoodSpec = Param(WoodSpec(), description="branches")
     leaf: LeafSpec = Param(LeafSpec(), description="leaves")
     grass: Optional[GrassSpec] = Param(None, description="the blade set (kind grass)")
+    foliage: FoliageSpec = Param(FoliageSpec(), description="foliage cards: the leaf cluster each L carries")
     bark_color: Colour = Param([0.32, 0.24, 0.17], description="linear RGB of the bark")
     leaf_color: Colour = Param([0.18, 0.38, 0.10], description="linear RGB of leaves (grass: at the root)")
     leaf_tip_color: Colour = Param([0.30, 0.55, 0.16], description="linear RGB at leaf and blade tips")

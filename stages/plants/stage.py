@@ -19,15 +19,17 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pydantic
 
 from pipeline import usdio
 from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, RunContext, Stage
 from pipeline.errors import InputError, StageError
 
+from . import measure, textures
 from .asset import write_species, write_top
 from .lsystem import compile_lsystem
-from .plant import Settings, build_plant, species_seeds
+from .plant import PlantResult, Settings, build_plant, species_seeds
 from .species import SpeciesShape, preset_tables, resolve_species
 
 
@@ -79,6 +81,79 @@ class PlantsParams(Params):
         return self
 
 
+TEXTURE_SIZE = 256  # texels per side of every plant texture (cards, bark, blades)
+
+
+def _write_textures(out_dir: Path, layer: Path, name: str, spec, res: PlantResult, provenance: dict, world_seed: int) -> dict:
+    """The species' textures in textures/: linear EXR of every texture and an
+    8-bit sRGB PNG copy of colour ones (the PNG is what the material reads for
+    colour and alpha, the EXR normal map for normals). Returns the looks for
+    asset.write_species, paths relative to the species layer."""
+    from .plant import species_seeds
+
+    tex_dir = out_dir / "textures"
+    tex_dir.mkdir(exist_ok=True)
+    seed = species_seeds(world_seed, name)[5]
+    looks: dict = {}
+
+    def rel(p: Path) -> str:
+        return usdio.relative_asset_path(p, layer)
+
+    def colour(stem: str, rgb, alpha=None) -> Path:
+        rgba = rgb if alpha is None else np.concatenate([rgb, alpha[..., None]], -1)
+        textures.write_exr(tex_dir / f"{stem}.exr", rgba, ("R", "G", "B", "A")[: rgba.shape[-1]], provenance)
+        textures.write_png(tex_dir / f"{stem}.png", rgb, alpha)
+        return tex_dir / f"{stem}.png"
+
+    def normal(stem: str, n) -> Path:
+        textures.write_exr(tex_dir / f"{stem}.exr", 0.5 * n + 0.5, ("R", "G", "B"), provenance)
+        return tex_dir / f"{stem}.exr"
+
+    if any(p.get("Wood") is not None and p["Wood"].n_tris for p in res.lods):
+        albedo, nrm = textures.bark_texture(TEXTURE_SIZE, spec.bark_color, seed)
+        res.bark = albedo
+        looks["bark"] = {"albedo": rel(colour(f"{name}_bark_albedo", albedo)), "normal": rel(normal(f"{name}_bark_normal", nrm)),
+                         "wrap": "repeat"}
+    if res.cards is not None:
+        c = res.cards
+        looks["foliage"] = {"albedo": rel(colour(f"{name}_foliage_albedo", c.albedo, c.alpha)),
+                            "normal": rel(normal(f"{name}_foliage_normal", c.normal)), "wrap": "clamp", "alpha_test": True}
+        if c.leaf_texture is not None:  # the blade texture the cluster was rendered with (not read by the asset)
+            colour(f"{name}_leaf_albedo", c.leaf_texture)
+    if res.slices is not None:
+        sl = res.slices
+        looks["slices"] = {"albedo": rel(colour(f"{name}_slices_albedo", sl.albedo, sl.alpha)),
+                           "normal": rel(normal(f"{name}_slices_normal", sl.normal)), "wrap": "clamp", "alpha_test": True}
+    if any(p.get("Blades") is not None and p["Blades"].n_tris for p in res.lods):
+        blade = textures.blade_texture(TEXTURE_SIZE, spec.leaf_color, spec.leaf_tip_color, seed)
+        looks["blades"] = {"albedo": rel(colour(f"{name}_blade_albedo", blade)), "wrap": "clamp"}
+    return looks
+
+
+def _measure_looks(spec, res: PlantResult) -> dict:
+    """Foliage / wood area, LAI and crown opacity at every LOD (measure.py)."""
+    cov = res.cards.coverage if res.cards is not None else None
+    rgba = np.concatenate([res.cards.albedo, res.cards.alpha[..., None]], -1) if res.cards is not None else None
+    slices = (np.concatenate([res.slices.albedo, res.slices.alpha[..., None]], -1) if res.slices is not None else None)
+    levels = []
+    for k, parts in enumerate(res.lods):
+        co = measure.crown_opacity(parts, spec, rgba, slices_rgba=slices)
+        levels.append({"level": k, "crown_opacity": co["mean"], "crown_opacity_per_azimuth": co["per_azimuth"],
+                       "foliage_area_m2": measure.foliage_area(parts, cov),
+                       "wood_area_m2": measure.surface_area(parts.get("Wood"))})
+    l0 = levels[0]
+    out = {"foliage_area_m2": l0["foliage_area_m2"], "wood_area_m2": l0["wood_area_m2"],
+           "foliage_to_wood": l0["foliage_area_m2"] / l0["wood_area_m2"] if l0["wood_area_m2"] > 0 else None,
+           "leaf_area_index": measure.leaf_area_index(res.lods[0], cov), "crown_opacity": l0["crown_opacity"],
+           "crown_opacity_lod_max_drop": max(l0["crown_opacity"] - e["crown_opacity"] for e in levels),
+           "card_coverage": cov, "levels": levels}
+    for name in ("foliage_area_m2", "wood_area_m2", "foliage_to_wood", "leaf_area_index", "crown_opacity",
+                 "crown_opacity_lod_max_drop"):
+        if out[name] is not None and not np.isfinite(out[name]):
+            raise StageError(f"plants: {name} is not finite")
+    return out
+
+
 def run(ctx: RunContext, inputs: dict[str, Any], params: PlantsParams) -> dict[str, Path]:
     cfg = Settings(lod_count=params.lod_count, lod_ratio=params.lod_ratio, max_modules=params.max_modules,
                    min_radius=params.min_radius, hausdorff_samples=params.hausdorff_samples,
@@ -106,7 +181,14 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: PlantsParams) -> dict[s
         path = out_dir / f"{name}.usdc"
         prov = dict(ctx.provenance)
         prov["species"] = name
-        write_species(path, name, spec, res.lods, res.lod_info, prov)
+        looks = _write_textures(out_dir, path, name, spec, res, prov, ctx.seed)
+        res.metrics["seconds_foliage_textures"] = res.metrics.get("seconds_foliage_textures", 0.0) + time.perf_counter() - t
+        t = time.perf_counter()
+        measures = _measure_looks(spec, res)
+        res.metrics["seconds_look_measures"] = time.perf_counter() - t
+        res.metrics["looks"] = measures
+        t = time.perf_counter()
+        write_species(path, name, spec, res.lods, res.lod_info, prov, looks, measures)
         res.metrics["seconds_usd"] = time.perf_counter() - t
         files[name] = usdio.relative_asset_path(path, top)
         budget_ok = all(e["hausdorff_fraction"] <= b for e, b in zip(res.lod_info[1:], params.lod_error_budget))
@@ -149,12 +231,13 @@ def check(params: PlantsParams, ctx: CheckContext) -> Check:
 
 STAGE = Stage(
     name="plants",
-    version=1,
+    version=2,
     description="plant assets in USD: L-system trees and shrubs (watertight woody solid, leaves) and grass tufts, "
     "with a measured lod variant set, wind primvars and materials",
     inputs=(Input("placed", one_of=("vegetation.placed",), optional=True,
                   description="the species the vegetation map placed; only those are built"),),
-    outputs=(Artifact("plants.assets", kind="usd", file="plants.usda", shape="any", beside=("*.usdc",),
+    outputs=(Artifact("plants.assets", kind="usd", file="plants.usda", shape="any",
+                      beside=("*.usdc", "textures/*.exr", "textures/*.png"),
                       description="/Plants (kind group): one prim per built species referencing ./<species>.usdc "
                       "(kind component, lod variant set LOD0..LODn, extentsHint, UsdPreviewSurface, wind primvars)"),),
     params=PlantsParams,

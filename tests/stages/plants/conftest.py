@@ -12,3 +12,11 @@ SEED = 20261123
 def preset_builds():
     """Every preset at full size, world seed SEED, default settings."""
     return {name: build_plant(name, spec, SEED, Settings()) for name, spec in sorted(PRESETS.items())}
+
+
+@pytest.fixture(scope="session")
+def small_run(tmp_path_factory):
+    """The stage run on helpers.SMALL, shared by the stage and the looks tests."""
+    from tests.stages.plants.helpers import SMALL, run_stage
+
+    return run_stage(tmp_path_factory.mktemp("plants"), SMALL)

@@ -17,23 +17,7 @@ from stages.plants import STAGE
 from stages.plants.stage import PRESETS, PlantsParams
 
 
-SMALL = {"build": ["grass", "bush"], "hausdorff_samples": 3000,
-         "species": {"bush": {"preset": "shrub", "lsystem": {"iterations": 4}}}}
-
-
-def run_stage(tmp: Path, params: dict, seed: int = 1):
-    tmp.mkdir(parents=True, exist_ok=True)
-    p = PlantsParams.model_validate(params, strict=True)
-    ctx = RunContext(stage=STAGE, key="test", out_dir=tmp, seed=seed,
-                     provenance={"stage": "plants", "version": 1, "key": "test", "params": canonical_params(p), "seed": seed},
-                     project_root=Path("."))
-    out = STAGE.run(ctx, {}, p)
-    return out, ctx
-
-
-@pytest.fixture(scope="module")
-def small_run(tmp_path_factory):
-    return run_stage(tmp_path_factory.mktemp("plants"), SMALL)
+from tests.stages.plants.helpers import SMALL, run_stage
 
 
 def test_four_presets_load_and_are_the_defaults():
@@ -110,7 +94,8 @@ def test_same_seed_same_bytes_other_seed_other_plant(tmp_path, small_run):
     out3, _ = run_stage(tmp_path / "b", SMALL, seed=2)
 
     def digests(top):
-        return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(top.parent.iterdir())}
+        return {p.relative_to(top.parent).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+                for p in sorted(top.parent.rglob("*")) if p.is_file()}
 
     d1, d2, d3 = digests(out1["plants.assets"]), digests(out2["plants.assets"]), digests(out3["plants.assets"])
     assert d1 == d2

@@ -1,0 +1,149 @@
+"""What a plant looks like, measured: foliage and wood surface areas, leaf
+area index over the crown's footprint, and crown opacity from the side.
+
+    foliage area  one-sided area of the foliage that is there: card area x the
+                  card texture's coverage (alpha >= 0.5), leaf and blade meshes
+                  at their area;
+    wood area     the woody solid's surface;
+    LAI           foliage area / area of the 2-D convex hull of the foliage's
+                  ground projection (x-z);
+    crown opacity orthographic side views at 8 azimuths (pipeline.render): of
+                  the pixels inside the 2-D convex hull of the foliage's
+                  projection (alpha >= 0.5), the share that foliage or wood
+                  covers with alpha >= 0.5; the mean over the azimuths.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial import ConvexHull
+
+from pipeline.render import Camera, Scene, Settings
+from pipeline.render import Prepared
+
+from .mesh import Part
+
+
+def surface_area(part: Part | None) -> float:
+    if part is None or part.n_tris == 0:
+        return 0.0
+    p = part.verts[:, 0:3].astype(np.float64)[part.tris]
+    return float(0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum())
+
+
+def foliage_area(parts: dict[str, Part], card_coverage: float | None) -> float:
+    leaves = surface_area(parts.get("Leaves"))
+    if card_coverage is not None:
+        leaves *= card_coverage
+    return leaves + surface_area(parts.get("Blades")) + surface_area(parts.get("Cards"))
+
+
+def _hull_area_xz(points: np.ndarray) -> float:
+    if len(points) < 3:
+        return 0.0
+    try:
+        return float(ConvexHull(points[:, [0, 2]]).volume)
+    except Exception:  # collinear points: no area
+        return 0.0
+
+
+def leaf_area_index(parts: dict[str, Part], card_coverage: float | None) -> float:
+    pts = [p.verts[:, 0:3] for k, p in parts.items() if k != "Wood" and p.n_tris]
+    if not pts:
+        return 0.0
+    foot = _hull_area_xz(np.concatenate(pts).astype(np.float64))
+    return foliage_area(parts, card_coverage) / foot if foot > 0 else 0.0
+
+
+def plant_scene(parts: dict[str, Part], spec, card_rgba: np.ndarray | None, bark_rgb: np.ndarray | None,
+                foliage_only: bool = False, size: int = 256, slices_rgba: np.ndarray | None = None) -> Scene:
+    """A render scene of one LOD: wood with its bark texture, foliage cards
+    with their card texture (alpha-tested), the grass slice tuft with its
+    atlas, other foliage in its colours."""
+    stack = [np.ones((size, size, 4), np.float32), np.ones((size, size, 4), np.float32), np.ones((size, size, 4), np.float32)]
+    if slices_rgba is not None:
+        stack[2] = _resized(slices_rgba, size)
+    if card_rgba is not None:
+        stack[0] = _resized(card_rgba, size)
+    if bark_rgb is not None:
+        stack[1] = np.concatenate([_resized(bark_rgb, size), np.ones((size, size, 1), np.float32)], -1)
+    scenes = []
+    for name, part in parts.items():
+        if part.n_tris == 0 or (foliage_only and name == "Wood"):
+            continue
+        v = part.verts
+        if name == "Wood":
+            tint, tex = (1.0, 1.0, 1.0) if bark_rgb is not None else spec.bark_color, 1 if bark_rgb is not None else -1
+        elif name == "Leaves" and card_rgba is not None:
+            tint, tex = (1.0, 1.0, 1.0), 0
+        elif name == "Cards" and slices_rgba is not None:
+            tint, tex = (1.0, 1.0, 1.0), 2
+        else:  # blades, slice cards, leaf meshes: root to tip colour per triangle
+            fl = v[part.tris, 9].mean(1)[:, None]
+            tint = (1 - fl) * np.asarray(spec.leaf_color) + fl * np.asarray(spec.leaf_tip_color)
+            tex = -1
+        scenes.append(Scene(v[:, 0:3], v[:, 3:6], v[:, 6:8], part.tris, tint, tex, np.stack(stack)))
+    return Scene.concat(scenes)
+
+
+def _resized(img: np.ndarray, size: int) -> np.ndarray:
+    h, w = img.shape[:2]
+    if h == size and w == size:
+        return img.astype(np.float32)
+    ys = (np.arange(size) * h // size).astype(int)
+    xs = (np.arange(size) * w // size).astype(int)
+    return img[ys][:, xs].astype(np.float32)
+
+
+def side_cameras(points: np.ndarray, azimuths: int = 8) -> list[Camera]:
+    """Orthographic cameras looking horizontally at the plant's centre from
+    `azimuths` directions, each view holding the whole plant."""
+    lo, hi = points.min(0), points.max(0)
+    c = 0.5 * (lo + hi)
+    r = 0.5 * float(np.linalg.norm(hi - lo)) * 1.05
+    cams = []
+    for k in range(azimuths):
+        a = 2 * math.pi * k / azimuths
+        d = np.array([math.cos(a), 0.0, math.sin(a)])
+        eye = c - d * (r + 1.0)
+        cams.append(Camera(tuple(eye), tuple(d), (0.0, 1.0, 0.0), ortho_height_m=2 * r))
+    return cams
+
+
+def _inside_hull(mask: np.ndarray) -> np.ndarray:
+    """Pixels whose centres lie inside the convex hull of the covered pixels' corners."""
+    ys, xs = np.nonzero(mask)
+    if len(ys) < 3:
+        return mask.copy()
+    corners = np.concatenate([np.stack([xs + dx, ys + dy], 1) for dx in (0, 1) for dy in (0, 1)]).astype(np.float64)
+    try:
+        hull = ConvexHull(corners)
+    except Exception:
+        return mask.copy()
+    H, W = mask.shape
+    gy, gx = np.mgrid[0:H, 0:W]
+    pts = np.stack([gx.ravel() + 0.5, gy.ravel() + 0.5], 1)
+    eq = hull.equations
+    inside = (pts @ eq[:, :2].T + eq[:, 2] <= 1e-9).all(1)
+    return inside.reshape(H, W)
+
+
+def crown_opacity(parts: dict[str, Part], spec, card_rgba: np.ndarray | None, azimuths: int = 8,
+                  size: int = 128, slices_rgba: np.ndarray | None = None) -> dict:
+    """Crown opacity from the side (module docstring) and its value per azimuth."""
+    pts = np.concatenate([p.verts[:, 0:3] for p in parts.values() if p.n_tris]).astype(np.float64)
+    full = plant_scene(parts, spec, card_rgba, None, slices_rgba=slices_rgba)
+    foliage = plant_scene(parts, spec, card_rgba, None, foliage_only=True, slices_rgba=slices_rgba)
+    if foliage.n_triangles == 0:
+        return {"mean": 0.0, "per_azimuth": [0.0] * azimuths}
+    pf, pl = Prepared(full), Prepared(foliage)
+    s = Settings(size, size, samples=2)
+    s_hull = Settings(size, size, samples=1)  # the hull needs only which pixels the crown reaches
+    values = []
+    for cam in side_cameras(pts, azimuths):
+        crown = pl.render(cam, s_hull).alpha >= 0.5
+        hull = _inside_hull(crown)
+        covered = pf.render(cam, s).alpha >= 0.5
+        values.append(float((covered & hull).sum() / max(hull.sum(), 1)))
+    return {"mean": float(np.mean(values)), "per_azimuth": values}

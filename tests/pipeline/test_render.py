@@ -1,0 +1,121 @@
+"""The renderer's kernel against its numpy reference on tiny scenes.
+
+Tolerance: a sample that grazes a triangle edge may hit in float32 and miss
+in float64, so a pixel's alpha (and with it albedo, normal) may differ by one
+sample's share; we allow that in at most 2 % of the pixels and 1e-4 elsewhere
+(AO: one AO ray's share in at most 3 % of the pixels). Everything else is
+equal within 1e-4 (albedo, normal, alpha) and 1e-4 relative (depth)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.render import Camera, Scene, Settings, render
+from pipeline.render import bvh
+
+
+def tiny_scene(seed: int = 0) -> Scene:
+    rng = np.random.default_rng(seed)
+    # ground quad, an alpha-textured card (a checkered disc), a tilted triangle
+    P = [[-1, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, 1],
+         [-0.5, 0.1, 0], [0.5, 0.1, 0], [0.5, 1.1, 0], [-0.5, 1.1, 0],
+         [-0.8, 0.2, 0.3], [0.2, 0.9, 0.5], [0.6, 0.3, -0.4]]
+    N = [[0, 1, 0]] * 4 + [[0, 0, 1]] * 4 + [[0.3, 0.2, 0.9]] * 3
+    UV = [[0, 0], [2, 0], [2, 2], [0, 2], [0, 0], [1, 0], [1, 1], [0, 1], [0, 0], [1, 0], [0, 1]]
+    T = [[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7], [8, 9, 10]]
+    tex = np.zeros((2, 16, 16, 4), np.float32)
+    yy, xx = np.mgrid[0:16, 0:16]
+    disc = ((xx - 7.5) ** 2 + (yy - 7.5) ** 2) < 49
+    tex[0, ..., 0:3] = rng.random((16, 16, 3))
+    tex[0, ..., 3] = disc
+    tex[1, ..., 0:3] = ((xx // 4 + yy // 4) % 2)[..., None] * 0.5 + 0.2
+    tex[1, ..., 3] = 1.0
+    tint = [[1, 1, 1], [1, 1, 1], [0.8, 1, 0.8], [0.8, 1, 0.8], [0.9, 0.3, 0.2]]
+    return Scene(P, N, UV, T, tint, [1, 1, 0, 0, -1], tex)
+
+
+CAMERAS = {
+    "ortho": Camera((0.0, 0.6, 3.0), (0.0, 0.0, -1.0), ortho_height_m=2.4),
+    "persp": Camera((1.8, 1.6, 2.2), (-0.6, -0.45, -0.7), fov_y_deg=45.0),
+}
+
+
+def _compare(a, b, ao_share):
+    H, W = a.alpha.shape
+    edge = np.abs(a.alpha - b.alpha) > 1e-4
+    assert edge.mean() <= 0.02, f"{edge.mean():.3%} pixels differ in coverage"
+    ok = ~edge
+    assert np.abs(a.albedo - b.albedo)[ok].max() <= 1e-4
+    assert np.abs(a.normal - b.normal)[ok].max() <= 1e-4
+    both = ok & np.isfinite(a.depth) & np.isfinite(b.depth)
+    assert np.array_equal(np.isfinite(a.depth)[ok], np.isfinite(b.depth)[ok])
+    assert np.allclose(a.depth[both], b.depth[both], rtol=1e-4, atol=1e-5)
+    d_ao = np.abs(a.ao - b.ao)[ok]
+    assert (d_ao > 1e-4).mean() <= 0.03 and d_ao.max() <= ao_share + 1e-4
+
+
+@pytest.mark.parametrize("view", sorted(CAMERAS))
+@pytest.mark.parametrize("ao_rays", [0, 4])
+def test_kernel_matches_reference(view, ao_rays):
+    scene = tiny_scene()
+    s = Settings(24, 20, samples=2, ao_rays=ao_rays, ao_radius_m=0.8, seed=7)
+    a = render(scene, CAMERAS[view], s)
+    b = render(scene, CAMERAS[view], s, device=False)
+    assert a.alpha.max() == 1.0 and a.alpha.min() == 0.0  # the view holds the scene and some sky
+    assert 0.1 < (a.alpha > 0).mean() < 0.99
+    _compare(a, b, 1.0 / max(ao_rays, 1))
+    if ao_rays:
+        assert a.ao[a.alpha > 0].min() < 1.0  # the card shadows the ground
+
+
+def test_alpha_test_cuts_the_card():
+    """Through the card's transparent corners the ground (or sky) shows."""
+    full = tiny_scene()
+    scene = Scene(full.positions, full.normals, full.uv, full.triangles[:4], full.tint[:4], full.texture[:4], full.textures)
+    s = Settings(32, 32, samples=1)
+    img = render(scene, Camera((0.0, 0.6, 3.0), (0.0, 0.0, -1.0), ortho_height_m=1.0), s)
+    # the card spans x, y in [-0.5, 0.5] x [0.1, 1.1]: the view's corners lie in its cut-away corners
+    assert img.depth[0, 0] > 3.05 or not np.isfinite(img.depth[0, 0])
+    assert abs(img.depth[16, 16] - 3.0) < 1e-3
+
+
+@pytest.mark.parametrize("local", [(8, 8), (4, 2), (1, 1), None])
+def test_deterministic_and_independent_of_work_group(local):
+    scene = tiny_scene(3)
+    s = Settings(37, 23, samples=2, ao_rays=3, seed=11)
+    a = render(scene, CAMERAS["persp"], s, local=(8, 8))
+    b = render(scene, CAMERAS["persp"], s, local=local)
+    for ch in ("albedo", "alpha", "normal", "depth", "ao"):
+        assert np.array_equal(getattr(a, ch), getattr(b, ch)), ch
+
+
+def test_bvh_partitions_the_triangles():
+    rng = np.random.default_rng(1)
+    P = rng.random((300, 3)).astype(np.float32)
+    T = rng.integers(0, 300, (500, 3))
+    tree = bvh.build(P, T, leaf_size=4)
+    assert np.array_equal(np.sort(tree.order), np.arange(500))
+    ints = tree.nodes.view(np.int32)
+    leaves = ints[:, 7] > 0
+    assert ints[leaves, 7].sum() == 500 and ints[leaves, 7].max() <= 4
+    lo, hi = P[T].min(1), P[T].max(1)
+    for n in np.nonzero(leaves)[0]:
+        ids = tree.order[ints[n, 3]: ints[n, 3] + ints[n, 7]]
+        assert (lo[ids] >= tree.nodes[n, 0:3]).all() and (hi[ids] <= tree.nodes[n, 4:7]).all()
+
+
+def test_many_triangles_against_reference():
+    """A BVH several levels deep: random small triangles in a box."""
+    rng = np.random.default_rng(5)
+    c = rng.random((300, 3)) * 2 - 1
+    P = (c[:, None, :] + 0.15 * (rng.random((300, 3, 3)) - 0.5)).reshape(-1, 3)
+    N = np.tile([0.0, 0.0, 1.0], (len(P), 1))
+    scene = Scene(P, N, np.zeros((len(P), 2)), np.arange(len(P)).reshape(-1, 3), rng.random((300, 3)), -1)
+    s = Settings(20, 20, samples=2, ao_rays=2, ao_radius_m=0.5, seed=1)
+    cam = Camera((0.0, 0.0, 4.0), (0.0, 0.0, -1.0), fov_y_deg=40.0)
+    _compare(render(scene, cam, s), render(scene, cam, s, device=False), 0.5)
+
+
+def test_bad_scene_is_refused():
+    with pytest.raises(ValueError, match="NaN"):
+        Scene([[0, 0, np.nan]] * 3, [[0, 0, 1]] * 3, [[0, 0]] * 3, [[0, 1, 2]], [1, 1, 1], -1)
