@@ -291,11 +291,20 @@ def check(params: ErosionParams, ctx: CheckContext) -> Check:
     if height is None:
         return Check()
     dx = height.cell_size_m
+    ph = physics_for(params, dx)
     try:
-        plan_for(params, dx, physics_for(params, dx))
+        plan_for(params, dx, ph)
     except InputError as e:
         raise ParamError("", str(e).removeprefix("erosion: ")) from None
     cells = height.shape[0] * height.shape[1]
+    if params.dt_s is None and params.storm_hours > 0:
+        # the adaptive step is at most cfl dx / min_wave_speed: a lower bound on the steps, known now
+        least = params.storm_hours * 3600.0 / ph.dt_limit(0.0)
+        if least > MAX_STEPS:
+            raise ParamError("storm_hours", f"{params.storm_hours:g} hours on {dx:g} m cells needs at least "
+                             f"{least:.3g} adaptive steps (each at most cfl dx / {ph.min_wave_speed:g} m/s = "
+                             f"{ph.dt_limit(0.0):.3g} s; at most {MAX_STEPS:,} steps); shorten the storm or "
+                             f"coarsen the grid")
     per_cell = BYTES_PER_CELL_STORM + (BYTES_PER_CELL_GEOLOGY if params.geological_years > 0 else 0)
     return Check(memory_bytes=per_cell * cells, memory_how=f"the terrain's {cells:,} cells x {per_cell} B")
 

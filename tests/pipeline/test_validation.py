@@ -167,3 +167,10 @@ def test_runs_too_large_are_refused_with_the_estimate(project, capsys, monkeypat
     monkeypatch.setenv("WORLDBAKE_MAX_MEMORY_GB", "16")  # the same answer on any machine
     err = refused(project, capsys, "--set", assignment, config="configs/default.toml")
     assert re.search(pattern, err), err
+
+
+def test_a_storm_of_too_many_steps_is_refused_before_work(project, capsys):
+    err = refused(project, capsys, "--set", "erosion.storm_hours=1000", "--set", "heightmap.size_m=1000",
+                  config="configs/default.toml")
+    assert re.search(r"--set: erosion.storm_hours: 1000 hours on 0.976562 m cells needs at least 7.37e\+06 adaptive "
+                     r"steps", err), err

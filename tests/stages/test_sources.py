@@ -97,21 +97,33 @@ def test_editing_the_flow_kernels_changes_erosions_key(project_copy):
         stage_source_hash.cache_clear()
 
 
-def test_editing_a_shared_header_changes_the_keys_of_the_stages_including_it(project_copy):
-    header = project_copy / "pipeline" / "cl" / "worldbake_hash.h"
-    text = header.read_text()
-    before = _hashes(project_copy)
+def _changed_by(root: Path, rel: str, old: str, new: str) -> set[str]:
+    """The stages whose source hash changes when `old` becomes `new` in the
+    file `rel` of the copy (restored after)."""
+    path = root / rel
+    text = path.read_text()
+    assert old in text
+    before = _hashes(root)
     try:
-        header.write_text(text.replace("h ^= h >> 15;", "h ^= h >> 14;"))
-        after = _hashes(project_copy)
-        changed = {n for n in STAGES if after[n] != before[n]}
-        including = {n for n in STAGES if any('#include "worldbake_hash.h"' in p.read_text()
-                                              for p in (project_copy / "stages" / n).glob("*.cl"))}
-        assert including == {"heightmap", "vegetation"}
-        assert including and changed == including
+        path.write_text(text.replace(old, new))
+        after = _hashes(root)
     finally:
-        header.write_text(text)
+        path.write_text(text)
         stage_source_hash.cache_clear()
+    return {n for n in STAGES if after[n] != before[n]}
+
+
+def test_editing_a_shared_header_changes_the_keys_of_the_stages_including_it(project_copy):
+    changed = _changed_by(project_copy, "pipeline/cl/worldbake_hash.h", "h ^= h >> 15;", "h ^= h >> 14;")
+    including = {n for n in STAGES if any('#include "worldbake_hash.h"' in p.read_text()
+                                          for p in (project_copy / "stages" / n).glob("*.cl"))}
+    assert including == {"heightmap", "vegetation"} and changed == including
+
+
+def test_editing_the_d8_header_changes_the_keys_of_the_stages_routing_flow(project_copy):
+    changed = _changed_by(project_copy, "pipeline/cl/worldbake_d8.h", "{-1, -1, 0, 1, 1, 1, 0, -1}",
+                          "{-1, -1, 0, 1, 1, 1, 0, 1}")
+    assert changed >= {"erosion", "hydrology"}
 
 
 def _comment_edits(path: Path) -> str:
@@ -143,29 +155,7 @@ def test_comment_only_edits_change_no_key(project_copy):
 
 
 def test_a_code_edit_in_a_stage_changes_only_that_stages_key(project_copy):
-    before = _hashes(project_copy)
-    path = project_copy / "stages" / "world" / "stage.py"
-    text = path.read_text()
-    try:
-        path.write_text(text + "\nEXTRA_CONSTANT = 1\n")
-        after = _hashes(project_copy)
-        assert {n for n in STAGES if after[n] != before[n]} == {"world"}
-    finally:
-        path.write_text(text)
-        stage_source_hash.cache_clear()
-
-
-def test_editing_the_d8_header_changes_the_keys_of_the_stages_routing_flow(project_copy):
-    header = project_copy / "pipeline" / "cl" / "worldbake_d8.h"
-    text = header.read_text()
-    before = _hashes(project_copy)
-    try:
-        header.write_text(text.replace("{-1, -1, 0, 1, 1, 1, 0, -1}", "{-1, -1, 0, 1, 1, 1, 0, 1}"))
-        after = _hashes(project_copy)
-        assert {n for n in STAGES if after[n] != before[n]} >= {"erosion", "hydrology"}
-    finally:
-        header.write_text(text)
-        stage_source_hash.cache_clear()
+    assert _changed_by(project_copy, "stages/world/stage.py", "\nSTAGE = Stage(", "\nEXTRA = 1\nSTAGE = Stage(") == {"world"}
 
 
 def _docstring_nodes(tree: ast.AST) -> set[int]:
