@@ -33,6 +33,7 @@ from pipeline.contract import Artifact, Input, Param, Params, ProjectPath, RunCo
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
 from pipeline.preview import hillshade
+from pipeline.terrain_stats import terrain_statistics
 
 from . import device as dev
 from . import lakes as lakes_mod
@@ -253,6 +254,10 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
     t0 = time.perf_counter()
     hack = rivers_mod.hack_exponent(code, area_m2, dx, params.hack_min_area_m2)
     lap("hack_s", t0)
+    t0 = time.perf_counter()
+    # does the final terrain read as eroded land (grid anisotropy, depressions, Strahler, Hack, theta ...)
+    terrain_stats = terrain_statistics(h, F, code, area_m2, dx, params.river_threshold_m2, data)
+    lap("terrain_statistics_s", t0)
 
     ctx.progress(0.8, "water layer")
     t0 = time.perf_counter()
@@ -332,7 +337,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
         "fill_tiles_run": fstats.get("tiles_run"), "total_area_m2": float(n_data * cell_area),
         "outlet_area_m2": float(outlet_total * cell_area), "discharge_out_m3_s": float(discharge[kind == ref.EDGE].sum()),
         **{f"lake_{k_}" if not k_.startswith("lake") else k_: v for k_, v in lstats.items()},
-        **riv.stats, **hack, **uinfo, "timings": T,
+        **riv.stats, **hack, **uinfo, "terrain": terrain_stats, "timings": T,
     }
     stats = {k_: (float(v) if isinstance(v, np.floating) else v) for k_, v in stats.items()}
     ctx.metrics.update(stats)
@@ -375,7 +380,9 @@ STAGE = Stage(
         Artifact("hydrology.water", kind="usd", file="water.usda", shape="any",
                  description="/World/Water: rivers as BasisCurves with widths, lakes as flat water meshes, material"),
         Artifact("hydrology.stats", kind="json", file="stats.json", shape="any",
-                 description="counts, budgets, Hack's law exponent, timings"),
+                 description="counts, budgets, Hack's law exponent, terrain statistics (grid anisotropy, share of area "
+                 "in closed depressions, Strahler order, Hack exponent, concavity theta, drainage density, "
+                 "hypsometric integral: pipeline/terrain_stats.py), timings"),
         Artifact("hydrology.preview", kind="image", file="preview.png", dtype="uint8",
                  description="hillshade with lakes and rivers, 8-bit RGB"),
     ),
