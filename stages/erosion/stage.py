@@ -92,6 +92,19 @@ class ErosionParams(Params):
                                   ge=0.25, le=10.0)
     uplift_mm_per_year: float = Param(
         0.0, units="mm/year", description="uniform rock uplift U of every cell but the base-level edges", ge=0.0, le=1e5)
+    geological_routing: Literal["d8", "rho8"] = Param(
+        "d8", description="flow routing of the stream-power solve: d8 (steepest of 8 neighbours: valleys lock onto "
+        "the grid's axes and diagonals) or rho8 (diagonal distance drawn afresh per cell and step, Fairfield and "
+        "Leymarie 1991: valleys follow the terrain, no grid marks)")
+    channel_area_m2: float = Param(
+        0.0, units="m^2", description="drainage area where river incision starts; smaller catchments are hillslopes "
+        "shaped by hillslope_diffusivity only (0: every cell incises)", ge=0.0, le=1e12)
+    hillslope_diffusivity_m2_per_year: float = Param(
+        0.0, units="m^2/year", description="hillslope transport during geological time: linear diffusion, implicit "
+        "and isotropic (9-point Laplacian), the map edge fixed; 0 turns it off", ge=0.0, le=1e4)
+    geological_breach: bool = Param(
+        False, description="before geological time, carve every closed depression out along its least-cost path "
+        "(complete breaching, Lindsay 2016), so no filled flat routes water in straight lines")
     # time stepping
     cfl: float = Param(
         0.5, units="", description="Courant number of the adaptive time step dt = cfl dx / max(|u| + sqrt(g h))",
@@ -217,10 +230,13 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[
     if params.geological_years > 0:
         from . import stream_power
 
-        share = 0.3  # of the progress bar
+        share = 0.5  # of the progress bar
         res = stream_power.run(h.astype(np.float64), dx, params.geological_years, params.geological_step_years,
                                params.stream_power_k, params.stream_power_m, params.stream_power_n,
-                               params.uplift_mm_per_year / 1000.0, progress=lambda f, m: ctx.progress(share * f, m))
+                               params.uplift_mm_per_year / 1000.0, progress=lambda f, m: ctx.progress(share * f, m),
+                               routing=params.geological_routing, channel_area_m2=params.channel_area_m2,
+                               diffusivity_m2_per_year=params.hillslope_diffusivity_m2_per_year,
+                               breach=params.geological_breach)
         if res.budget_relative_error > 1e-9:
             raise StageError(f"erosion: stream power lost {res.budget_relative_error:.2e} of the eroded volume "
                              f"on its way to base level")

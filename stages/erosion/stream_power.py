@@ -6,10 +6,23 @@ implicit O(n) scheme of Braun and Willett (2013), as fastscapelib does.
 A drainage area (m^2), S the slope to the D8 receiver. Each step:
 1. uplift every cell that is not base level (map edge, no-data edge);
 2. flow routing on the current surface with the hydrology stage's kernels:
-   Priority-Flood+epsilon (so every cell reaches base level), D8, exact
-   integer accumulation;
+   Priority-Flood+epsilon (so every cell reaches base level), D8 or Rho8
+   (below), exact integer accumulation;
 3. the implicit solve along the flow paths (stream_power.cl, one serial
-   work-item, float64); no time-step limit.
+   work-item, float64); no time-step limit. Cells draining less than the
+   channel-initiation area are hillslopes: no river incision there;
+4. hillslope diffusion, implicit and isotropic (hillslope.py).
+
+Grid marks: D8 sends every cell of a planar slope the same way, so rills
+and valleys lock onto the 8 directions. Rho8 (Fairfield and Leymarie 1991)
+draws the diagonal distance of each cell afresh every step (d = dx (2 - u),
+u uniform from a counter-based hash of the cell and step): the steepest
+receiver is then a diagonal or an axis in proportion to the true aspect,
+and over the steps the valleys follow the terrain, not the grid. Flats are
+avoided rather than routed: `breach` first carves each closed depression
+out along its least-cost path (complete breaching, Lindsay 2016), and the
+implicit solve never makes a cell lower than its receiver, so no filled
+flat (whose epsilon routing draws parallel lines) forms afterwards.
 
 The eroded volume leaves the map at base level: the step accumulates it down
 the flow paths (exact integers) and checks that what arrives at base level
@@ -156,13 +169,56 @@ class _DeviceSolver:
         return out, int(it[0])
 
 
+def counter_uniform(key: int, step: int, n: int) -> np.ndarray:
+    """n uniform numbers in [0, 1) from a counter-based hash (splitmix64 of
+    key, step and cell index): the same at any thread count or tiling."""
+    with np.errstate(over="ignore"):
+        x = (np.arange(n, dtype=np.uint64) + np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)
+             + np.uint64(step) * np.uint64(0xD1B54A32D192ED03))
+        x ^= x >> np.uint64(30)
+        x *= np.uint64(0xBF58476D1CE4E5B9)
+        x ^= x >> np.uint64(27)
+        x *= np.uint64(0x94D049BB133111EB)
+        x ^= x >> np.uint64(31)
+    return (x >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)
+
+
+def rho8(z: np.ndarray, interior: np.ndarray, dx: float, u: np.ndarray) -> np.ndarray:
+    """Rho8 receivers (Fairfield and Leymarie 1991) on a surface where every
+    interior cell has a strictly lower neighbour: the steepest descent with
+    the diagonal distance dx (2 - u) per cell, u in [0, 1). Codes as D8;
+    -1 off the interior (base level). Ties keep the first direction N, NE, ..."""
+    rows, cols = z.shape
+    zp = np.pad(np.asarray(z, np.float64), 1, constant_values=np.inf)
+    best = np.zeros((rows, cols))
+    code = np.full((rows, cols), -1, np.int8)
+    diag = dx * (2.0 - u.reshape(rows, cols))
+    for k in range(8):
+        zn = zp[1 + DR[k]:1 + DR[k] + rows, 1 + DC[k]:1 + DC[k] + cols]
+        s = (z - zn) / (diag if k & 1 else dx)
+        steeper = s > best
+        best = np.where(steeper, s, best)
+        code[steeper] = k
+    code[~interior] = -1
+    return code
+
+
+RHO8_KEY = 0x52686F38  # the hash key of Rho8's draws
+
+
 def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, m: float, n_exp: float,
         uplift_m_per_year: float, progress: Callable[[float, str], None] | None = None,
-        step_fn: Callable | None = None) -> StreamPowerResult:
+        step_fn: Callable | None = None, routing: str = "d8", channel_area_m2: float = 0.0,
+        diffusivity_m2_per_year: float = 0.0, breach: bool = False) -> StreamPowerResult:
     """Erode `height` (m, finite) for `years`; k in m^(1-2m)/year, uplift in
-    m/year. step_fn replaces the device solve (tests pass reference_step)."""
+    m/year. step_fn replaces the device solve (tests pass reference_step).
+    routing "d8" or "rho8"; channel_area_m2: no incision below this drainage
+    area; diffusivity: hillslope diffusion (m^2/year, implicit, isotropic);
+    breach: carve the closed depressions out first (complete breaching)."""
     from stages.hydrology import device as flow
     from stages.hydrology import reference as flowref
+
+    from . import hillslope
 
     h = np.asarray(height, np.float64).copy()
     if not np.isfinite(h).all():
@@ -170,6 +226,13 @@ def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, 
     rows, cols = h.shape
     kind = flowref.cell_kinds(h.astype(np.float32))
     base = kind != flowref.INTERIOR  # map edges: base level, fixed
+    breached_m3 = 0.0
+    if breach and years > 0:
+        carved = flow.breach(flowref.canonical(h.astype(np.float32)), kind).astype(np.float64)
+        breached_m3 = float((h - carved).sum()) * dx * dx
+        h = carved
+    height_start = h.copy()
+    diffusion_out = 0.0
     steps = max(1, math.ceil(years / dt_years - 1e-9)) if years > 0 else 0
     dt = years / steps if steps else 0.0
     solve = step_fn or _DeviceSolver(rows, cols).step
@@ -182,9 +245,13 @@ def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, 
         h_up = h + uplift_step
         uplifted += uplift_step_m3
         R = flow.fill(flowref.canonical(h_up.astype(np.float32)), kind, eps=True)
-        code = flow.d8(R, kind, dx)
+        if routing == "rho8":
+            code = rho8(R, kind == flowref.INTERIOR, dx, counter_uniform(RHO8_KEY, s, h.size))
+        else:
+            code = flow.d8(R, kind, dx)
         area = flow.accumulate(code).astype(np.float64) * cell_area
-        new, it = solve(h_up, code, area, dx, k * dt, m, n_exp)
+        river_area = np.where(area >= channel_area_m2, area, 0.0) if channel_area_m2 > 0 else area
+        new, it = solve(h_up, code, river_area, dx, k * dt, m, n_exp)
         worst_newton = max(worst_newton, it)
         if not np.isfinite(new).all():
             raise StageError(f"erosion: stream power blew up at step {s + 1} (non-finite heights)")
@@ -197,14 +264,22 @@ def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, 
         eroded += float(q.sum()) / scale
         out_total += float(arrived[code < 0].sum()) / scale
         h = new
+        if diffusivity_m2_per_year > 0:
+            diffused = hillslope.step(h, dx, diffusivity_m2_per_year * dt)
+            if not np.isfinite(diffused).all():
+                raise StageError(f"erosion: hillslope diffusion blew up at step {s + 1} (non-finite heights)")
+            diffusion_out -= float((diffused - h).sum()) * cell_area  # what crossed the fixed edge
+            h = diffused
         if progress and (s % max(1, steps // 20) == 0 or s == steps - 1):
             progress((s + 1) / steps, f"stream power {s + 1}/{steps} ({(s + 1) * dt:.3g} years)")
     err = abs(eroded - out_total) / eroded if eroded > 0 else 0.0
-    dvol = float((h - np.asarray(height, np.float64)).sum()) * cell_area
-    vol_err = abs(dvol - (uplifted - out_total)) / max(uplifted, out_total, 1e-300)
+    dvol = float((h - height_start).sum()) * cell_area
+    vol_err = abs(dvol - (uplifted - out_total - diffusion_out)) / max(uplifted, out_total, 1e-300)
     return StreamPowerResult(h, steps, eroded, uplifted, out_total, err, worst_newton,
                              {"stream_power_steps": steps, "stream_power_dt_years": dt,
                               "stream_power_volume_budget_relative_error": vol_err,
                               "stream_power_eroded_m3": eroded, "stream_power_uplifted_m3": uplifted,
                               "stream_power_out_m3": out_total, "stream_power_budget_relative_error": err,
-                              "stream_power_newton_iterations_max": worst_newton})
+                              "stream_power_newton_iterations_max": worst_newton,
+                              "stream_power_routing": routing, "stream_power_breached_m3": breached_m3,
+                              "hillslope_diffusion_out_m3": diffusion_out})
