@@ -13,7 +13,11 @@ land measures"), computed from the final height and its D8 flow tree:
 - hack_exponent: L = c A^h over channel cells, L the longest upstream path
   (Hack 1957; Rigon et al. 1996: 0.5 .. 0.6 in real basins);
 - concavity_theta: S = k A^-theta on channel cells (Whipple 2004: 0.35 .. 0.65),
-  fitted on the median slope per logarithmic bin of drainage area;
+  fitted on the median slope per logarithmic bin of drainage area, the
+  slope taken over a reach of SLOPE_REACH_M downstream as on smoothed
+  river profiles (Wobus et al. 2006), so that pools and steps a few cells
+  long do not decide it; concavity_theta_cell is the same fit with the
+  slope to the next cell;
 - drainage_density_per_km: channel length per area (km / km^2);
 - hypsometric_integral: (mean - min) / (max - min) of the height.
 
@@ -30,6 +34,7 @@ DR = np.array([-1, -1, 0, 1, 1, 1, 0, -1])
 DC = np.array([0, 1, 1, 1, 0, -1, -1, -1])
 GRID_DIRECTIONS_DEG = (0.0, 45.0, 90.0, 135.0)
 ANISOTROPY_HALF_WIDTH_DEG = 1.5
+SLOPE_REACH_M = 200.0
 
 
 def grid_anisotropy(height: np.ndarray) -> float:
@@ -130,6 +135,24 @@ def _fit_slope(x: np.ndarray, y: np.ndarray) -> float:
     return float(np.polyfit(x, y, 1)[0])
 
 
+def _concavity(area: np.ndarray, slope: np.ndarray, cells: np.ndarray) -> tuple[float, int]:
+    """theta of S = k A^-theta: least squares through the median log S of
+    each tenth of a decade of A (bins of at least 5 cells with S > 0)."""
+    sa = cells & (slope > 0)
+    if sa.sum() < 10:
+        return float("nan"), 0
+    la, ls = np.log10(area[sa]), np.log10(slope[sa])
+    edges = np.arange(math.floor(la.min() * 10) / 10, la.max() + 0.1, 0.1)
+    which = np.digitize(la, edges)
+    xs, ys = [], []
+    for b in np.unique(which):
+        m = which == b
+        if m.sum() >= 5:
+            xs.append(np.median(la[m]))
+            ys.append(np.median(ls[m]))
+    return -_fit_slope(np.array(xs), np.array(ys)), len(xs)
+
+
 def terrain_statistics(height: np.ndarray, filled: np.ndarray, code: np.ndarray, area_m2: np.ndarray,
                        cell_size_m: float, channel_area_m2: float, data: np.ndarray | None = None) -> dict:
     """The statistics of the module docstring (float64; JSON-ready dict).
@@ -171,21 +194,19 @@ def terrain_statistics(height: np.ndarray, filled: np.ndarray, code: np.ndarray,
 
     slope = np.zeros(rcv.size)
     slope[has_r] = (flat_h[has_r] - flat_h[rcv[has_r]]) / step[has_r]
-    sa = channel & has_r & (slope > 0)
-    theta = float("nan")
-    bins_used = 0
-    if sa.sum() >= 10:
-        la, ls = np.log10(A[sa]), np.log10(slope[sa])
-        edges = np.arange(math.floor(la.min() * 10) / 10, la.max() + 0.1, 0.1)  # ten bins per decade
-        which = np.digitize(la, edges)
-        xs, ys = [], []
-        for b in np.unique(which):
-            m = which == b
-            if m.sum() >= 5:
-                xs.append(np.median(la[m]))
-                ys.append(np.median(ls[m]))
-        bins_used = len(xs)
-        theta = -_fit_slope(np.array(xs), np.array(ys))
+    theta_cell, _ = _concavity(A, slope, channel & has_r)
+    # the drop over a reach of SLOPE_REACH_M downstream (or to the outlet)
+    cells = np.flatnonzero(channel & has_r)
+    pos, run = cells.copy(), np.zeros(cells.size)
+    for _ in range(int(math.ceil(SLOPE_REACH_M / dx)) + 1):
+        go = (run < SLOPE_REACH_M) & (rcv[pos] >= 0)
+        if not go.any():
+            break
+        run[go] += step[pos[go]]
+        pos[go] = rcv[pos[go]]
+    reach_slope = np.zeros(rcv.size)
+    reach_slope[cells] = (flat_h[cells] - flat_h[pos]) / np.maximum(run, dx)
+    theta, bins_used = _concavity(A, reach_slope, channel & has_r)
 
     channel_length_m = float(step[channel & has_r].sum())
     area_km2 = float(data.sum()) * dx * dx / 1e6
@@ -198,6 +219,8 @@ def terrain_statistics(height: np.ndarray, filled: np.ndarray, code: np.ndarray,
         "hack_exponent": hack,
         "concavity_theta": theta,
         "concavity_bins": bins_used,
+        "concavity_theta_cell": theta_cell,
+        "concavity_slope_reach_m": SLOPE_REACH_M,
         "drainage_density_per_km": channel_length_m / 1000.0 / area_km2 if area_km2 > 0 else 0.0,
         "hypsometric_integral": float((hv.mean() - hv.min()) / span) if span > 0 else 0.0,
         "relief_m": span,

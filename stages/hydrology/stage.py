@@ -43,6 +43,7 @@ from . import rivers as rivers_mod
 
 SECONDS_PER_YEAR = 365.25 * 86400.0
 TERRAIN_SOURCES = ("erosion.height", "heightmap.height")
+RIVER_MAX_RISE_M = 0.5  # a river segment may pass over ground this much above its higher end, no more
 
 
 class HydrologyParams(Params):
@@ -216,9 +217,9 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
                              params.river_velocity_coefficient_m_s, params.river_velocity_min_m_s,
                              params.river_velocity_max_m_s, params.river_min_slope, params.river_width_depth_ratio,
                              params.river_lift_m)
-    if mesh is not None and riv.curves:
-        from stages.world.terrain_mesh import height_on_mesh
+    from stages.world.terrain_mesh import height_on_mesh
 
+    if mesh is not None and riv.curves:
         used = np.unique(np.concatenate(riv.curves))
         ox, oz = terrain.origin_m
         gm = ground.ravel().copy()
@@ -269,16 +270,23 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
     for seg in riv.curves:
         x = ox + (seg % cols + 0.5) * dx
         z = oz + (seg // cols + 0.5) * dx
-        y = surf[seg]
         lk_lvl = lake_level.ravel()[seg]
-        y = np.where(np.isnan(y), lk_lvl, y)  # the last vertex may sit in a lake
-        y = np.minimum.accumulate(np.nan_to_num(y, nan=np.inf))
+        if mesh is not None:
+            # the curve lies on the terrain mesh (lifted by river_lift_m), in a lake at its level
+            y = height_on_mesh(mesh, x, z) + params.river_lift_m
+        else:
+            y = surf[seg]
+        y = np.where(np.isfinite(lk_lvl), lk_lvl, y)
         if not np.isfinite(y).all():
             continue
+        w = np.maximum.accumulate(riv.width.ravel()[seg])
+        q = discharge.ravel()[seg]
+        if mesh is not None:
+            x, y, z, w, q = rivers_mod.follow_mesh(lambda px, pz: height_on_mesh(mesh, px, pz) + params.river_lift_m,
+                                                   x, y, z, w, q, RIVER_MAX_RISE_M)
         pts.append(np.stack([x, y, z], 1))
-        w = riv.width.ravel()[seg]
-        ws.append(np.maximum(w, w[0]) if False else np.maximum.accumulate(w))
-        qs.append(discharge.ravel()[seg])
+        ws.append(w)
+        qs.append(q)
         orders.append(int(riv.order.ravel()[seg[0]]))
     lake_list = []
     if params.lakes and lstats.get("lakes", 0):

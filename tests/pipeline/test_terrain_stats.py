@@ -91,7 +91,7 @@ def test_cone_and_plane_statistics():
 
 
 def test_depressions_and_concavity_of_a_known_profile():
-    dx = 5.0
+    dx = 50.0  # the slope reach (200 m) is 4 cells
     n = 80
     r, c = np.mgrid[0:n, 0:n]
     # a valley draining east along the middle row, steep sides: along the floor the drainage area
@@ -106,4 +106,5 @@ def test_depressions_and_concavity_of_a_known_profile():
     st = ts.terrain_statistics(h, np.maximum(filled, h), code, area, dx, channel_area_m2=200 * dx * dx)
     assert st["depression_area_fraction"] == pytest.approx(16 / (n * n))
     assert st["strahler_order_max"] == 1  # one stem, no confluence of channels
-    assert st["concavity_theta"] == pytest.approx(0.5, abs=0.05)
+    assert st["concavity_theta_cell"] == pytest.approx(0.5, abs=0.05)
+    assert st["concavity_theta"] == pytest.approx(0.5, abs=0.08)
