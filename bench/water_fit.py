@@ -67,6 +67,12 @@ def fit(world: Path, max_vertices: int = 513) -> dict:
     lk = read_grid(hyd / "lakes.exr")
     lake_id = lk.channel("lake.id")
     level = lk.channel("lake.level")
+    # vertices on a lake sit at its level (the lake's surface), not on the ground
+    pts = np.concatenate(rivers) if rivers else np.zeros((0, 3))
+    col = np.clip(((pts[:, 0] - g.origin_m[0]) / g.cell_size_m).astype(int), 0, h.shape[1] - 1)
+    row = np.clip(((pts[:, 2] - g.origin_m[1]) / g.cell_size_m).astype(int), 0, h.shape[0] - 1)
+    lvl = level[row, col]
+    on_lake = np.isfinite(lvl) & (np.abs(pts[:, 1] - lvl) < 1e-3)
     params = json.loads((hyd / "manifest.json").read_text()).get("params", {})
     min_area = float(params.get("lake_min_area_m2", 20000.0))
     ids, counts = np.unique(lake_id[lake_id > 0].astype(np.int64), return_counts=True)
@@ -80,10 +86,10 @@ def fit(world: Path, max_vertices: int = 513) -> dict:
             continue
         level_err.append(abs(lakes_usd[name] - float(np.nanmax(level[lake_id == lid]))))
     return {
-        "river_vertices": int(above.size),
-        "vertices_within_0.5m_share": float((np.abs(above) <= 0.5).mean()) if above.size else float("nan"),
-        "vertex_height_above_mesh_min_m": float(above.min()) if above.size else float("nan"),
-        "vertex_height_above_mesh_max_m": float(above.max()) if above.size else float("nan"),
+        "river_vertices": int(above.size), "river_vertices_on_lakes": int(on_lake.sum()),
+        "vertices_off_lakes_within_0.5m_share": float((np.abs(above[~on_lake]) <= 0.5).mean()) if above.size else 0.0,
+        "vertex_off_lakes_above_mesh_min_m": float(above[~on_lake].min()) if (~on_lake).any() else float("nan"),
+        "vertex_off_lakes_above_mesh_max_m": float(above[~on_lake].max()) if (~on_lake).any() else float("nan"),
         "segments": int(bumps.size),
         "segments_over_ground_1m_share": float((bumps > 1.0).mean()) if bumps.size else float("nan"),
         "segment_ground_above_higher_end_max_m": float(bumps.max()) if bumps.size else float("nan"),
