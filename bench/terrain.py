@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-DEFAULT = dict(years=1.0e6, dt_years=4.0e4, k=2.0e-5, m=0.45, n_exp=1.0, uplift_m_per_year=5.0e-4,
+DEFAULT = dict(years=2.0e6, dt_years=8.0e4, k=2.0e-5, m=0.45, n_exp=1.0, uplift_m_per_year=5.0e-4,
                routing="mfd", diffusivity_m2_per_year=0.01, mfd_exponent=1.1, flat_routing="distance",
                fill_lakes=True)
 VARIANTS = {
@@ -53,7 +53,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sizes", type=int, nargs="*", default=[1024])
     ap.add_argument("--variants", nargs="*", default=list(VARIANTS))
-    ap.add_argument("--steps", type=int, nargs="*", default=[25], help="geological steps over the 1e6 years")
+    ap.add_argument("--steps", type=int, nargs="*", default=[25], help="geological steps over the 2e6 years")
     args = ap.parse_args()
     from bench.hydrology import dem
     from pipeline.opencl import get_cl
