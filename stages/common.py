@@ -10,6 +10,10 @@ from __future__ import annotations
 # The final terrain height: from erosion when it runs, else the heightmap.
 TERRAIN_SOURCES = ("erosion.height", "heightmap.height")
 
+# The ground types' splat weights, as vegetation writes them and the world's
+# ground material reads them (one definition of the ground for the world).
+SPLAT_CHANNELS = ("splat.rock", "splat.scree", "splat.grass", "splat.dry_grass", "splat.mud", "splat.snow")
+
 # The plant assets layer: one prim per species under PLANTS_ROOT.
 PLANTS_ROOT = "/Plants"
 # The vegetation layer's class prims, one per placed species, that every

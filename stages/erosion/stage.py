@@ -92,6 +92,31 @@ class ErosionParams(Params):
                                   ge=0.25, le=10.0)
     uplift_mm_per_year: float = Param(
         0.0, units="mm/year", description="uniform rock uplift U of every cell but the base-level edges", ge=0.0, le=1e5)
+    geological_routing: Literal["d8", "rho8", "mfd"] = Param(
+        "d8", description="flow routing of the stream-power solve: d8 (steepest of 8 neighbours: valleys lock onto "
+        "the grid's axes and diagonals), rho8 (diagonal distance drawn afresh per cell and step, Fairfield and "
+        "Leymarie 1991) or mfd (area and incision shared among all lower neighbours by slope^geological_mfd_exponent, "
+        "Quinn 1991, as fastscapelib's multiple-receiver eroder; n = 1 only)")
+    geological_mfd_exponent: float = Param(
+        1.1, units="", description="mfd: share of flow ~ slope^p * contour length (1.1 Freeman's spread; larger "
+        "concentrates the flow toward the steepest neighbour)", ge=0.1, le=20.0)
+    channel_area_m2: float = Param(
+        0.0, units="m^2", description="drainage area where river incision starts; smaller catchments are hillslopes "
+        "shaped by hillslope_diffusivity only (0: every cell incises)", ge=0.0, le=1e12)
+    hillslope_diffusivity_m2_per_year: float = Param(
+        0.0, units="m^2/year", description="hillslope transport during geological time: linear diffusion, implicit "
+        "and isotropic (9-point Laplacian), the map edge fixed; 0 turns it off", ge=0.0, le=1e4)
+    geological_flat_routing: Literal["epsilon", "distance"] = Param(
+        "epsilon", description="routing across closed depressions during geological time: epsilon (Priority-Flood+"
+        "epsilon, Barnes 2014: the flood order, straight lines along rows, columns and diagonals) or distance (the "
+        "filled level tilted toward the depression's outlet by the Euclidean distance: water converges on the outlet "
+        "from every direction)")
+    geological_lake_fill: bool = Param(
+        False, description="mfd: sediment settles in the closed depressions up to the routing surface every step "
+        "(counted in the volume budget), so no pit survives to the next step")
+    geological_breach: bool = Param(
+        False, description="before geological time, carve every closed depression out along its least-cost path "
+        "(complete breaching, Lindsay 2016), so no filled flat routes water in straight lines")
     # time stepping
     cfl: float = Param(
         0.5, units="", description="Courant number of the adaptive time step dt = cfl dx / max(|u| + sqrt(g h))",
@@ -217,10 +242,14 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[
     if params.geological_years > 0:
         from . import stream_power
 
-        share = 0.3  # of the progress bar
+        share = 0.5  # of the progress bar
         res = stream_power.run(h.astype(np.float64), dx, params.geological_years, params.geological_step_years,
                                params.stream_power_k, params.stream_power_m, params.stream_power_n,
-                               params.uplift_mm_per_year / 1000.0, progress=lambda f, m: ctx.progress(share * f, m))
+                               params.uplift_mm_per_year / 1000.0, progress=lambda f, m: ctx.progress(share * f, m),
+                               routing=params.geological_routing, channel_area_m2=params.channel_area_m2,
+                               diffusivity_m2_per_year=params.hillslope_diffusivity_m2_per_year,
+                               breach=params.geological_breach, mfd_exponent=params.geological_mfd_exponent,
+                               flat_routing=params.geological_flat_routing, fill_lakes=params.geological_lake_fill)
         if res.budget_relative_error > 1e-9:
             raise StageError(f"erosion: stream power lost {res.budget_relative_error:.2e} of the eroded volume "
                              f"on its way to base level")

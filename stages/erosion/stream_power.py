@@ -6,10 +6,23 @@ implicit O(n) scheme of Braun and Willett (2013), as fastscapelib does.
 A drainage area (m^2), S the slope to the D8 receiver. Each step:
 1. uplift every cell that is not base level (map edge, no-data edge);
 2. flow routing on the current surface with the hydrology stage's kernels:
-   Priority-Flood+epsilon (so every cell reaches base level), D8, exact
-   integer accumulation;
+   Priority-Flood+epsilon (so every cell reaches base level), D8 or Rho8
+   (below), exact integer accumulation;
 3. the implicit solve along the flow paths (stream_power.cl, one serial
-   work-item, float64); no time-step limit.
+   work-item, float64); no time-step limit. Cells draining less than the
+   channel-initiation area are hillslopes: no river incision there;
+4. hillslope diffusion, implicit and isotropic (hillslope.py).
+
+Grid marks: D8 sends every cell of a planar slope the same way, so rills
+and valleys lock onto the 8 directions. Rho8 (Fairfield and Leymarie 1991)
+draws the diagonal distance of each cell afresh every step (d = dx (2 - u),
+u uniform from a counter-based hash of the cell and step): the steepest
+receiver is then a diagonal or an axis in proportion to the true aspect,
+and over the steps the valleys follow the terrain, not the grid. Flats are
+avoided rather than routed: `breach` first carves each closed depression
+out along its least-cost path (complete breaching, Lindsay 2016), and the
+implicit solve never makes a cell lower than its receiver, so no filled
+flat (whose epsilon routing draws parallel lines) forms afterwards.
 
 The eroded volume leaves the map at base level: the step accumulates it down
 the flow paths (exact integers) and checks that what arrives at base level
@@ -155,13 +168,208 @@ class _DeviceSolver:
         return out, int(it[0])
 
 
-def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, m: float, n_exp: float,
-        uplift_m_per_year: float, progress: Callable[[float, str], None] | None = None,
-        step_fn: Callable | None = None) -> StreamPowerResult:
-    """Erode `height` (m, finite) for `years`; k in m^(1-2m)/year, uplift in
-    m/year. step_fn replaces the device solve (tests pass reference_step)."""
+LAKE_FILL_MIN_M = 1e-3  # a cell this far below the routing surface is in a closed depression
+FLAT_TILT_M_PER_CELL = 0.01  # tilt of a filled depression's routing surface toward its outlet
+
+
+def routing_surface(h: np.ndarray, kind: np.ndarray, flat_routing: str) -> np.ndarray:
+    """The float32 surface every interior cell descends on to base level.
+
+    "epsilon": Priority-Flood+epsilon (Barnes 2014) of h: a filled
+    depression drains along its flood order, rows, columns and diagonals.
+    "distance": the filled level tilted down toward the depression's outlet
+    by FLAT_TILT_M_PER_CELL times the Euclidean distance to it (scipy's exact
+    distance transform), then Priority-Flood+epsilon to close what the
+    straight-line distance leaves (a lake's bays behind a headland): the flow
+    over the flat converges on the outlet from every direction, as water on
+    a lake does, instead of along the grid (flat resolution toward lower
+    terrain, Garbrecht and Martz 1997 / Barnes et al. 2014, with Euclidean
+    rather than grid-step distances)."""
+    from scipy import ndimage
+
     from pipeline.flow import device as flow
     from pipeline.flow import reference as flowref
+
+    h32 = flowref.canonical(np.asarray(h, np.float32))
+    if flat_routing == "epsilon":
+        return flow.fill(h32, kind, eps=True)
+    filled = flow.fill(h32, kind, eps=False)
+    lake = filled > h32
+    if not lake.any():
+        return flow.fill(h32, kind, eps=True)
+    # outlets: dry cells beside a lake cell at or below that lake's level
+    grown_level = ndimage.maximum_filter(np.where(lake, filled, -np.inf), size=3)
+    outlet = ~lake & ndimage.binary_dilation(lake, structure=np.ones((3, 3), bool)) & (h32 <= grown_level)
+    dist = ndimage.distance_transform_edt(~outlet)
+    z = np.where(lake, filled + np.float32(FLAT_TILT_M_PER_CELL) * dist.astype(np.float32), h32).astype(np.float32)
+    return flow.fill(flowref.canonical(z), kind, eps=True)
+
+
+def counter_uniform(key: int, step: int, n: int) -> np.ndarray:
+    """n uniform numbers in [0, 1) from a counter-based hash (splitmix64 of
+    key, step and cell index): the same at any thread count or tiling."""
+    with np.errstate(over="ignore"):
+        x = (np.arange(n, dtype=np.uint64) + np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)
+             + np.uint64(step) * np.uint64(0xD1B54A32D192ED03))
+        x ^= x >> np.uint64(30)
+        x *= np.uint64(0xBF58476D1CE4E5B9)
+        x ^= x >> np.uint64(27)
+        x *= np.uint64(0x94D049BB133111EB)
+        x ^= x >> np.uint64(31)
+    return (x >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)
+
+
+def rho8(z: np.ndarray, interior: np.ndarray, dx: float, u: np.ndarray) -> np.ndarray:
+    """Rho8 receivers (Fairfield and Leymarie 1991) on a surface where every
+    interior cell has a strictly lower neighbour: the steepest descent with
+    the diagonal distance dx (2 - u) per cell, u in [0, 1). Codes as D8;
+    -1 off the interior (base level). Ties keep the first direction N, NE, ..."""
+    rows, cols = z.shape
+    zp = np.pad(np.asarray(z, np.float64), 1, constant_values=np.inf)
+    best = np.zeros((rows, cols))
+    code = np.full((rows, cols), -1, np.int8)
+    diag = dx * (2.0 - u.reshape(rows, cols))
+    for k in range(8):
+        zn = zp[1 + DR[k]:1 + DR[k] + rows, 1 + DC[k]:1 + DC[k] + cols]
+        s = (z - zn) / (diag if k & 1 else dx)
+        steeper = s > best
+        best = np.where(steeper, s, best)
+        code[steeper] = k
+    code[~interior] = -1
+    return code
+
+
+RHO8_KEY = 0x52686F38  # the hash key of Rho8's draws
+
+
+MFD_AXIS_CONTOUR, MFD_DIAG_CONTOUR = 0.5, 0.354
+
+
+def mfd_fractions(z: np.ndarray, interior: np.ndarray, dx: float, p_exp: float) -> np.ndarray:
+    """(n, 8) shares of each cell's flow to its 8 neighbours (N, NE, ... NW):
+    to every neighbour lower on the routing surface z, in proportion to
+    slope^p times contour length (0.5 dx across an axis, 0.354 dx across a
+    diagonal; Quinn et al. 1991). Rows of base-level cells are 0."""
+    rows, cols = z.shape
+    zp = np.pad(np.asarray(z, np.float64), 1, constant_values=np.inf)
+    zc = zp[1:-1, 1:-1]
+    w = np.zeros((rows, cols, 8))
+    for k in range(8):
+        zn = zp[1 + DR[k]:1 + DR[k] + rows, 1 + DC[k]:1 + DC[k] + cols]
+        d = dx * math.sqrt(2.0) if k & 1 else dx
+        drop = zc - zn
+        lower = (drop > 0) & interior
+        w[..., k][lower] = np.power(drop[lower] / d, p_exp) * ((MFD_DIAG_CONTOUR if k & 1 else MFD_AXIS_CONTOUR) * dx)
+    total = w.sum(axis=2, keepdims=True)
+    return np.divide(w, total, out=np.zeros_like(w), where=total > 0).reshape(rows * cols, 8)
+
+
+def mfd_factor(area_m2: np.ndarray, interior: np.ndarray, k_dt: float, m: float, channel_area_m2: float) -> np.ndarray:
+    """K dt A^m per cell, 0 on hillslopes (A below channel_area_m2) and at base level."""
+    a = np.asarray(area_m2, np.float64).ravel()
+    on = np.asarray(interior, bool).ravel() & (a >= channel_area_m2)
+    out = np.zeros_like(a)
+    out[on] = k_dt * np.power(a[on], m)
+    return out
+
+
+def mfd_reference_step(h: np.ndarray, z: np.ndarray, interior: np.ndarray, dx: float, k_dt: float, m: float,
+                       p_exp: float, channel_area_m2: float) -> tuple[np.ndarray, np.ndarray]:
+    """The mfd step (fractions, area, factor, solve) with the serial passes
+    in pure Python float64 (small grids): returns (new heights, MFD
+    drainage area in m^2). z is the float32 routing surface."""
+    rows, cols = h.shape
+    n = rows * cols
+    zf = np.asarray(z, np.float32)
+    inside = np.asarray(interior, bool)
+    frac = mfd_fractions(zf, inside, dx, p_exp)
+    hf = np.asarray(h, np.float64).ravel().copy()
+    order = np.argsort(zf.ravel(), kind="stable")
+    offset = (DR * cols + DC).tolist()
+    area = np.full(n, dx * dx)
+    for i in order[::-1].tolist():
+        for k in range(8):
+            if frac[i, k] > 0:
+                area[i + offset[k]] += area[i] * frac[i, k]
+    factor = mfd_factor(area, inside, k_dt, m, channel_area_m2)
+    for i in order.tolist():
+        if factor[i] == 0.0:
+            continue
+        sum_f = sum_fh = 0.0
+        for k in range(8):
+            if frac[i, k] == 0.0:
+                continue
+            hj = hf[i + offset[k]]
+            if hj >= hf[i]:
+                continue
+            fj = factor[i] * frac[i, k] / (dx * math.sqrt(2.0) if k & 1 else dx)
+            sum_f += fj
+            sum_fh += fj * hj
+        hf[i] = (hf[i] + sum_fh) / (1.0 + sum_f)
+    return hf.reshape(rows, cols), area.reshape(rows, cols)
+
+
+class _DeviceMFDSolver:
+    """The mfd_* kernels on the OpenCL device, buffers kept across steps."""
+
+    def __init__(self, rows: int, cols: int):
+        import pyopencl as cl
+
+        from pipeline.opencl import get_cl, load_program
+
+        self.cl = cl
+        self.env = get_cl()
+        if "cl_khr_fp64" not in self.env.device.extensions:
+            raise StageError(f"erosion: stream power needs double precision, which {self.env.device.name} lacks")
+        prg = load_program(KERNELS)
+        self.k_area, self.k_solve = cl.Kernel(prg, "mfd_area"), cl.Kernel(prg, "mfd_solve")
+        self.rows, self.cols = rows, cols
+        n = rows * cols
+        mf = cl.mem_flags
+        self.d_h = cl.Buffer(self.env.ctx, mf.READ_WRITE, n * 8)
+        self.d_order = cl.Buffer(self.env.ctx, mf.READ_ONLY, n * 4)
+        self.d_interior = cl.Buffer(self.env.ctx, mf.READ_ONLY, n)
+        self.d_area = cl.Buffer(self.env.ctx, mf.READ_WRITE, n * 8)
+        self.d_factor = cl.Buffer(self.env.ctx, mf.READ_WRITE, n * 8)
+        self.d_frac = cl.Buffer(self.env.ctx, mf.READ_WRITE, n * 8 * 8)
+
+    def step(self, h: np.ndarray, z: np.ndarray, interior: np.ndarray, dx: float, k_dt: float, m: float,
+             p_exp: float, channel_area_m2: float) -> tuple[np.ndarray, np.ndarray]:
+        cl, q = self.cl, self.env.queue
+        z = np.ascontiguousarray(z, np.float32)
+        rows, cols, n = np.int32(self.rows), np.int32(self.cols), self.rows * self.cols
+        inside = np.asarray(interior, bool)
+        cl.enqueue_copy(q, self.d_h, np.ascontiguousarray(h, np.float64))
+        cl.enqueue_copy(q, self.d_order, np.argsort(z.ravel(), kind="stable").astype(np.int32))
+        cl.enqueue_copy(q, self.d_interior, np.ascontiguousarray(inside, np.uint8))
+        cl.enqueue_copy(q, self.d_frac, mfd_fractions(z, inside, dx, p_exp))
+        self.k_area(q, (1,), None, self.d_order, self.d_interior, self.d_frac, self.d_area, rows, cols, np.float64(dx))
+        area = np.empty((self.rows, self.cols), np.float64)
+        cl.enqueue_copy(q, area, self.d_area)
+        cl.enqueue_copy(q, self.d_factor, mfd_factor(area, inside, k_dt, m, channel_area_m2))
+        self.k_solve(q, (1,), None, self.d_h, self.d_order, self.d_frac, self.d_factor, rows, cols, np.float64(dx))
+        out = np.empty((self.rows, self.cols), np.float64)
+        cl.enqueue_copy(q, out, self.d_h)
+        return out, area
+
+
+def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, m: float, n_exp: float,
+        uplift_m_per_year: float, progress: Callable[[float, str], None] | None = None,
+        step_fn: Callable | None = None, routing: str = "d8", channel_area_m2: float = 0.0,
+        diffusivity_m2_per_year: float = 0.0, breach: bool = False, mfd_exponent: float = 1.1,
+        mfd_step_fn: Callable | None = None, flat_routing: str = "epsilon",
+        fill_lakes: bool = False) -> StreamPowerResult:
+    """Erode `height` (m, finite) for `years`; k in m^(1-2m)/year, uplift in
+    m/year. step_fn replaces the device solve (tests pass reference_step).
+    routing "d8", "rho8" or "mfd" (n = 1 only: multiple flow directions,
+    slope^mfd_exponent; detachment-limited, so the eroded volume leaves the
+    map and the check is the volume budget); channel_area_m2: no incision below this drainage
+    area; diffusivity: hillslope diffusion (m^2/year, implicit, isotropic);
+    breach: carve the closed depressions out first (complete breaching)."""
+    from pipeline.flow import device as flow
+    from pipeline.flow import reference as flowref
+
+    from . import hillslope
 
     h = np.asarray(height, np.float64).copy()
     if not np.isfinite(h).all():
@@ -169,9 +377,23 @@ def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, 
     rows, cols = h.shape
     kind = flowref.cell_kinds(h.astype(np.float32))
     base = kind != flowref.INTERIOR  # map edges: base level, fixed
+    breached_m3 = 0.0
+    if breach and years > 0:
+        carved = flow.breach(flowref.canonical(h.astype(np.float32)), kind).astype(np.float64)
+        breached_m3 = float((h - carved).sum()) * dx * dx
+        h = carved
+    height_start = h.copy()
+    diffusion_out = 0.0
+    lake_fill = 0.0
     steps = max(1, math.ceil(years / dt_years - 1e-9)) if years > 0 else 0
     dt = years / steps if steps else 0.0
-    solve = step_fn or _DeviceSolver(rows, cols).step
+    if routing == "mfd":
+        if n_exp != 1.0:
+            raise StageError(f"erosion: mfd routing solves stream power with n = 1 only (got n = {n_exp:g})")
+        mfd_solve = mfd_step_fn or _DeviceMFDSolver(rows, cols).step
+        solve = None
+    else:
+        solve = step_fn or _DeviceSolver(rows, cols).step
     cell_area = dx * dx
     eroded = uplifted = out_total = 0.0
     worst_newton = 0
@@ -180,10 +402,41 @@ def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, 
     for s in range(steps):
         h_up = h + uplift_step
         uplifted += uplift_step_m3
-        R = flow.fill(flowref.canonical(h_up.astype(np.float32)), kind, eps=True)
-        code = flow.d8(R, kind, dx)
+        if routing == "mfd":
+            # hillslopes creep first, so the rivers' solve has the last word in the channels
+            if diffusivity_m2_per_year > 0:
+                diffused = hillslope.step(h_up, dx, diffusivity_m2_per_year * dt)
+                if not np.isfinite(diffused).all():
+                    raise StageError(f"erosion: hillslope diffusion blew up at step {s + 1} (non-finite heights)")
+                diffusion_out -= float((diffused - h_up).sum()) * cell_area
+                h_up = diffused
+            R = routing_surface(h_up, kind, flat_routing)
+            if fill_lakes:
+                # sediment settles in every closed depression up to the (tilted) routing surface
+                lake = R.astype(np.float64) > h_up + LAKE_FILL_MIN_M
+                lake_fill += float((R[lake] - h_up[lake]).sum()) * cell_area
+                h_up = np.where(lake, R.astype(np.float64), h_up)
+            new, _ = mfd_solve(h_up, R, kind == flowref.INTERIOR, dx, k * dt, m, mfd_exponent, channel_area_m2)
+            if not np.isfinite(new).all():
+                raise StageError(f"erosion: stream power blew up at step {s + 1} (non-finite heights)")
+            e = h_up - new
+            if (e < -1e-9 * (1.0 + np.abs(h_up))).any():
+                raise StageError(f"erosion: stream power raised a cell at step {s + 1} (broken invariant)")
+            eroded_step = float(np.maximum(e, 0.0).sum()) * cell_area
+            eroded += eroded_step
+            out_total += eroded_step  # detachment-limited: what is eroded leaves the map
+            h = new
+            if progress and (s % max(1, steps // 20) == 0 or s == steps - 1):
+                progress((s + 1) / steps, f"stream power {s + 1}/{steps} ({(s + 1) * dt:.3g} years)")
+            continue
+        R = routing_surface(h_up, kind, flat_routing)
+        if routing == "rho8":
+            code = rho8(R, kind == flowref.INTERIOR, dx, counter_uniform(RHO8_KEY, s, h.size))
+        else:
+            code = flow.d8(R, kind, dx)
         area = flow.accumulate(code).astype(np.float64) * cell_area
-        new, it = solve(h_up, code, area, dx, k * dt, m, n_exp)
+        river_area = np.where(area >= channel_area_m2, area, 0.0) if channel_area_m2 > 0 else area
+        new, it = solve(h_up, code, river_area, dx, k * dt, m, n_exp)
         worst_newton = max(worst_newton, it)
         if not np.isfinite(new).all():
             raise StageError(f"erosion: stream power blew up at step {s + 1} (non-finite heights)")
@@ -196,14 +449,22 @@ def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, 
         eroded += float(q.sum()) / scale
         out_total += float(arrived[code < 0].sum()) / scale
         h = new
+        if diffusivity_m2_per_year > 0:
+            diffused = hillslope.step(h, dx, diffusivity_m2_per_year * dt)
+            if not np.isfinite(diffused).all():
+                raise StageError(f"erosion: hillslope diffusion blew up at step {s + 1} (non-finite heights)")
+            diffusion_out -= float((diffused - h).sum()) * cell_area  # what crossed the fixed edge
+            h = diffused
         if progress and (s % max(1, steps // 20) == 0 or s == steps - 1):
             progress((s + 1) / steps, f"stream power {s + 1}/{steps} ({(s + 1) * dt:.3g} years)")
     err = abs(eroded - out_total) / eroded if eroded > 0 else 0.0
-    dvol = float((h - np.asarray(height, np.float64)).sum()) * cell_area
-    vol_err = abs(dvol - (uplifted - out_total)) / max(uplifted, out_total, 1e-300)
+    dvol = float((h - height_start).sum()) * cell_area
+    vol_err = abs(dvol - (uplifted - out_total - diffusion_out + lake_fill)) / max(uplifted, out_total, 1e-300)
     return StreamPowerResult(h, steps, eroded, uplifted, out_total, err, worst_newton,
                              {"stream_power_steps": steps, "stream_power_dt_years": dt,
                               "stream_power_volume_budget_relative_error": vol_err,
                               "stream_power_eroded_m3": eroded, "stream_power_uplifted_m3": uplifted,
                               "stream_power_out_m3": out_total, "stream_power_budget_relative_error": err,
-                              "stream_power_newton_iterations_max": worst_newton})
+                              "stream_power_newton_iterations_max": worst_newton,
+                              "stream_power_routing": routing, "stream_power_breached_m3": breached_m3,
+                              "hillslope_diffusion_out_m3": diffusion_out, "lake_fill_m3": lake_fill})

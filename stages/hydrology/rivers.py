@@ -172,3 +172,36 @@ def extract(code: np.ndarray, area_m2: np.ndarray, discharge: np.ndarray, h: np.
              "drainage_density_per_km": float(dist[mask].sum() / (np.isfinite(hf).sum() * dx * dx) * 1e3)}
     return Rivers(mask.reshape(rows, cols), width.reshape(rows, cols), np.where(net, order, 0).reshape(rows, cols),
                   surface.reshape(rows, cols), curves, stats)
+
+
+def follow_mesh(surface, x: np.ndarray, y: np.ndarray, z: np.ndarray, width: np.ndarray, discharge: np.ndarray,
+                max_rise_m: float, samples_per_segment: int = 16, rounds: int = 4):
+    """Insert vertices where a straight segment would pass over higher ground.
+
+    surface(x, z) gives the height a curve vertex sits at (the terrain mesh
+    plus the river's lift). Along each segment the surface is sampled at
+    samples_per_segment points; where it rises more than max_rise_m above
+    the higher of the segment's two ends, a vertex is inserted at the highest
+    sample (on the surface; width and discharge interpolated), and the new
+    segments are checked again, up to `rounds` times. Returns the new
+    (x, y, z, width, discharge)."""
+    f = np.linspace(0.0, 1.0, samples_per_segment + 2)[1:-1]
+    for _ in range(rounds):
+        if x.size < 2:
+            break
+        sx = x[:-1, None] + (x[1:, None] - x[:-1, None]) * f
+        sz = z[:-1, None] + (z[1:, None] - z[:-1, None]) * f
+        ground = surface(sx.ravel(), sz.ravel()).reshape(sx.shape)
+        top = np.argmax(ground, axis=1)
+        rise = ground[np.arange(ground.shape[0]), top] - np.maximum(y[:-1], y[1:])
+        bad = np.flatnonzero(rise > max_rise_m)
+        if not bad.size:
+            break
+        t = f[top[bad]]
+        new = {"x": sx[bad, top[bad]], "z": sz[bad, top[bad]], "y": ground[bad, top[bad]],
+               "w": width[bad] + (width[bad + 1] - width[bad]) * t,
+               "q": discharge[bad] + (discharge[bad + 1] - discharge[bad]) * t}
+        at = bad + 1
+        x, y, z = np.insert(x, at, new["x"]), np.insert(y, at, new["y"]), np.insert(z, at, new["z"])
+        width, discharge = np.insert(width, at, new["w"]), np.insert(discharge, at, new["q"])
+    return x, y, z, width, discharge

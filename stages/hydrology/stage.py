@@ -34,6 +34,7 @@ from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
 from stages.common import TERRAIN_SOURCES
 from pipeline.preview import hillshade
+from pipeline.terrain_stats import terrain_statistics
 
 from pipeline.flow import device as dev
 from . import lakes as lakes_mod
@@ -42,6 +43,7 @@ from pipeline.flow import reference as ref
 from . import rivers as rivers_mod
 
 SECONDS_PER_YEAR = 365.25 * 86400.0
+RIVER_MAX_RISE_M = 0.5  # a river segment may pass over ground this much above its higher end, no more
 
 
 class HydrologyParams(Params):
@@ -215,9 +217,9 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
                              params.river_velocity_coefficient_m_s, params.river_velocity_min_m_s,
                              params.river_velocity_max_m_s, params.river_min_slope, params.river_width_depth_ratio,
                              params.river_lift_m)
-    if mesh is not None and riv.curves:
-        from pipeline.terrain_mesh import height_on_mesh
+    from pipeline.terrain_mesh import height_on_mesh
 
+    if mesh is not None and riv.curves:
         used = np.unique(np.concatenate(riv.curves))
         ox, oz = terrain.origin_m
         gm = ground.ravel().copy()
@@ -253,6 +255,10 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
     t0 = time.perf_counter()
     hack = rivers_mod.hack_exponent(code, area_m2, dx, params.hack_min_area_m2)
     lap("hack_s", t0)
+    t0 = time.perf_counter()
+    # does the final terrain read as eroded land (grid anisotropy, depressions, Strahler, Hack, theta ...)
+    terrain_stats = terrain_statistics(h, F, code, area_m2, dx, params.river_threshold_m2, data)
+    lap("terrain_statistics_s", t0)
 
     ctx.progress(0.8, "water layer")
     t0 = time.perf_counter()
@@ -264,16 +270,23 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
     for seg in riv.curves:
         x = ox + (seg % cols + 0.5) * dx
         z = oz + (seg // cols + 0.5) * dx
-        y = surf[seg]
         lk_lvl = lake_level.ravel()[seg]
-        y = np.where(np.isnan(y), lk_lvl, y)  # the last vertex may sit in a lake
-        y = np.minimum.accumulate(np.nan_to_num(y, nan=np.inf))
+        if mesh is not None:
+            # the curve lies on the terrain mesh (lifted by river_lift_m), in a lake at its level
+            y = height_on_mesh(mesh, x, z) + params.river_lift_m
+        else:
+            y = surf[seg]
+        y = np.where(np.isfinite(lk_lvl), lk_lvl, y)
         if not np.isfinite(y).all():
             continue
+        w = np.maximum.accumulate(riv.width.ravel()[seg])
+        q = discharge.ravel()[seg]
+        if mesh is not None:
+            x, y, z, w, q = rivers_mod.follow_mesh(lambda px, pz: height_on_mesh(mesh, px, pz) + params.river_lift_m,
+                                                   x, y, z, w, q, RIVER_MAX_RISE_M)
         pts.append(np.stack([x, y, z], 1))
-        w = riv.width.ravel()[seg]
-        ws.append(np.maximum(w, w[0]) if False else np.maximum.accumulate(w))
-        qs.append(discharge.ravel()[seg])
+        ws.append(w)
+        qs.append(q)
         orders.append(int(riv.order.ravel()[seg[0]]))
     lake_list = []
     if params.lakes and lstats.get("lakes", 0):
@@ -332,7 +345,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
         "fill_tiles_run": fstats.get("tiles_run"), "total_area_m2": float(n_data * cell_area),
         "outlet_area_m2": float(outlet_total * cell_area), "discharge_out_m3_s": float(discharge[kind == ref.EDGE].sum()),
         **{f"lake_{k_}" if not k_.startswith("lake") else k_: v for k_, v in lstats.items()},
-        **riv.stats, **hack, **uinfo, "timings": T,
+        **riv.stats, **hack, **uinfo, "terrain": terrain_stats, "timings": T,
     }
     stats = {k_: (float(v) if isinstance(v, np.floating) else v) for k_, v in stats.items()}
     ctx.metrics.update(stats)
@@ -393,7 +406,9 @@ STAGE = Stage(
         Artifact("hydrology.water", kind="usd", file="water.usda", shape="any",
                  description="/World/Water: rivers as BasisCurves with widths, lakes as flat water meshes, material"),
         Artifact("hydrology.stats", kind="json", file="stats.json", shape="any",
-                 description="counts, budgets, Hack's law exponent, timings"),
+                 description="counts, budgets, Hack's law exponent, terrain statistics (grid anisotropy, share of area "
+                 "in closed depressions, Strahler order, Hack exponent, concavity theta, drainage density, "
+                 "hypsometric integral: pipeline/terrain_stats.py), timings"),
         Artifact("hydrology.preview", kind="image", file="preview.png", dtype="uint8",
                  description="hillshade with lakes and rivers, 8-bit RGB"),
     ),

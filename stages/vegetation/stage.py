@@ -31,7 +31,7 @@ from pipeline import exr
 from pipeline.contract import Artifact, Check, CheckContext, Input, ParamError, RunContext, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
-from stages.common import TERRAIN_SOURCES, prototype_prim
+from stages.common import SPLAT_CHANNELS, TERRAIN_SOURCES, prototype_prim
 from pipeline.preview import hillshade
 
 from . import attributes as attrs
@@ -40,7 +40,6 @@ from .params import NPREF_ORDER, VegetationParams
 
 SPECIES_MAPS = "species.exr"
 ATTR_CHANNELS = ("attr.slope", "attr.aspect", "attr.curvature", "attr.sky_view", "attr.sunlight", "attr.moisture")
-SPLAT_CHANNELS = ("splat.rock", "splat.scree", "splat.grass", "splat.dry_grass", "splat.mud", "splat.snow")
 F = np.float32
 
 

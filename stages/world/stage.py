@@ -18,7 +18,7 @@ import numpy as np
 from pipeline import exr, usdio
 from pipeline.contract import Artifact, Check, CheckContext, Input, Param, Params, RunContext, Stage
 from pipeline.grid import Grid
-from stages.common import TERRAIN_SOURCES, plant_asset_prim
+from stages.common import SPLAT_CHANNELS, TERRAIN_SOURCES, plant_asset_prim
 
 from pipeline.terrain_mesh import bilinear, build_terrain_mesh
 
@@ -45,6 +45,10 @@ class WorldParams(Params):
     tree_line_m: float = Param(1600.0, ge=-11000.0, le=9000.0, units="m", description="altitude above which grass gives way to bare ground")
     rock_slope_deg: float = Param(35.0, ge=0.0, le=90.0, units="deg", description="slope above which the ground is bare rock")
     roughness: float = Param(0.9, ge=0.0, le=1.0, description="UsdPreviewSurface roughness of the ground")
+    ground_texel_m: float = Param(
+        2.0, ge=0.05, le=1000.0, units="m", description="texel size of the ground albedo's UDIM tiles when the "
+        "vegetation stage's splat weights are baked (1 m or finer close up costs about 4x the 2 m tiles' time)")
+    ground_tile_texels: int = Param(1024, ge=16, le=8192, units="texels", description="texels per side of each UDIM tile")
 
 
 # Ground colours (linear RGB): reasoned from typical albedo of the materials.
@@ -76,7 +80,11 @@ def ground_colour(height: Grid, size: int, params: WorldParams) -> np.ndarray:
     return colour.astype(np.float32)
 
 
-def write_terrain_layer(path: Path, height: Grid, texture: str, params: WorldParams, provenance: dict) -> dict:
+def write_terrain_layer(path: Path, height: Grid, texture: str, params: WorldParams, provenance: dict,
+                        udim: tuple[str, int] | None = None, normal_texture: str | None = None) -> dict:
+    """udim: (file pattern with <UDIM>, tiles per side): the albedo from UDIM
+    tiles read through primvar st_udim = st * tiles; normal_texture: a
+    tangent-space normal map (encoded 0..1) over the whole terrain."""
     from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade, Vt
 
     stage, world = usdio.create_stage(path, provenance)
@@ -107,13 +115,33 @@ def write_terrain_layer(path: Path, height: Grid, texture: str, params: WorldPar
     reader = UsdShade.Shader.Define(stage, "/World/Terrain/Looks/Ground/StReader")
     reader.CreateIdAttr("UsdPrimvarReader_float2")
     reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
+    albedo_reader = reader
+    if udim is not None:
+        st_udim = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st_udim", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                          UsdGeom.Tokens.vertex)
+        st_udim.Set(Vt.Vec2fArray.FromNumpy((mesh_data.st * np.float32(udim[1])).astype(np.float32)))
+        albedo_reader = UsdShade.Shader.Define(stage, "/World/Terrain/Looks/Ground/StUdimReader")
+        albedo_reader.CreateIdAttr("UsdPrimvarReader_float2")
+        albedo_reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st_udim")
     albedo = UsdShade.Shader.Define(stage, "/World/Terrain/Looks/Ground/Albedo")
     albedo.CreateIdAttr("UsdUVTexture")
-    albedo.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(texture)
+    albedo.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(udim[0] if udim is not None else texture)
     albedo.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")  # linear EXR data
     albedo.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set("clamp")
     albedo.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set("clamp")
-    albedo.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+    albedo.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(albedo_reader.ConnectableAPI(), "result")
+    if normal_texture is not None:
+        nmap = UsdShade.Shader.Define(stage, "/World/Terrain/Looks/Ground/Normal")
+        nmap.CreateIdAttr("UsdUVTexture")
+        nmap.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(normal_texture)
+        nmap.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
+        nmap.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set("clamp")
+        nmap.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set("clamp")
+        nmap.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(2.0, 2.0, 2.0, 1.0))  # 0..1 -> -1..1
+        nmap.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(-1.0, -1.0, -1.0, 0.0))
+        nmap.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+        nmap.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+        surface.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(nmap.ConnectableAPI(), "rgb")
     albedo.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
     surface.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(albedo.ConnectableAPI(), "rgb")
     material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
@@ -124,6 +152,51 @@ def write_terrain_layer(path: Path, height: Grid, texture: str, params: WorldPar
     return {"mesh_vertices": int(len(mesh_data.points)), "mesh_triangles": nfaces,
             "mesh_lattice": list(mesh_data.lattice_shape),
             "height_min_m": float(ext[0][1]), "height_max_m": float(ext[1][1])}
+
+
+def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, params: WorldParams, albedo_path: Path,
+                          folder: Path) -> tuple[tuple[str, int], str]:
+    """The ground from the splat weights (ground.py): albedo.exr (the whole
+    world at texture_size, for overviews), UDIM albedo tiles ground.<UDIM>.exr
+    at ground_texel_m and normal.exr from the height, beside the terrain layer."""
+    from pipeline.errors import InputError
+
+    from . import ground
+
+    missing = [c for c in ground.SPLAT_ORDER if c not in splat_grid.channels]
+    if missing:
+        raise InputError(f"world: the splat weights lack channels {missing}")
+    splat = np.stack([splat_grid.channel(c) for c in ground.SPLAT_ORDER], axis=-1).astype(np.float32)
+    rows, cols = height.shape
+    if splat.shape[:2] != (rows, cols):
+        raise InputError(f"world: the splat weights are {splat.shape[:2]}, the terrain {(rows, cols)}")
+    dx = height.cell_size_m
+    size_m = max(rows, cols) * dx
+    tiles, texels = ground.udim_layout(size_m, params.ground_texel_m, params.ground_tile_texels)
+    tables = ground.detail_tables(ctx.seed, size_m / (tiles * texels))
+    texel_m = size_m / (tiles * texels)
+    n = params.texture_size
+    overview = ground.tile_albedo(splat, dx, height.origin_m, 1, n, 0, 0, ground.detail_tables(ctx.seed, size_m / n),
+                                  size_m / n)
+    exr.write_texture(albedo_path, overview, ctx.provenance)
+    for v in range(tiles):
+        for u in range(tiles):
+            ctx.progress(0.05 + 0.7 * (v * tiles + u) / tiles ** 2, f"ground tile {1001 + u + 10 * v}")
+            tile = ground.tile_albedo(splat, dx, height.origin_m, tiles, texels, u, v, tables, texel_m)
+            exr.write_texture(folder / f"ground.{1001 + u + 10 * v}.exr", tile, ctx.provenance)
+    from .terrain_mesh import bilinear, lattice_coordinates
+
+    h = height.channel(height.channels[0]).astype(np.float64)
+    mesh = build_terrain_mesh(height, params.mesh_max_vertices)
+    nr, nc = mesh.lattice_shape
+    lattice = mesh.points[:, 1].reshape(nr, nc).astype(np.float64)
+    # the mesh surface at every cell centre (bilinear within the lattice; the mesh is piecewise linear)
+    ri = np.interp(np.arange(rows), lattice_coordinates(rows, nr), np.arange(nr))
+    ci = np.interp(np.arange(cols), lattice_coordinates(cols, nc), np.arange(nc))
+    mesh_h = bilinear(lattice, ri, ci)
+    exr.write_texture(folder / "normal.exr", ground.normal_map(h, mesh_h, dx), ctx.provenance)
+    ctx.metrics.update(ground_udim_tiles=tiles * tiles, ground_texel_m=texel_m, ground_tile_texels=texels)
+    return ("./ground.<UDIM>.exr", tiles), "./normal.exr"
 
 
 def bind_plant_assets(root_path: Path, placed: dict, plants_layer: Path, ctx: RunContext) -> dict[str, str]:
@@ -160,11 +233,17 @@ def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
 
     ctx.progress(0.0, "ground colour texture")
     albedo_path = ctx.path("world.albedo")
-    exr.write_texture(albedo_path, ground_colour(height, params.texture_size, params), ctx.provenance)
-
-    ctx.progress(0.3, "terrain mesh")
     terrain_path = ctx.path("world.terrain")
-    ctx.metrics.update(write_terrain_layer(terrain_path, height, "./" + albedo_path.name, params, ctx.provenance))
+    splat_grid = inputs.get("splat")
+    udim = normal_file = None
+    if splat_grid is None:
+        exr.write_texture(albedo_path, ground_colour(height, params.texture_size, params), ctx.provenance)
+    else:
+        udim, normal_file = write_ground_textures(ctx, height, splat_grid, params, albedo_path, terrain_path.parent)
+
+    ctx.progress(0.8, "terrain mesh")
+    ctx.metrics.update(write_terrain_layer(terrain_path, height, "./" + albedo_path.name, params, ctx.provenance,
+                                           udim, normal_file))
 
     ctx.progress(0.9, "world layer")
     root_path = ctx.path("world.root")
@@ -197,14 +276,19 @@ STAGE = Stage(
     version=1,
     description="Assemble world.usda: the terrain mesh and material, and every upstream USD layer.",
     inputs=(Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height", channels=("height",),
-                  units="m"),) + LAYER_INPUTS + ASSET_INPUTS,
+                  units="m"),
+            Input("splat", one_of=("vegetation.splat",), optional=True,
+                  description="ground splat weights: the ground material's one definition of rock, scree, grass, "
+                  "dry grass, mud and snow", channels=SPLAT_CHANNELS, units="1"),) + LAYER_INPUTS + ASSET_INPUTS,
     outputs=(
         Artifact("world.root", kind="usd", file="world.usda", shape="any", publish=True,
                  description="the root layer composing every layer of the world"),
         Artifact("world.terrain", kind="usd", file="terrain.usdc", shape="any",
                  description="the terrain mesh and its material"),
         Artifact("world.albedo", kind="texture", file="albedo.exr", shape="any", units="linear RGB",
-                 description="ground colour texture, tiled and mip-mapped"),
+                 beside=("ground.*.exr", "normal.exr"),
+                 description="ground colour texture (an overview), tiled and mip-mapped; beside it the UDIM albedo "
+                 "tiles ground.<UDIM>.exr from the splat weights and the normal map from the final height"),
     ),
     params=WorldParams,
     run=run,

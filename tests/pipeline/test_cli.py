@@ -193,8 +193,16 @@ def test_export_folder_and_usdz_are_self_contained(project, tmp_path_factory):
         assert usdio.validate(path) == []
         stage = Usd.Stage.Open(str(path))
         assert UsdGeom.Mesh(stage.GetPrimAtPath("/World/Terrain/Ground")).GetPointsAttr().Get()
-        tex = stage.GetPrimAtPath("/World/Terrain/Looks/Ground/Albedo").GetAttribute("inputs:file").Get()
-        assert tex.resolvedPath, f"{path}: texture does not resolve"
+        attr = stage.GetPrimAtPath("/World/Terrain/Looks/Ground/Albedo").GetAttribute("inputs:file")
+        tex = attr.Get()
+        if "<UDIM>" in tex.path:  # UDIM tiles: Ar resolves each tile, not the pattern
+            from pxr import Ar
+
+            layer = attr.GetPropertyStack()[0].layer
+            tile = layer.ComputeAbsolutePath(tex.path.replace("<UDIM>", "1001"))
+            assert Ar.GetResolver().Resolve(tile), f"{path}: UDIM tile 1001 does not resolve"
+        else:
+            assert tex.resolvedPath, f"{path}: texture does not resolve"
 
 
 def test_a_list_valued_key_from_toml_and_from_set(project):

@@ -66,8 +66,10 @@ def test_run_end_to_end(tmp_path):
     assert (mo >= 0).all() and (mo <= 1).all()
     assert out["hydrology.preview"].dtype == np.uint8 and out["hydrology.preview"].shape == h.shape + (3,)
     assert np.isfinite(m["hack_exponent"])
-    # the USD: rivers never flow uphill; lakes flat
+    # the USD: rivers lie on the terrain mesh (or a lake's surface); lakes flat
     from pxr import Usd, UsdGeom
+
+    from stages.world.terrain_mesh import build_terrain_mesh, height_on_mesh
 
     stage = Usd.Stage.Open(str(out["hydrology.water"]))
     assert stage.GetDefaultPrim().GetPath() == "/World"
@@ -77,10 +79,21 @@ def test_run_end_to_end(tmp_path):
     counts = np.array(curves.GetCurveVertexCountsAttr().Get())
     widths = np.array(curves.GetWidthsAttr().Get())
     assert len(widths) == len(pts) and (widths > 0).all()
+    mesh = build_terrain_mesh(Grid(h, 8.0), 513)
+    lake_level = out["hydrology.lakes"].channel("lake.level")
     start = 0
     for c in counts:
-        y = pts[start:start + c, 1]
-        assert (np.diff(y) <= 0).all()
+        p = pts[start:start + c].astype(np.float64)
+        ground = height_on_mesh(mesh, p[:, 0], p[:, 2])
+        col = np.clip((p[:, 0] / 8.0).astype(int), 0, h.shape[1] - 1)
+        row = np.clip((p[:, 2] / 8.0).astype(int), 0, h.shape[0] - 1)
+        on_lake = np.isfinite(lake_level[row, col]) & (np.abs(p[:, 1] - lake_level[row, col]) < 1e-3)
+        assert ((np.abs(p[:, 1] - ground) <= 0.5) | on_lake).all()
+        # no segment passes over ground more than 1 m above both of its ends (sampled every 0.5 m)
+        for a, b in zip(p[:-1], p[1:]):
+            f = np.linspace(0, 1, int(np.hypot(*(b - a)[[0, 2]]) / 0.5) + 2)
+            g = height_on_mesh(mesh, a[0] + (b[0] - a[0]) * f, a[2] + (b[2] - a[2]) * f)
+            assert g.max() <= max(a[1], b[1]) + 1.0
         start += c
     for prim in stage.GetPrimAtPath("/World/Water/Lakes").GetChildren():
         if prim.IsA(UsdGeom.Mesh):

@@ -90,3 +90,59 @@ def test_too_small_terrain_is_refused(tmp_path):
     from pipeline.errors import InputError
     with pytest.raises(InputError, match="at least 2x2"):
         _run(tmp_path, Grid(np.zeros((1, 5), np.float32), 1.0))
+
+
+def _splat(rows, cols, seed=3):
+    from stages.world import ground
+
+    rng = np.random.default_rng(seed)
+    w = rng.random((rows, cols, len(ground.SPLAT_ORDER))).astype(np.float32) ** 3
+    w /= w.sum(axis=-1, keepdims=True)
+    return Grid(w, 25.0, tuple(sorted(ground.SPLAT_ORDER)))  # the EXR's order (sorted), not the blend order
+
+
+def test_ground_weights_equal_the_splat_maps_and_sum_to_one():
+    from stages.world import ground
+
+    s = _splat(9, 13).data
+    # at the cell centres the texel weights are the splat maps' own
+    w = ground.texel_weights(s, np.arange(9), np.arange(13))
+    np.testing.assert_array_equal(w, s)
+    # between them (and beyond the edge) they are convex blends: within [0, 1], summing to 1
+    w = ground.texel_weights(s, np.linspace(-1, 9, 57), np.linspace(-2, 14, 61))
+    assert w.min() >= 0 and w.max() <= 1
+    np.testing.assert_allclose(w.sum(axis=-1), 1.0, atol=1e-6)
+
+
+def test_ground_material_udim_tiles_and_normal_map(tmp_path):
+    from pxr import Usd, UsdShade
+
+    from stages.world import ground
+
+    terrain = _terrain()
+    splat = _splat(*terrain.shape)
+    ctx = RunContext(stage=STAGE, key="k", out_dir=tmp_path, seed=0, provenance={"stage": "world", "key": "k"},
+                     project_root=tmp_path)
+    out = STAGE.run(ctx, {"terrain": terrain, "splat": splat},
+                    STAGE.params(mesh_max_vertices=17, texture_size=32, ground_texel_m=2.0, ground_tile_texels=256))
+    assert usdio.validate(out["world.root"]) == []
+    # 40 x 25 m = 1000 m wide at 2 m per texel in 256-texel tiles: 2 x 2 tiles
+    assert ctx.metrics["ground_udim_tiles"] == 4 and ctx.metrics["ground_texel_m"] <= 2.0
+    for n in (1001, 1002, 1011, 1012):
+        assert (tmp_path / f"ground.{n}.exr").is_file()
+    stage = Usd.Stage.Open(str(out["world.root"]))
+    looks = "/World/Terrain/Looks/Ground"
+    assert stage.GetPrimAtPath(f"{looks}/Albedo").GetAttribute("inputs:file").Get().path == "./ground.<UDIM>.exr"
+    assert stage.GetPrimAtPath(f"{looks}/Normal").GetAttribute("inputs:file").Get().path == "./normal.exr"
+    surface = UsdShade.Shader(stage.GetPrimAtPath(f"{looks}/Surface"))
+    assert surface.GetInput("normal").HasConnectedSource()
+    s = np.stack([splat.channel(c) for c in ground.SPLAT_ORDER], -1)
+    tables = ground.detail_tables(0, 1000.0 / 512)
+    a = ground.tile_albedo(s, 25.0, (0.0, 0.0), 2, 256, 0, 0, tables, 1000.0 / 512)
+    assert a.shape == (256, 256, 3) and np.isfinite(a).all() and a.min() >= 0
+    # a flat terrain has an upright normal map
+    flat = ground.normal_map(np.zeros((5, 6)), np.zeros((5, 6)), 10.0)
+    np.testing.assert_allclose(flat, np.broadcast_to([0.5, 0.5, 1.0], flat.shape))
+    # a slope rising east that the mesh does not have tilts the normal west (x < 0.5)
+    ramp = ground.normal_map(np.tile(np.arange(6.0), (5, 1)), np.zeros((5, 6)), 10.0)
+    assert (ramp[..., 0] < 0.5).all() and np.allclose(ramp[..., 1], 0.5)

@@ -1,0 +1,158 @@
+"""The ground material from the vegetation stage's splat weights: one
+definition of rock, scree, grass, dry grass, mud and snow for the whole world.
+
+- Albedo: per texel, the splat weights (bilinear between cell centres, so at
+  a cell centre they are the splat map's and everywhere they sum to 1, as the
+  splat maps do) blend one colour per ground type, each modulated by its own
+  detail pattern (value noise from a counter-based hash, several octaves
+  down to 1 m, periodic over DETAIL_PERIOD_M like a detail texture), so the
+  ground has structure closer than a cell.
+- Tiles: the world is cut into T x T UDIM tiles (USD `<UDIM>`, tile 1001 at
+  the south-west corner, u east, v north) of tile_texels^2 texels each,
+  T = ceil(size / (texel_m * tile_texels)) (at most 10 per row, UDIM's
+  limit), so a texel is texel_m or finer where the camera is near.
+- Normal map: tangent space, from the final height at its own resolution,
+  relative to the terrain mesh (which already carries the coarse normals):
+  the slope of height minus the mesh surface, so the 8 m detail the
+  513-vertex mesh drops is still lit.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from stages.common import SPLAT_CHANNELS
+
+SPLAT_ORDER = SPLAT_CHANNELS
+# linear albedo per splat channel (rock, scree, grass, dry_grass, mud, snow): typical measured albedos
+GROUND_COLOURS = np.array([
+    [0.20, 0.19, 0.18],  # rock
+    [0.30, 0.28, 0.25],  # scree
+    [0.07, 0.13, 0.04],  # grass
+    [0.24, 0.21, 0.11],  # dry grass
+    [0.12, 0.09, 0.06],  # mud
+    [0.80, 0.82, 0.86],  # snow
+], np.float32)
+# detail contrast per type (relative brightness swing) and its coarsest wavelength in metres
+DETAIL_CONTRAST = np.array([0.45, 0.35, 0.30, 0.30, 0.25, 0.06], np.float32)
+DETAIL_WAVELENGTH_M = np.array([16.0, 4.0, 8.0, 8.0, 6.0, 32.0])
+DETAIL_OCTAVES = 4
+UDIM_MAX_COLUMNS = 10
+
+
+def _hash01(ix: np.ndarray, iz: np.ndarray, key: int) -> np.ndarray:
+    """Uniform [0, 1) per integer lattice point (counter-based, splitmix64)."""
+    with np.errstate(over="ignore"):
+        x = (ix.astype(np.int64).astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+             ^ iz.astype(np.int64).astype(np.uint64) * np.uint64(0xC2B2AE3D27D4EB4F)
+             ^ np.uint64(key) * np.uint64(0x165667B19E3779F9))
+        x ^= x >> np.uint64(30)
+        x *= np.uint64(0xBF58476D1CE4E5B9)
+        x ^= x >> np.uint64(27)
+        x *= np.uint64(0x94D049BB133111EB)
+        x ^= x >> np.uint64(31)
+    return (x >> np.uint64(40)).astype(np.float32) * np.float32(1.0 / (1 << 24))
+
+
+def texel_weights(splat: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Splat weights at fractional cell indices (0 = first cell centre),
+    bilinear between cell centres, clamped at the edges: (len(rows),
+    len(cols), channels). Convex combinations of the splat maps' rows, so
+    they sum to 1 wherever the maps do."""
+    nr, nc = splat.shape[:2]
+    r = np.clip(np.asarray(rows, np.float64), 0, nr - 1)
+    c = np.clip(np.asarray(cols, np.float64), 0, nc - 1)
+    r0 = np.minimum(np.floor(r).astype(np.int64), max(nr - 2, 0))
+    c0 = np.minimum(np.floor(c).astype(np.int64), max(nc - 2, 0))
+    r1, c1 = np.minimum(r0 + 1, nr - 1), np.minimum(c0 + 1, nc - 1)
+    fr = (r - r0).astype(np.float32)[:, None, None]
+    fc = (c - c0).astype(np.float32)[None, :, None]
+    s = np.asarray(splat, np.float32)
+    top = s[r0][:, c0] * (1 - fc) + s[r0][:, c1] * fc
+    bottom = s[r1][:, c0] * (1 - fc) + s[r1][:, c1] * fc
+    return top * (1 - fr) + bottom * fr
+
+
+DETAIL_PERIOD_M = 512  # the detail patterns repeat every this many metres (a whole number of every octave)
+
+
+def detail_tables(seed: int, texel_m: float) -> np.ndarray:
+    """Each type's detail over one period, sampled every texel_m:
+    (types, P, P) with P = DETAIL_PERIOD_M / texel_m; periodic because every
+    octave's wavelength divides the period (hash lattice indices wrap)."""
+    p = max(1, int(round(DETAIL_PERIOD_M / texel_m)))
+    c = (np.arange(p) + 0.5) * texel_m
+    X, Z = np.meshgrid(c, c)
+    return np.stack([_periodic_detail(X, Z, k, seed) for k in range(len(GROUND_COLOURS))])
+
+
+def _periodic_detail(x_m, z_m, ground_type, seed):
+    total = np.zeros(x_m.shape, np.float32)
+    amp, norm = 1.0, 0.0
+    for o in range(DETAIL_OCTAVES):
+        w = DETAIL_WAVELENGTH_M[ground_type] / 2 ** o
+        period = int(round(DETAIL_PERIOD_M / w))
+        gx, gz = x_m / w, z_m / w
+        ix, iz = np.floor(gx), np.floor(gz)
+        fx, fz = (gx - ix).astype(np.float32), (gz - iz).astype(np.float32)
+        fx, fz = fx * fx * (3 - 2 * fx), fz * fz * (3 - 2 * fz)
+        key = seed * 64 + ground_type * 8 + o
+        i0, j0 = ix.astype(np.int64) % period, iz.astype(np.int64) % period
+        i1, j1 = (i0 + 1) % period, (j0 + 1) % period
+        a, b = _hash01(i0, j0, key), _hash01(i1, j0, key)
+        c, d = _hash01(i0, j1, key), _hash01(i1, j1, key)
+        total += amp * ((a * (1 - fx) + b * fx) * (1 - fz) + (c * (1 - fx) + d * fx) * fz - 0.5)
+        norm += amp
+        amp *= 0.6
+    return 1.0 + DETAIL_CONTRAST[ground_type] * 2.0 * total / np.float32(norm)
+
+
+def albedo(weights: np.ndarray, x_m: np.ndarray, z_m: np.ndarray, tables: np.ndarray, texel_m: float) -> np.ndarray:
+    """Linear RGB: the weights blend each type's colour times its detail
+    (looked up in its periodic table at the nearest texel)."""
+    p = tables.shape[1]
+    i = np.floor(np.asarray(x_m) / texel_m).astype(np.int64) % p
+    j = np.floor(np.asarray(z_m) / texel_m).astype(np.int64) % p
+    out = np.zeros(weights.shape[:2] + (3,), np.float32)
+    for k in range(weights.shape[2]):
+        wk = weights[..., k]
+        if not wk.any():
+            continue
+        out += (wk * tables[k][j, i])[..., None] * GROUND_COLOURS[k]
+    return np.clip(out, 0.0, 1.0)
+
+
+def udim_layout(size_m: float, texel_m: float, tile_texels: int) -> tuple[int, int]:
+    """(tiles per side, texels per tile side): texel_m or finer unless the
+    UDIM row limit forces more texels per tile."""
+    tiles = max(1, math.ceil(size_m / (texel_m * tile_texels) - 1e-9))
+    if tiles > UDIM_MAX_COLUMNS:
+        tiles = UDIM_MAX_COLUMNS
+        tile_texels = math.ceil(size_m / (texel_m * tiles))
+    return tiles, tile_texels
+
+
+def tile_albedo(splat: np.ndarray, cell_m: float, origin_m: tuple[float, float], tiles: int, tile_texels: int,
+                u: int, v: int, tables: np.ndarray, texel_m: float) -> np.ndarray:
+    """The albedo of UDIM tile (u, v) (u east, v north from the south-west
+    corner), image row 0 at the tile's north edge, as USD reads textures."""
+    rows, cols = splat.shape[:2]
+    width, depth = cols * cell_m, rows * cell_m
+    s = (u + (np.arange(tile_texels) + 0.5) / tile_texels) / tiles  # 0..1 east
+    t = (v + 1 - (np.arange(tile_texels) + 0.5) / tile_texels) / tiles  # 0..1 north, row 0 at the top
+    x = s * width
+    z = (1.0 - t) * depth  # z grows south
+    w = texel_weights(splat, z / cell_m - 0.5, x / cell_m - 0.5)
+    return albedo(w, (origin_m[0] + x)[None, :], (origin_m[1] + z)[:, None], tables, texel_m)
+
+
+def normal_map(height: np.ndarray, mesh_height: np.ndarray, cell_m: float) -> np.ndarray:
+    """Tangent-space normals (x along +s = east, y along +t = north, z out),
+    encoded 0..1, from the slope of height minus the mesh surface at the
+    cell centres; image row 0 is the north edge."""
+    r = np.asarray(height, np.float64) - np.asarray(mesh_height, np.float64)
+    dr_dz, dr_dx = np.gradient(r, cell_m) if min(r.shape) > 1 else (np.zeros_like(r), np.zeros_like(r))
+    n = np.stack([-dr_dx, dr_dz, np.ones_like(r)], axis=-1)  # d/dt = -d/dz (t grows north)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return (0.5 * n + 0.5).astype(np.float32)
