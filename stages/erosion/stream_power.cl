@@ -116,7 +116,7 @@ __kernel void mfd_area(__global const int* order, __global const uchar* interior
         double a = area[i];
         for (int k = 0; k < 8; ++k) {
             double f = frac[8 * i + k];
-            if (f > 0.0) area[i + SP_DR[k] * cols + SP_DC[k]] += a * f;
+            if (f > 0.0) area[i + DR[k] * cols + DC[k]] += a * f;
         }
     }
 }
@@ -134,7 +134,7 @@ __kernel void mfd_solve(__global double* h, __global const int* order, __global 
         for (int k = 0; k < 8; ++k) {
             double f = frac[8 * i + k];
             if (f == 0.0) continue;
-            double hj = h[i + SP_DR[k] * cols + SP_DC[k]];
+            double hj = h[i + DR[k] * cols + DC[k]];
             if (hj >= hi) continue;  // not below: no erosion toward it
             double fj = fac * f / ((k & 1) ? dx * M_SQRT2 : dx);
             sum_f += fj;

@@ -184,7 +184,7 @@ def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, param
             ctx.progress(0.05 + 0.7 * (v * tiles + u) / tiles ** 2, f"ground tile {1001 + u + 10 * v}")
             tile = ground.tile_albedo(splat, dx, height.origin_m, tiles, texels, u, v, tables, texel_m)
             exr.write_texture(folder / f"ground.{1001 + u + 10 * v}.exr", tile, ctx.provenance)
-    from .terrain_mesh import bilinear, lattice_coordinates
+    from pipeline.terrain_mesh import bilinear, lattice_coordinates
 
     h = height.channel(height.channels[0]).astype(np.float64)
     mesh = build_terrain_mesh(height, params.mesh_max_vertices)
