@@ -8,31 +8,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.flow import reference as ref
+from pipeline.terrain_stats import topological_levels
 
 
 def topo_levels(rcv: np.ndarray, cells: np.ndarray | None = None) -> list[np.ndarray]:
-    """Kahn's algorithm, vectorised: the cells in successive frontiers (every
-    cell comes after all of its donors). `cells` restricts to a subset that
-    is closed downstream within itself (receivers outside count as none)."""
-    n = rcv.size
-    member = np.ones(n, bool) if cells is None else np.zeros(n, bool)
-    if cells is not None:
-        member[cells] = True
-    r = np.where(member & (rcv >= 0), rcv, -1)
-    r = np.where((r >= 0) & member[np.maximum(r, 0)], r, -1)
-    deg = np.bincount(r[r >= 0], minlength=n)
-    front = np.flatnonzero(member & (deg == 0))
-    levels = []
-    while front.size:
-        levels.append(front)
-        t = r[front]
-        t = t[t >= 0]
-        if not t.size:
-            break
-        np.subtract.at(deg, t, 1)
-        t = np.unique(t)
-        front = t[deg[t] == 0]
-    return levels
+    """Topological levels of a receiver forest, sources first (every cell
+    after all of its donors); `cells` restricts to a subset closed downstream
+    within itself. pipeline.terrain_stats.topological_levels on a mask."""
+    if cells is None:
+        return topological_levels(rcv)
+    member = np.zeros(rcv.size, bool)
+    member[cells] = True
+    return topological_levels(rcv, member)
 
 
 def hack_exponent(code: np.ndarray, area_m2: np.ndarray, dx: float, min_area_m2: float) -> dict:
