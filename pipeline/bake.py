@@ -216,9 +216,11 @@ def check_world(graph: Graph, config: WorldConfig) -> dict[str, Check]:
                 if info is not None:
                     sizes[art.name] = info
         if result.memory_bytes > limit:
+            grids = "".join(f"; its input {role} is {g.shape[0]} x {g.shape[1]} cells"
+                            + (f", set by {g.set_by}" if g.set_by else "") for role, g in inputs.items())
             raise InputError(f"{_origin_of(config, stage.name)}: {stage.name}: the run would hold "
                              f"about {result.memory_bytes / 2**30:.1f} GiB ({result.memory_how}), more than the "
-                             f"{limit / 2**30:.1f} GiB a bake may use ({limit_how}); lower the sizes named")
+                             f"{limit / 2**30:.1f} GiB a bake may use ({limit_how}){grids}; lower the sizes named")
         results[stage.name] = result
     return results
 

@@ -204,6 +204,7 @@ class GridInfo:
 
     shape: tuple[int, int]
     cell_size_m: float
+    set_by: str = ""  # the config key that sets the size, named when a run that reads it is too large
 
 
 @dataclass(frozen=True)

@@ -221,7 +221,7 @@ def check(params: HeightmapParams, ctx: CheckContext) -> Check:
         memory += 16 * src.size
         how += f" + the DEM's {src.shape[1]} x {src.shape[0]} pixels x 16 B"
     return Check(memory_bytes=memory, memory_how=how,
-                 grids={"heightmap.height": GridInfo((rows, cols), params.size_m / res)})
+                 grids={"heightmap.height": GridInfo((rows, cols), params.size_m / res, "heightmap.resolution")})
 
 
 STAGE = Stage(
