@@ -10,7 +10,7 @@ by stages/erosion/stream_power.run with the default.toml parameters of
 geological time; each variant changes one knob (routing, flat routing, steps).
 The statistics are pipeline/terrain_stats.terrain_statistics on the result,
 with the hydrology stage's routing (complete breaching, Priority-Flood+epsilon,
-D8) and its default channel threshold (4e5 m^2): the numbers the bake writes
+D8) and its default channel threshold (1e5 m^2): the numbers the bake writes
 to the hydrology stage's stats.json (there after the talus rule and the storm
 too). "noise" is the uneroded heightmap. Targets of issue 16: anisotropy
 <= 1.1, depressions <= 5 %, Strahler >= 4, theta 0.35 .. 0.65, Hack 0.5 .. 0.65.
@@ -32,7 +32,7 @@ VARIANTS = {
     "mfd-epsilon-flats": dict(flat_routing="epsilon"),
     "mfd": {},
 }
-CHANNEL_AREA_M2 = 4.0e5
+from stages.hydrology.stage import CHANNEL_HEAD_AREA_M2 as CHANNEL_AREA_M2  # the hydrology stage's default
 
 
 def statistics(h: np.ndarray, dx: float) -> dict:

@@ -87,6 +87,9 @@ def fit(world: Path, max_vertices: int = 513) -> dict:
         level_err.append(abs(lakes_usd[name] - float(np.nanmax(level[lake_id == lid]))))
     return {
         "river_vertices": int(above.size), "river_vertices_on_lakes": int(on_lake.sum()),
+        "vertices_within_0.5m_share": float((np.abs(above) <= 0.5).mean()) if above.size else 0.0,
+        "vertex_above_mesh_min_m": float(above.min()) if above.size else float("nan"),
+        "vertex_above_mesh_max_m": float(above.max()) if above.size else float("nan"),
         "vertices_off_lakes_within_0.5m_share": float((np.abs(above[~on_lake]) <= 0.5).mean()) if above.size else 0.0,
         "vertex_off_lakes_above_mesh_min_m": float(above[~on_lake].min()) if (~on_lake).any() else float("nan"),
         "vertex_off_lakes_above_mesh_max_m": float(above[~on_lake].max()) if (~on_lake).any() else float("nan"),

@@ -43,6 +43,11 @@ from pipeline.flow import reference as ref
 from . import rivers as rivers_mod
 
 SECONDS_PER_YEAR = 365.25 * 86400.0
+# Channel heads: 0.1 km^2. Source areas measured at channel heads in steep soil-mantled land reach 1e2 .. 1e5
+# m^2 (Montgomery and Dietrich 1988, 1992); DEM studies take 0.1 km^2 and less for networks of mountain land. The
+# default world's slope-area plot follows the fluvial power law S ~ A^-theta from about 2e4 m^2, so this is inside
+# the fluvial range (4e5 m^2 before, the heads of 8 km basins of about 28 km^2 had room for order 3 only).
+CHANNEL_HEAD_AREA_M2 = 1.0e5
 RIVER_MAX_RISE_M = 0.5  # a river segment may pass over ground this much above its higher end, no more
 
 
@@ -64,7 +69,9 @@ class HydrologyParams(Params):
         "TIFF; first channel, float) of yearly rain in mm/year, stretched over the terrain and resampled bilinearly")
     runoff_coefficient: float = Param(0.5, units="", description="share of rain that runs off into rivers", ge=0.0, le=1.0)
     river_threshold_m2: float = Param(
-        4.0e5, units="m^2", description="drainage area at which a channel (river) starts", gt=0.0, le=1e12)
+        CHANNEL_HEAD_AREA_M2, units="m^2", description="drainage area at which a channel (river) starts: the "
+        "channel heads of the network whose Strahler order, Hack exponent and concavity stats.json reports",
+        gt=0.0, le=1e12)
     river_velocity_coefficient_m_s: float = Param(
         12.0, units="m/s", description="flow velocity v = k sqrt(slope) (Chezy-like), clamped to the min/max below",
         gt=0.0, le=1000.0)
@@ -87,7 +94,7 @@ class HydrologyParams(Params):
     moisture_water_distance_m: float = Param(
         40.0, units="m", description="moisture from open water decays as exp(-distance / this)", gt=0.0, le=1e5)
     hack_min_area_m2: float = Param(
-        4.0e5, units="m^2", description="smallest drainage area in the Hack's law fit: Hack's law is a law of the "
+        CHANNEL_HEAD_AREA_M2, units="m^2", description="smallest drainage area in the Hack's law fit: Hack's law is a law of the "
         "channel network, so the default is the channel-initiation area (river_threshold_m2's default)",
         gt=0.0, le=1e12)
 
@@ -270,13 +277,12 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
     for seg in riv.curves:
         x = ox + (seg % cols + 0.5) * dx
         z = oz + (seg // cols + 0.5) * dx
-        lk_lvl = lake_level.ravel()[seg]
         if mesh is not None:
-            # the curve lies on the terrain mesh (lifted by river_lift_m), in a lake at its level
+            # the curve lies on the terrain mesh (lifted by river_lift_m), also where it ends on a lake's shore:
+            # the coarse mesh can stand above a small lake's level, and a vertex at the level would be buried
             y = height_on_mesh(mesh, x, z) + params.river_lift_m
         else:
             y = surf[seg]
-        y = np.where(np.isfinite(lk_lvl), lk_lvl, y)
         if not np.isfinite(y).all():
             continue
         w = np.maximum.accumulate(riv.width.ravel()[seg])
