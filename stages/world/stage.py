@@ -46,9 +46,10 @@ class WorldParams(Params):
     rock_slope_deg: float = Param(35.0, ge=0.0, le=90.0, units="deg", description="slope above which the ground is bare rock")
     roughness: float = Param(0.9, ge=0.0, le=1.0, description="UsdPreviewSurface roughness of the ground")
     ground_texel_m: float = Param(
-        2.0, ge=0.05, le=1000.0, units="m", description="texel size of the ground albedo's UDIM tiles when the "
-        "vegetation stage's splat weights are baked (1 m or finer close up costs about 4x the 2 m tiles' time)")
-    ground_tile_texels: int = Param(1024, ge=16, le=8192, units="texels", description="texels per side of each UDIM tile")
+        1.0, ge=0.05, le=1000.0, units="m", description="texel size of the ground albedo's UDIM tiles when the "
+        "vegetation stage's splat weights are baked: the whole world at this size, MIP-mapped, so the texel is this "
+        "fine wherever the camera is near")
+    ground_tile_texels: int = Param(2048, ge=16, le=8192, units="texels", description="texels per side of each UDIM tile")
 
 
 # Ground colours (linear RGB): reasoned from typical albedo of the materials.
@@ -154,6 +155,9 @@ def write_terrain_layer(path: Path, height: Grid, texture: str, params: WorldPar
             "height_min_m": float(ext[0][1]), "height_max_m": float(ext[1][1])}
 
 
+GROUND_TILE_THREADS = 2  # UDIM tiles baked at once (each holds about 40 B a texel at its peak)
+
+
 def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, params: WorldParams, albedo_path: Path,
                           folder: Path) -> tuple[tuple[str, int], str]:
     """The ground from the splat weights (ground.py): albedo.exr (the whole
@@ -178,12 +182,20 @@ def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, param
     n = params.texture_size
     overview = ground.tile_albedo(splat, dx, height.origin_m, 1, n, 0, 0, ground.detail_tables(ctx.seed, size_m / n),
                                   size_m / n)
-    exr.write_texture(albedo_path, overview, ctx.provenance)
-    for v in range(tiles):
-        for u in range(tiles):
-            ctx.progress(0.05 + 0.7 * (v * tiles + u) / tiles ** 2, f"ground tile {1001 + u + 10 * v}")
-            tile = ground.tile_albedo(splat, dx, height.origin_m, tiles, texels, u, v, tables, texel_m)
-            exr.write_texture(folder / f"ground.{1001 + u + 10 * v}.exr", tile, ctx.provenance)
+    exr.write_mipmapped_texture(albedo_path, overview, ctx.provenance)
+
+    def write_tile(uv: tuple[int, int]) -> int:
+        u, v = uv
+        tile = ground.tile_albedo(splat, dx, height.origin_m, tiles, texels, u, v, tables, texel_m)
+        exr.write_mipmapped_texture(folder / f"ground.{1001 + u + 10 * v}.exr", tile, ctx.provenance)
+        return 1001 + u + 10 * v
+
+    # tiles are independent: numpy's products and the EXR compression release the GIL, so threads share the cores
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=GROUND_TILE_THREADS) as pool:
+        for i, udim in enumerate(pool.map(write_tile, [(u, v) for v in range(tiles) for u in range(tiles)])):
+            ctx.progress(0.05 + 0.7 * (i + 1) / tiles ** 2, f"ground tile {udim}")
     from pipeline.terrain_mesh import bilinear, lattice_coordinates
 
     h = height.channel(height.channels[0]).astype(np.float64)
@@ -194,7 +206,7 @@ def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, param
     ri = np.interp(np.arange(rows), lattice_coordinates(rows, nr), np.arange(nr))
     ci = np.interp(np.arange(cols), lattice_coordinates(cols, nc), np.arange(nc))
     mesh_h = bilinear(lattice, ri, ci)
-    exr.write_texture(folder / "normal.exr", ground.normal_map(h, mesh_h, dx), ctx.provenance)
+    exr.write_mipmapped_texture(folder / "normal.exr", ground.normal_map(h, mesh_h, dx), ctx.provenance)
     ctx.metrics.update(ground_udim_tiles=tiles * tiles, ground_texel_m=texel_m, ground_tile_texels=texels)
     return ("./ground.<UDIM>.exr", tiles), "./normal.exr"
 
@@ -266,9 +278,12 @@ def check(params: WorldParams, ctx: CheckContext) -> Check:
     terrain = ctx.inputs.get("terrain")
     if terrain is not None:
         vertices = min(terrain.shape[0], params.mesh_max_vertices) * min(terrain.shape[1], params.mesh_max_vertices)
-    return Check(memory_bytes=256 * texels + 80 * vertices,
+    # UDIM tiles baked at once: weights and detail per ground type (float32) and the RGB result, about 64 B a texel
+    tile_bytes = GROUND_TILE_THREADS * 64 * params.ground_tile_texels ** 2
+    return Check(memory_bytes=256 * texels + 80 * vertices + tile_bytes,
                  memory_how=f"world.texture_size = {params.texture_size}: {texels:,} texels x 256 B, "
-                 f"+ {vertices:,} vertices x 80 B")
+                 f"+ {vertices:,} vertices x 80 B + {GROUND_TILE_THREADS} ground tiles of "
+                 f"{params.ground_tile_texels}^2 texels x 64 B")
 
 
 STAGE = Stage(
