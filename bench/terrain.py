@@ -12,7 +12,8 @@ The statistics are pipeline/terrain_stats.terrain_statistics on the result,
 with the hydrology stage's routing (complete breaching, Priority-Flood+epsilon,
 D8) and its default channel threshold (1e5 m^2): the numbers the bake writes
 to the hydrology stage's stats.json (there after the talus rule and the storm
-too). "noise" is the uneroded heightmap. Targets of issue 16: anisotropy
+too). "noise" is the uneroded heightmap; "local" is grid_anisotropy_local (each grid
+wedge against its flanks: grid marks, not a landform trend near a grid direction). Targets of issue 16: anisotropy
 <= 1.1, depressions <= 5 %, Strahler >= 4, theta 0.35 .. 0.65, Hack 0.5 .. 0.65.
 """
 from __future__ import annotations
@@ -77,10 +78,10 @@ def main() -> None:
                 rows.append((n, name, steps, seconds, st))
                 print(f"{n}^2 {name} {steps} steps: {seconds:.1f} s", flush=True)
     print()
-    print(f"{'grid':>6} {'variant':>18} {'steps':>5} {'time s':>7} {'aniso':>6} {'depr %':>6} {'Strahler':>8} "
+    print(f"{'grid':>6} {'variant':>18} {'steps':>5} {'time s':>7} {'aniso':>6} {'local':>6} {'depr %':>6} {'Strahler':>8} "
           f"{'Hack':>5} {'theta':>6} {'Dd /km':>6} {'HI':>5}")
     for n, name, steps, seconds, st in rows:
-        print(f"{n:6d} {name:>18} {steps:5d} {seconds:7.1f} {st['grid_anisotropy']:6.3f} "
+        print(f"{n:6d} {name:>18} {steps:5d} {seconds:7.1f} {st['grid_anisotropy']:6.3f} {st['grid_anisotropy_local']:6.3f} "
               f"{100 * st['depression_area_fraction']:6.2f} {st['strahler_order_max']:8d} {st['hack_exponent']:5.2f} "
               f"{st['concavity_theta']:6.2f} {st['drainage_density_per_km']:6.2f} {st['hypsometric_integral']:5.2f}")
 

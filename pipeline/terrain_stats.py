@@ -6,6 +6,8 @@ land measures"), computed from the final height and its D8 flow tree:
 - grid_anisotropy: share of the 2-to-16-cell band's spectral power lying on
   the grid's axes and diagonals, over the share of that band's wavenumbers
   lying there (1 isotropic; D8 routing printed on the surface gives 2 and more);
+- grid_anisotropy_local: the same wedges against their flanks a few degrees
+  away, so a landform trend near a grid direction is told from grid marks;
 - depression_area_fraction: share of the area in closed depressions before
   filling (filled height above the height);
 - strahler_order_max: Horton-Strahler order of the channel network
@@ -64,6 +66,36 @@ def grid_anisotropy(height: np.ndarray) -> float:
     share_power = power[band & on_grid].sum() / p_band
     share_count = (band & on_grid).sum() / band.sum()
     return float(share_power / share_count)
+
+
+def grid_anisotropy_local(height: np.ndarray, flank_deg: float = 6.0) -> float:
+    """Grid marks against the landforms' own orientation: the same band and
+    +-1.5 degree wedges as grid_anisotropy, but each wedge's power density
+    over that of its flanks (1.5 to flank_deg degrees either side) instead of
+    the whole band's. Grid marks are narrow spikes on the grid directions
+    (D8 stripes give 2 and more); a landform trend that happens to lie near
+    a grid direction (parallel valleys down a range's flank) is a broad peak
+    and gives about 1 here while raising grid_anisotropy."""
+    h = np.asarray(height, np.float64)
+    rows, cols = h.shape
+    w = np.outer(np.hanning(rows), np.hanning(cols))
+    power = np.abs(np.fft.fft2((h - h.mean()) * w)) ** 2
+    n = min(rows, cols)
+    ky = np.fft.fftfreq(rows)[:, None] * n
+    kx = np.fft.fftfreq(cols)[None, :] * n
+    radius = np.hypot(kx, ky)
+    band = (radius >= n / 16) & (radius <= n / 2)
+    angle = np.degrees(np.arctan2(ky, kx)) % 180.0
+    on = np.zeros_like(band)
+    flank = np.zeros_like(band)
+    for a in GRID_DIRECTIONS_DEG:
+        d = np.abs((angle - a + 90.0) % 180.0 - 90.0)
+        on |= d <= ANISOTROPY_HALF_WIDTH_DEG
+        flank |= (d > ANISOTROPY_HALF_WIDTH_DEG) & (d <= flank_deg)
+    on, flank = band & on, band & flank
+    if not on.any() or not flank.any() or power[flank].sum() <= 0:
+        return 1.0
+    return float((power[on].sum() / on.sum()) / (power[flank].sum() / flank.sum()))
 
 
 def receivers(code: np.ndarray) -> np.ndarray:
@@ -214,6 +246,7 @@ def terrain_statistics(height: np.ndarray, filled: np.ndarray, code: np.ndarray,
     span = float(hv.max() - hv.min()) if hv.size else 0.0
     return {
         "grid_anisotropy": grid_anisotropy(np.where(data, h, hv.mean() if hv.size else 0.0)),
+        "grid_anisotropy_local": grid_anisotropy_local(np.where(data, h, hv.mean() if hv.size else 0.0)),
         "depression_area_fraction": float(depressions.sum() / max(int(data.sum()), 1)),
         "strahler_order_max": int(order.max()) if order.size else 0,
         "hack_exponent": hack,

@@ -48,6 +48,23 @@ def test_anisotropy_is_one_for_isotropic_noise_and_large_for_grid_stripes():
     assert ts.grid_anisotropy(rot) < 1.2
 
 
+def test_local_anisotropy_tells_grid_marks_from_a_landform_trend_near_a_grid_direction():
+    rng = np.random.default_rng(5)
+    n = 256
+    k = np.hypot(*np.meshgrid(np.fft.fftfreq(n), np.fft.fftfreq(n)))
+    spectrum = np.fft.fft2(rng.standard_normal((n, n))) / np.maximum(k, 1 / n) ** 1.5
+    iso = np.real(np.fft.ifft2(spectrum))
+    assert 0.9 < ts.grid_anisotropy_local(iso) < 1.1
+    r, c = np.mgrid[0:n, 0:n]
+    stripes = iso + 0.5 * iso.std() * (np.sin(2 * np.pi * r / 5.0) + np.sin(2 * np.pi * (r + c) / 7.0))
+    assert ts.grid_anisotropy_local(stripes) > 2.0
+    # a trend: the same noise with its power raised over 120..150 degrees (broad, around the 135 degree diagonal)
+    angle = np.degrees(np.arctan2(np.fft.fftfreq(n)[:, None], np.fft.fftfreq(n)[None, :])) % 180.0
+    trend = np.real(np.fft.ifft2(spectrum * np.where(np.abs(angle - 135.0) <= 15.0, 2.5, 1.0)))
+    assert ts.grid_anisotropy(trend) > 1.1
+    assert 0.8 < ts.grid_anisotropy_local(trend) < 1.1
+
+
 def test_anisotropy_share_of_wavenumbers_is_that_of_the_definition():
     # white noise: power spread evenly over wavenumbers, so the ratio is about 1 (no window bias)
     rng = np.random.default_rng(0)
