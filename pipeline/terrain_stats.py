@@ -39,13 +39,11 @@ ANISOTROPY_HALF_WIDTH_DEG = 1.5
 SLOPE_REACH_M = 200.0
 
 
-def grid_anisotropy(height: np.ndarray) -> float:
-    """The issue's spectral measure of grid marks, exactly: height minus its
-    mean, times a separable Hann window, 2-D power spectrum; keep wavenumbers
-    of radius n/16 .. n/2 (wavelengths 2 to 16 cells); the share of that
-    band's power within +-1.5 degrees of 0, 45, 90 and 135 degrees, divided by
-    the share of the band's wavenumbers lying there. A non-square grid uses
-    wavenumbers in cycles per cell scaled by the shorter side."""
+def _band_spectrum(height: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(power, band, angle): the Hann-windowed power spectrum of the height
+    minus its mean, the wavenumbers of radius n/16 .. n/2 (wavelengths 2 to
+    16 cells; a non-square grid in cycles per cell scaled by the shorter
+    side) and each wavenumber's direction in degrees, 0 .. 180."""
     h = np.asarray(height, np.float64)
     rows, cols = h.shape
     w = np.outer(np.hanning(rows), np.hanning(cols))
@@ -55,11 +53,22 @@ def grid_anisotropy(height: np.ndarray) -> float:
     kx = np.fft.fftfreq(cols)[None, :] * n
     radius = np.hypot(kx, ky)
     band = (radius >= n / 16) & (radius <= n / 2)
-    angle = np.degrees(np.arctan2(ky, kx)) % 180.0
-    on_grid = np.zeros_like(band)
-    for a in GRID_DIRECTIONS_DEG:
-        d = np.abs((angle - a + 90.0) % 180.0 - 90.0)
-        on_grid |= d <= ANISOTROPY_HALF_WIDTH_DEG
+    return power, band, np.degrees(np.arctan2(ky, kx)) % 180.0
+
+
+def _off_grid_deg(angle: np.ndarray) -> np.ndarray:
+    """Angular distance to the nearest of 0, 45, 90 and 135 degrees."""
+    return np.min([np.abs((angle - a + 90.0) % 180.0 - 90.0) for a in GRID_DIRECTIONS_DEG], axis=0)
+
+
+def grid_anisotropy(height: np.ndarray) -> float:
+    """The issue's spectral measure of grid marks, exactly: height minus its
+    mean, times a separable Hann window, 2-D power spectrum; keep wavenumbers
+    of radius n/16 .. n/2 (wavelengths 2 to 16 cells); the share of that
+    band's power within +-1.5 degrees of 0, 45, 90 and 135 degrees, divided by
+    the share of the band's wavenumbers lying there."""
+    power, band, angle = _band_spectrum(height)
+    on_grid = _off_grid_deg(angle) <= ANISOTROPY_HALF_WIDTH_DEG
     p_band = power[band].sum()
     if p_band <= 0:
         return 1.0
@@ -76,23 +85,10 @@ def grid_anisotropy_local(height: np.ndarray, flank_deg: float = 6.0) -> float:
     (D8 stripes give 2 and more); a landform trend that happens to lie near
     a grid direction (parallel valleys down a range's flank) is a broad peak
     and gives about 1 here while raising grid_anisotropy."""
-    h = np.asarray(height, np.float64)
-    rows, cols = h.shape
-    w = np.outer(np.hanning(rows), np.hanning(cols))
-    power = np.abs(np.fft.fft2((h - h.mean()) * w)) ** 2
-    n = min(rows, cols)
-    ky = np.fft.fftfreq(rows)[:, None] * n
-    kx = np.fft.fftfreq(cols)[None, :] * n
-    radius = np.hypot(kx, ky)
-    band = (radius >= n / 16) & (radius <= n / 2)
-    angle = np.degrees(np.arctan2(ky, kx)) % 180.0
-    on = np.zeros_like(band)
-    flank = np.zeros_like(band)
-    for a in GRID_DIRECTIONS_DEG:
-        d = np.abs((angle - a + 90.0) % 180.0 - 90.0)
-        on |= d <= ANISOTROPY_HALF_WIDTH_DEG
-        flank |= (d > ANISOTROPY_HALF_WIDTH_DEG) & (d <= flank_deg)
-    on, flank = band & on, band & flank
+    power, band, angle = _band_spectrum(height)
+    d = _off_grid_deg(angle)
+    on = band & (d <= ANISOTROPY_HALF_WIDTH_DEG)
+    flank = band & (d > ANISOTROPY_HALF_WIDTH_DEG) & (d <= flank_deg)
     if not on.any() or not flank.any() or power[flank].sum() <= 0:
         return 1.0
     return float((power[on].sum() / on.sum()) / (power[flank].sum() / flank.sum()))
