@@ -115,8 +115,8 @@ def write_texture(path: Path | str, rgb: np.ndarray, provenance: dict[str, Any] 
 
 def box_mip_chain(rgb: np.ndarray) -> list[np.ndarray]:
     """MIP levels of an image down to 1x1, each the 2x2 mean of the one
-    above (OpenEXR's round-down sizes; an odd row or column is averaged into
-    the last pixel's pair by repeating the edge)."""
+    above, in OpenEXR's round-down sizes (the odd last row or column of a
+    level is left out of the next)."""
     levels = [np.asarray(rgb, np.float32)]
     a = levels[0]
     while a.shape[0] > 1 or a.shape[1] > 1:

@@ -146,3 +146,24 @@ def test_ground_material_udim_tiles_and_normal_map(tmp_path):
     # a slope rising east that the mesh does not have tilts the normal west (x < 0.5)
     ramp = ground.normal_map(np.tile(np.arange(6.0), (5, 1)), np.zeros((5, 6)), 10.0)
     assert (ramp[..., 0] < 0.5).all() and np.allclose(ramp[..., 1], 0.5)
+
+
+def test_mipmapped_texture_levels_are_box_means(tmp_path):
+    import OpenImageIO as oiio
+
+    from pipeline import exr
+
+    rng = np.random.default_rng(1)
+    rgb = rng.random((8, 6, 3)).astype(np.float32)
+    exr.write_mipmapped_texture(tmp_path / "t.exr", rgb, {"stage": "world"})
+    inp = oiio.ImageInput.open(str(tmp_path / "t.exr"))
+    levels = []
+    while inp.seek_subimage(0, len(levels)):
+        levels.append(inp.read_image(oiio.FLOAT))
+    inp.close()
+    # OpenEXR's round-down chain 8x6, 4x3, 2x1, 1x1; half-float texels
+    assert [lv.shape[:2] for lv in levels] == [(8, 6), (4, 3), (2, 1), (1, 1)]
+    np.testing.assert_allclose(levels[0], rgb, atol=1e-3)
+    box = rgb.reshape(4, 2, 3, 2, 3).mean(axis=(1, 3))
+    np.testing.assert_allclose(levels[1], box, atol=1e-3)
+    np.testing.assert_allclose(levels[2][:, 0], box[:, :2].reshape(2, 2, 2, 3).mean(axis=(1, 2)), atol=1e-3)
