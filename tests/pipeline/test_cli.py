@@ -20,7 +20,7 @@ from pipeline import usdio
 REPO = Path(__file__).resolve().parents[2]
 # A small world: 96^2 cells, and only the grass asset (the tree presets take seconds each; tests/stages/plants covers them)
 SMALL = ["--set", "heightmap.resolution=96", "--set", "world.texture_size=64", "--set", "shared.mesh_max_vertices=49",
-         "--set", 'plants.build=["grass"]']
+         "--set", 'plants.build=["grass"]', "--set", "world.ground_texel_m=16", "--set", "world.ground_tile_texels=256"]
 
 
 @pytest.fixture
