@@ -22,8 +22,10 @@ bake: setup
 plan: setup
 	$(VENV)/bin/worldbake plan $(CONFIG)
 
+# One worker per core; a test file (all of tests/stages/plants) stays on one worker, so module and
+# session fixtures are built once (tests/conftest.py groups them).
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --dist loadgroup
 
 # Every benchmark in bench/, one after the other (minutes; not part of `make test`).
 bench: setup

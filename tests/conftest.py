@@ -49,3 +49,13 @@ def _run_on_parametrized_device(request):
 
     with use_device(candidate.device):
         yield
+
+
+def pytest_collection_modifyitems(items):
+    """Group the tests for `pytest -n auto --dist loadgroup` (make test): one group per file, so a
+    module's fixtures are built on one worker, and the plants tests together, since they share
+    session-scoped builds of every preset (tests/stages/plants/conftest.py)."""
+    for item in items:
+        path = item.path.as_posix()
+        group = "tests/stages/plants" if "/tests/stages/plants/" in path else path
+        item.add_marker(pytest.mark.xdist_group(group))
