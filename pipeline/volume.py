@@ -207,9 +207,12 @@ def read_atlas(path: Path | str) -> VolumeLevel:
         raise InputError(f"{path}: cannot read: {oiio.geterror()}")
     try:
         spec = inp.spec()
-        if tuple(spec.channelnames) != CHANNELS:
-            raise InputError(f"{path}: channels {tuple(spec.channelnames)}, a volume atlas has {CHANNELS}")
+        names = tuple(spec.channelnames)
+        if sorted(names) != sorted(CHANNELS):
+            raise InputError(f"{path}: channels {names}, a volume atlas has {CHANNELS}")
         pixels = np.asarray(inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT), np.float32)
+        # OpenEXR stores channels sorted by name: put them back in CHANNELS order
+        pixels = pixels.reshape(spec.height, spec.width, spec.nchannels)[..., [names.index(c) for c in CHANNELS]]
         attrs = {}
         for a in spec.extra_attribs:
             if a.name.startswith("worldbake:"):
@@ -221,7 +224,7 @@ def read_atlas(path: Path | str) -> VolumeLevel:
         inp.close()
     if "volume_grid" not in attrs:
         raise InputError(f"{path}: no worldbake:volume_grid attribute; not a volume atlas")
-    level = from_atlas(pixels.reshape(spec.height, spec.width, spec.nchannels), tuple(attrs["volume_grid"]),
+    level = from_atlas(np.ascontiguousarray(pixels), tuple(attrs["volume_grid"]),
                        attrs["volume_bbox_min"], attrs["volume_voxel_m"])
     level.attributes = attrs
     return level
