@@ -124,6 +124,18 @@ def downsample(level: VolumeLevel) -> VolumeLevel:
                        normal.astype(np.float32), (surf / 8).astype(np.float32), level.origin.copy(), 2 * level.voxel_m)
 
 
+def pad_even(level: VolumeLevel) -> VolumeLevel:
+    """The level with empty voxels added at the far side of every odd
+    dimension (same origin, same sums): ready for downsample."""
+    nz, ny, nx = level.density.shape
+    pad = [(0, nz % 2), (0, ny % 2), (0, nx % 2)]
+    if not any(p[1] for p in pad):
+        return level
+    return VolumeLevel(np.pad(level.density, pad), np.pad(level.albedo, pad + [(0, 0)]),
+                       np.pad(level.normal, pad + [(0, 0)]), np.pad(level.surface, pad), level.origin.copy(),
+                       level.voxel_m)
+
+
 def mip_chain(level: VolumeLevel, count: int) -> list[VolumeLevel]:
     """level and its count - 1 mips."""
     out = [level]

@@ -56,9 +56,14 @@ class SpeciesVolume:
     levels: list[volume.VolumeLevel]
 
     def level_for(self, voxel_m: float) -> volume.VolumeLevel:
-        """The coarsest level at most half the sector voxel, else the finest."""
+        """The source of a splat into voxels of voxel_m: the coarsest level
+        at most half that edge (else the finest), pooled further while its
+        voxels stay under half the edge, so a shrub splats as a few voxels."""
         fine = [lv for lv in self.levels if lv.voxel_m <= 0.5 * voxel_m]
-        return fine[-1] if fine else self.levels[0]
+        level = fine[-1] if fine else self.levels[0]
+        while 2 * level.voxel_m <= 0.5 * voxel_m and max(level.density.shape) > 1:
+            level = volume.downsample(volume.pad_even(level))
+        return level
 
 
 def read_species_volumes(layer: Path) -> dict[str, SpeciesVolume]:
@@ -108,8 +113,8 @@ def read_tiles(layer: Path) -> list[TileInstances]:
         if key not in tiles:
             tiles[key] = TileInstances(key, tuple(tile.GetCustomDataByKey("worldbake:bounds_xz_m") or ()), {})
         pos = np.asarray(pi.GetPositionsAttr().Get(), np.float64).reshape(-1, 3)
-        quats = pi.GetOrientationsAttr().Get()
-        q = np.array([[float(v.GetReal()), *map(float, v.GetImaginary())] for v in quats]).reshape(-1, 4)
+        # Vt.QuathArray holds (i, j, k, real) per quaternion
+        q = np.asarray(pi.GetOrientationsAttr().Get(), np.float64).reshape(-1, 4)[:, [3, 0, 1, 2]]
         scales = np.asarray(pi.GetScalesAttr().Get(), np.float64).reshape(-1, 3)
         if not (np.isfinite(pos).all() and np.isfinite(q).all() and np.isfinite(scales).all()):
             raise InputError(f"{layer}: {prim.GetPath()} holds NaN or Inf")

@@ -47,7 +47,7 @@ class VolumesParams(Params):
     mip_levels: int = Param(5, units="levels", description="levels written, each with voxels twice the edge of the one "
                             "before (the finest's sides are padded to a multiple of 2^(levels-1))", ge=1, le=8)
     lod: int = Param(0, units="level", description="the plant asset's LOD that is voxelized", ge=0, le=7)
-    samples_per_voxel: float = Param(3.0, units="samples", description="surface samples per voxel edge on every "
+    samples_per_voxel: float = Param(2.0, units="samples", description="surface samples per voxel edge on every "
                                      "triangle (point sampling of the card textures' alpha)", ge=1.0, le=16.0)
     solid_columns: int = Param(4, units="columns", description="columns per voxel side that measure the woody solid's "
                                "occupancy", ge=1, le=16)

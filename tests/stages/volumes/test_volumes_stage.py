@@ -128,8 +128,8 @@ def test_forest_tiles_get_sector_volumes(volumes, tmp_path):
 
     def inst(name, n, x0):
         pos = np.stack([x0 + 10 * rng.random(n), np.zeros(n), 10 * rng.random(n)], 1).astype(np.float32)
-        quat = np.zeros((n, 4), np.float16)
-        quat[:, 3] = 1
+        quat = np.zeros((n, 4), np.float16)  # (i, j, k, real): a quarter turn about +y
+        quat[:, 1] = quat[:, 3] = np.sqrt(0.5)
         return Instances(name, pos, quat, np.ones((n, 3), np.float32), np.ones(n, np.float32), rng.random(n).astype(np.float32),
                          np.arange(n, dtype=np.int64), np.ones(n, np.float32))
 
@@ -139,6 +139,8 @@ def test_forest_tiles_get_sector_volumes(volumes, tmp_path):
                     0.0, 0.0, 32.0, 40, 8.0)
     tiles = read_tiles(layer)
     assert sum(len(t.species.get("bush", ([],))[0]) for t in tiles) == 30
+    rot = next(t.species["bush"][1] for t in tiles if "bush" in t.species)
+    np.testing.assert_allclose(rot[0] @ [1.0, 0, 0], [0, 0, -1.0], atol=1e-3)  # x turns to -z about +y
     out, _ = volumes
     params = ForestVolumesParams(voxel_m=0.5, mip_levels=2, forest_min_height_m=0.1)
     res, _ = _run(FOREST, params, {"volumes": out["volumes.assets"], "instances": layer}, tmp_path / "forest")
