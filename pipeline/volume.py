@@ -245,15 +245,17 @@ def read_atlas(path: Path | str) -> VolumeLevel:
 # --------------------------------------------------------------------------- USD
 
 
-def define_volume_prim(stage, path: str, level: VolumeLevel, atlas_file: str, purpose: str | None = None):
+def define_volume_prim(stage, path: str, level: VolumeLevel, atlas_file: str, purpose: str | None = None,
+                       vdb_file: str | None = None):
     """A UsdVol.Volume prim for one level: extent = the grid's box, and a
-    field per channel group. EXR atlases are no field format USD knows
-    (UsdVol has OpenVDB and Field3D assets only, and no maintained OpenVDB
-    writer installs from PyPI), so the fields are Field3DAsset prims that
-    name no file and the atlas path, layout and voxel size sit in
-    customData worldbake:atlas for importers that read the pseudo-volume
-    layout."""
-    from pxr import Gf, Vt, UsdGeom, UsdVol
+    field per channel group. With `vdb_file` (pipeline.vdb) the fields are
+    OpenVDBAsset prims naming its grids, which Houdini, usdview and
+    Omniverse render. Without it: EXR atlases are no field format USD knows
+    (UsdVol has OpenVDB and Field3D assets only), so the fields are
+    Field3DAsset prims that name no file. Either way the atlas path, layout
+    and voxel size sit in customData worldbake:atlas for importers that read
+    the pseudo-volume layout."""
+    from pxr import Gf, Vt, UsdVol
 
     vol = UsdVol.Volume.Define(stage, path)
     vol.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, level.origin)), Gf.Vec3f(*map(float, level.bbox_max))]))
@@ -261,18 +263,22 @@ def define_volume_prim(stage, path: str, level: VolumeLevel, atlas_file: str, pu
         vol.CreatePurposeAttr(purpose)
     nx, ny, nz = level.shape_xyz
     for name in ("density", "albedo", "normal"):
-        fld = UsdVol.Field3DAsset.Define(stage, f"{path}/{name}")
+        if vdb_file:
+            fld = UsdVol.OpenVDBAsset.Define(stage, f"{path}/{name}")
+            fld.CreateFilePathAttr(vdb_file)
+        else:
+            fld = UsdVol.Field3DAsset.Define(stage, f"{path}/{name}")
         fld.CreateFieldNameAttr(name)
         fld.CreateFieldDataTypeAttr("float" if name == "density" else "float3")
         vol.CreateFieldRelationship(name, fld.GetPath())
     vol.GetPrim().SetCustomDataByKey("worldbake:atlas", {
         "file": atlas_file, "grid": Vt.IntArray([nx, ny, nz]), "tiles": Vt.IntArray(list(atlas_tiles(nz))),
         "voxel_m": float(level.voxel_m), "channels": Vt.StringArray(list(CHANNELS))})
-    UsdGeom.Imageable(vol.GetPrim())
     return vol
 
 
-def define_mip_volumes(stage, path: str, chain: list[VolumeLevel], atlas_files: list[str], purpose: str | None = None):
+def define_mip_volumes(stage, path: str, chain: list[VolumeLevel], atlas_files: list[str], purpose: str | None = None,
+                       vdb_files: list[str] | None = None):
     """At `path` (an existing prim) a `mip` variant set whose variant mip<k>
     holds the UsdVol.Volume `path`/Volume of level k (selection mip0)."""
     prim = stage.GetPrimAtPath(path)
@@ -281,5 +287,5 @@ def define_mip_volumes(stage, path: str, chain: list[VolumeLevel], atlas_files: 
         vset.AddVariant(f"mip{k}")
         vset.SetVariantSelection(f"mip{k}")
         with vset.GetVariantEditContext():
-            define_volume_prim(stage, f"{path}/Volume", lv, file, purpose)
+            define_volume_prim(stage, f"{path}/Volume", lv, file, purpose, vdb_files[k] if vdb_files else None)
     vset.SetVariantSelection("mip0")

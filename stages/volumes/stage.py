@@ -55,6 +55,8 @@ class VolumesParams(Params):
                                    "views)", ge=0, le=1024)
     use_opencl: bool = Param(True, description="voxelize and composite with the OpenCL kernels (false: the numpy "
                              "reference, small meshes only)")
+    vdb: bool = Param(False, description="also write each level as OpenVDB (<species>.mip<k>.vdb, the fields of the "
+                      "UsdVol.Volume); needs Debian's python3-openvdb (pipeline/vdb.py)")
 
 
 def _manifold_volume(scene, wood: np.ndarray) -> float | None:
@@ -115,6 +117,11 @@ def volume_species(name: str, usdc: Path, params: VolumesParams, out_dir: Path,
             entry["views"] = errs["views"]
         file = f"{name}.mip{k}.exr"
         entry["file"] = file
+        if params.vdb:
+            from pipeline.vdb import write_vdb
+
+            write_vdb(out_dir / f"{name}.mip{k}.vdb", lv)
+            entry["vdb"] = f"{name}.mip{k}.vdb"
         volume.write_atlas(out_dir / file, lv, k, {**provenance, "species": name},
                            {"volume_errors": {k2: v for k2, v in entry.items() if k2 not in ("file", "views")}})
         report["levels"].append(entry)
@@ -123,7 +130,8 @@ def volume_species(name: str, usdc: Path, params: VolumesParams, out_dir: Path,
     return report, chain
 
 
-def write_layer(path: Path, provenance: dict, species: dict[str, list[volume.VolumeLevel]], reports: dict) -> None:
+def write_layer(path: Path, provenance: dict, species: dict[str, list[volume.VolumeLevel]], reports: dict,
+                vdb: bool = False) -> None:
     """volumes.usda: /Volumes (kind group), /Volumes/<species> (kind
     component) with a `mip` variant set, each variant a UsdVol.Volume."""
     from pxr import Kind, Usd, UsdGeom
@@ -132,7 +140,8 @@ def write_layer(path: Path, provenance: dict, species: dict[str, list[volume.Vol
     for name, chain in species.items():
         prim = UsdGeom.Xform.Define(stage, f"{VOLUMES_ROOT}/{name}")
         Usd.ModelAPI(prim).SetKind(Kind.Tokens.component)
-        volume.define_mip_volumes(stage, f"{VOLUMES_ROOT}/{name}", chain, [f"./{name}.mip{k}.exr" for k in range(len(chain))])
+        volume.define_mip_volumes(stage, f"{VOLUMES_ROOT}/{name}", chain, [f"./{name}.mip{k}.exr" for k in range(len(chain))],
+                                  vdb_files=[f"./{name}.mip{k}.vdb" for k in range(len(chain))] if vdb else None)
         lo, hi = chain[0].origin, chain[0].bbox_max
         from pxr import Gf, Vt
 
@@ -156,7 +165,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VolumesParams) -> dict[
         if drift > 1e-6:
             raise StageError(f"volumes: {name}: the mips change the mean coverage by {drift:.2e} (relative)")
     layer = ctx.path("volumes.assets")
-    write_layer(layer, ctx.provenance, chains, reports)
+    write_layer(layer, ctx.provenance, chains, reports, params.vdb)
     errors = usdio.validate(layer)
     if errors:
         raise StageError("volumes: the layer fails USD validation: " + "; ".join(errors[:10]))
@@ -176,6 +185,13 @@ def check(params: VolumesParams, ctx: CheckContext) -> Check:
     if params.voxels % step:
         raise ParamError("voxels", f"{params.voxels} voxels cannot halve {params.mip_levels - 1} times; use a multiple "
                          f"of {step} or fewer mip_levels")
+    if params.vdb:
+        from pipeline.vdb import available
+
+        why = available()
+        if why is not None:
+            raise ParamError("vdb", f"no OpenVDB writer: {why}; install Debian's python3-openvdb "
+                             "(apt-get install python3-openvdb) or set WORLDBAKE_VDB_PYTHON, or set vdb = false")
     n = params.voxels ** 3
     return Check(memory_bytes=150.0 * n + 4e8, memory_how=f"{params.voxels}^3 voxels x 150 B + 400 MB of surface samples")
 
@@ -189,10 +205,11 @@ STAGE = Stage(
                   "layers and textures beside it)"),
             Input("placed", one_of=("vegetation.placed",), optional=True,
                   description="the species the vegetation map placed: only those are voxelized")),
-    outputs=(Artifact("volumes.assets", kind="usd", file="volumes.usda", shape="any", beside=("*.mip*.exr",),
+    outputs=(Artifact("volumes.assets", kind="usd", file="volumes.usda", shape="any", beside=("*.mip*.exr", "*.mip*.vdb"),
                       description="/Volumes (kind group): per species a `mip` variant set of UsdVol.Volume prims, "
                       "each level an EXR Z-slice atlas <species>.mip<k>.exr (channels albedo.RGB premultiplied by "
-                      "density, density 1/m, normal.xyz, surface m^2/m^3; layout and errors in the header)"),
+                      "density, density 1/m, normal.xyz, surface m^2/m^3; layout and errors in the header) and, "
+                      "with vdb = true, <species>.mip<k>.vdb"),
              Artifact("volumes.stats", kind="json", file="stats.json", shape="any",
                       description="per species: grid, timings, per mip level memory, mean coverage, alpha IoU and "
                       "PSNR against the mesh from held-out views; the woody solid's volume against manifold3d's")),

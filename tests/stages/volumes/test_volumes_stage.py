@@ -156,3 +156,27 @@ def test_forest_tiles_get_sector_volumes(volumes, tmp_path):
     expect = 30 * src[0].density.astype(np.float64).sum() * src[0].voxel_m ** 3
     assert lv.density.astype(np.float64).sum() * lv.voxel_m ** 3 == pytest.approx(expect, rel=1e-3)
     assert json.loads(far.GetCustomDataByKey("worldbake:volume"))["instances"] == {"bush": 30}
+
+
+def test_vdb_levels_read_back_with_the_same_values(plants, tmp_path):
+    """With vdb = true every level is also an OpenVDB file (Debian's
+    python3-openvdb through pipeline/vdb.py) whose grids equal the atlas's,
+    and the Volume's fields name it."""
+    from pxr import Usd, UsdVol
+
+    from pipeline import vdb
+
+    if vdb.available() is not None:
+        pytest.skip(f"no OpenVDB writer here: {vdb.available()}")
+    params = VolumesParams(voxels=16, mip_levels=2, error_view_pixels=0, vdb=True)
+    out, _ = _run(STAGE, params, {"plants": plants, "placed": {"placed": ["bush"]}}, tmp_path)
+    assert usdio.validate(out["volumes.assets"]) == []
+    for k in range(2):
+        lv = volume.read_atlas(tmp_path / f"bush.mip{k}.exr")
+        grids = vdb.read_vdb(tmp_path / f"bush.mip{k}.vdb", lv.shape_xyz)
+        for name in ("density", "albedo", "normal", "surface"):
+            assert np.array_equal(grids[name], getattr(lv, name)), name
+        np.testing.assert_allclose(grids["density_voxel"], lv.voxel_m, rtol=1e-12)
+    stage = Usd.Stage.Open(str(out["volumes.assets"]))
+    field = UsdVol.OpenVDBAsset(stage.GetPrimAtPath("/Volumes/bush/Volume/density"))
+    assert field.GetFilePathAttr().Get().path == "./bush.mip0.vdb" and field.GetFieldNameAttr().Get() == "density"
