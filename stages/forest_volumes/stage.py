@@ -51,16 +51,34 @@ class ForestVolumesParams(Params):
                                        "flowers) are left out of the sectors", ge=0.0, le=200.0)
 
 
-@dataclass
 class SpeciesVolume:
-    levels: list[volume.VolumeLevel]
+    """A species' levels as the volumes stage listed them, each read from its
+    atlas when first needed (a sector needs only coarse levels)."""
+
+    def __init__(self, folder: Path, entries: list[dict]):
+        self.folder, self.entries = folder, entries
+        self._read: dict[int, volume.VolumeLevel] = {}
+
+    @property
+    def height_m(self) -> float:
+        return self.entries[0]["bbox_max"][1] - self.entries[0]["bbox_min"][1]
+
+    @property
+    def corners(self) -> np.ndarray:
+        lo, hi = self.entries[0]["bbox_min"], self.entries[0]["bbox_max"]
+        return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+    def level(self, k: int) -> volume.VolumeLevel:
+        if k not in self._read:
+            self._read[k] = volume.read_atlas(self.folder / self.entries[k]["file"])
+        return self._read[k]
 
     def level_for(self, voxel_m: float) -> volume.VolumeLevel:
         """The source of a splat into voxels of voxel_m: the coarsest level
         at most half that edge (else the finest), pooled further while its
         voxels stay under half the edge, so a shrub splats as a few voxels."""
-        fine = [lv for lv in self.levels if lv.voxel_m <= 0.5 * voxel_m]
-        level = fine[-1] if fine else self.levels[0]
+        fine = [k for k, e in enumerate(self.entries) if e["voxel_m"] <= 0.5 * voxel_m]
+        level = self.level(fine[-1] if fine else 0)
         while 2 * level.voxel_m <= 0.5 * voxel_m and max(level.density.shape) > 1:
             level = volume.downsample(volume.pad_even(level))
         return level
@@ -74,10 +92,8 @@ def read_species_volumes(layer: Path) -> dict[str, SpeciesVolume]:
     for prim in stage.GetPseudoRoot().GetAllChildren():
         for sp in prim.GetChildren():
             data = sp.GetCustomDataByKey("worldbake:volume")
-            if not data:
-                continue
-            files = [e["file"] for e in json.loads(data)["levels"]]
-            out[sp.GetName()] = SpeciesVolume([volume.read_atlas(layer.parent / f) for f in files])
+            if data:
+                out[sp.GetName()] = SpeciesVolume(layer.parent, json.loads(data)["levels"])
     return out
 
 
@@ -139,7 +155,7 @@ def sector_grid(boxes_lo: np.ndarray, boxes_hi: np.ndarray, voxel_m: float, mip_
 
 def splat(sector: volume.VolumeLevel, source: volume.VolumeLevel, pos: np.ndarray, rot: np.ndarray,
           scale: np.ndarray, acc: np.ndarray) -> None:
-    """Add the source level at each instance transform into acc (voxels, 8):
+    """Add the source level at each instance transform into acc (8, voxels):
     extinction, premultiplied albedo (3), surface, surface x normal (3)."""
     nx, ny, nz = sector.shape_xyz
     occupied = np.nonzero(source.density.ravel() > 0)[0]
@@ -164,6 +180,7 @@ def splat(sector: volume.VolumeLevel, source: volume.VolumeLevel, pos: np.ndarra
         values[..., 1:4] = k[..., None] * alb[None]
         values[..., 4] = k * surf[None]
         values[..., 5:8] = (k * surf[None])[..., None] * normal
+        indices, weighted = [], []
         for dk in (0, 1):
             for dj in (0, 1):
                 for di in (0, 1):
@@ -171,10 +188,11 @@ def splat(sector: volume.VolumeLevel, source: volume.VolumeLevel, pos: np.ndarra
                     w = ((f[..., 0] if di else 1 - f[..., 0]) * (f[..., 1] if dj else 1 - f[..., 1])
                          * (f[..., 2] if dk else 1 - f[..., 2]))
                     ok = (ii >= 0) & (jj >= 0) & (kk >= 0) & (ii < nx) & (jj < ny) & (kk < nz)
-                    idx = ((kk * ny + jj) * nx + ii)[ok]
-                    wv = w[ok][:, None] * values[ok]
-                    for c in range(8):
-                        acc[:, c] += np.bincount(idx, wv[:, c], len(acc))
+                    indices.append(((kk * ny + jj) * nx + ii)[ok])
+                    weighted.append(w[ok][:, None] * values[ok])
+        idx, wv = np.concatenate(indices), np.concatenate(weighted)
+        for c in range(8):
+            acc[c] += np.bincount(idx, wv[:, c], acc.shape[1])
 
 
 def bake_sector(tile: TileInstances, species: dict[str, SpeciesVolume], params: ForestVolumesParams) -> tuple[
@@ -184,28 +202,25 @@ def bake_sector(tile: TileInstances, species: dict[str, SpeciesVolume], params: 
         return None
     los, his = [], []
     for n in names:
-        lv = species[n].levels[0]
-        corners = np.array([[x, y, z] for x in (lv.origin[0], lv.bbox_max[0]) for y in (lv.origin[1], lv.bbox_max[1])
-                            for z in (lv.origin[2], lv.bbox_max[2])])
-        radius = float(np.linalg.norm(corners, axis=1).max())
+        radius = float(np.linalg.norm(species[n].corners, axis=1).max())
         pos, _, s = tile.species[n]
         los.append(pos - (radius * s)[:, None])
         his.append(pos + (radius * s)[:, None])
     origin, voxel, shape = sector_grid(np.concatenate(los), np.concatenate(his), params.voxel_m, params.mip_levels,
                                        params.max_voxels)
     sector = volume.empty_level(shape, origin, voxel)
-    acc = np.zeros((sector.density.size, 8))
+    acc = np.zeros((8, sector.density.size))
     counts = {}
     for n in names:
         pos, rot, s = tile.species[n]
         splat(sector, species[n].level_for(voxel), pos, rot, s, acc)
         counts[n] = int(len(pos))
     nz, ny, nx = sector.density.shape
-    sector.density = acc[:, 0].reshape(nz, ny, nx).astype(np.float32)
-    sector.albedo = acc[:, 1:4].reshape(nz, ny, nx, 3).astype(np.float32)
-    sector.surface = acc[:, 4].reshape(nz, ny, nx).astype(np.float32)
+    sector.density = acc[0].reshape(nz, ny, nx).astype(np.float32)
+    sector.albedo = acc[1:4].T.reshape(nz, ny, nx, 3).astype(np.float32)
+    sector.surface = acc[4].reshape(nz, ny, nx).astype(np.float32)
     with np.errstate(invalid="ignore", divide="ignore"):
-        normal = np.where(acc[:, 4:5] > 0, acc[:, 5:8] / acc[:, 4:5], 0.0)
+        normal = np.where(acc[4][:, None] > 0, acc[5:8].T / acc[4][:, None], 0.0)
     length = np.linalg.norm(normal, axis=1, keepdims=True)
     normal = np.where(length > 1.0, normal / np.maximum(length, 1e-30), normal)
     sector.normal = normal.reshape(nz, ny, nx, 3).astype(np.float32)
@@ -218,7 +233,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) ->
     t0 = time.perf_counter()
     species = read_species_volumes(inputs["volumes"])
     forest = {n: v for n, v in species.items()
-              if v.levels[0].bbox_max[1] - v.levels[0].origin[1] >= params.forest_min_height_m}
+              if v.height_m >= params.forest_min_height_m}
     tiles = read_tiles(inputs["instances"])
     layer = ctx.path("forest_volumes.sectors")
     stage, _ = usdio.create_stage(layer, ctx.provenance)

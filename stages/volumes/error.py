@@ -1,5 +1,5 @@
 """A volume's error against its mesh, from view directions the bake never
-used: the mesh rendered by pipeline/render (alpha-tested cards, 3 x 3
+used: the mesh rendered by pipeline/render (alpha-tested cards, 2 x 2
 samples a pixel) and the volume composited front to back (kernels.cl
 composite) from the same orthographic camera, compared as
 
@@ -44,7 +44,7 @@ def compare(mesh_alpha, mesh_rgb, vol_alpha, vol_rgb) -> dict:
 
 def mesh_views(scene: Scene, cams: list[Camera], size: int):
     prepared = Prepared(scene)
-    return [prepared.render(cam, Settings(size, size, samples=3)) for cam in cams]
+    return [prepared.render(cam, Settings(size, size, samples=2)) for cam in cams]
 
 
 def level_views(level: VolumeLevel, cams: list[Camera], size: int, backend) -> list[tuple[np.ndarray, np.ndarray]]:

@@ -51,7 +51,7 @@ class VolumesParams(Params):
                                      "triangle (point sampling of the card textures' alpha)", ge=1.0, le=16.0)
     solid_columns: int = Param(4, units="columns", description="columns per voxel side that measure the woody solid's "
                                "occupancy", ge=1, le=16)
-    error_view_pixels: int = Param(160, units="pixels", description="size of the held-out error views (0: no error "
+    error_view_pixels: int = Param(128, units="pixels", description="size of the held-out error views (0: no error "
                                    "views)", ge=0, le=1024)
     use_opencl: bool = Param(True, description="voxelize and composite with the OpenCL kernels (false: the numpy "
                              "reference, small meshes only)")
@@ -108,6 +108,7 @@ def volume_species(name: str, usdc: Path, params: VolumesParams, out_dir: Path,
     for k, lv in enumerate(chain):
         mean = lv.mean_density()
         entry: dict[str, Any] = {"mip": k, "grid": list(lv.shape_xyz), "voxel_m": lv.voxel_m, "bytes": lv.nbytes,
+                                 "bbox_min": [float(v) for v in lv.origin], "bbox_max": [float(v) for v in lv.bbox_max],
                                  "bytes_rgba8": int(lv.density.size * 4), "mean_density": mean,
                                  "mean_density_drift": abs(mean - mean0) / mean0 if mean0 > 0 else 0.0,
                                  "max_normal_length": float(np.linalg.norm(lv.normal, axis=-1).max())}

@@ -107,13 +107,13 @@ def test_errors_and_the_woody_solid_are_measured(volumes):
 
 def test_a_splat_keeps_the_projected_area_of_every_instance(volumes):
     out, _ = volumes
-    src = read_species_volumes(out["volumes.assets"])["bush"].levels[0]
+    src = read_species_volumes(out["volumes.assets"])["bush"].level(0)
     sector = volume.empty_level((32, 16, 32), (-4.0, -2.0, -4.0), 0.25)
-    acc = np.zeros((sector.density.size, 8))
+    acc = np.zeros((8, sector.density.size))
     q = np.array([[1.0, 0, 0, 0], [np.cos(0.3), 0, np.sin(0.3), 0]])
     splat(sector, src, np.array([[0.0, 0, 0], [1.0, 0.5, 1.0]]), _rotations(q), np.array([1.0, 2.0]), acc)
     per_instance = src.density.astype(np.float64).sum() * src.voxel_m ** 3
-    assert acc[:, 0].sum() * sector.voxel_m ** 3 == pytest.approx(per_instance * (1 + 2 ** 2), rel=1e-9)
+    assert acc[0].sum() * sector.voxel_m ** 3 == pytest.approx(per_instance * (1 + 2 ** 2), rel=1e-9)
 
 
 def test_forest_tiles_get_sector_volumes(volumes, tmp_path):
@@ -152,8 +152,8 @@ def test_forest_tiles_get_sector_volumes(volumes, tmp_path):
     far = world.GetPrimAtPath(f"{path}/FarVolume")
     assert UsdGeom.Imageable(far).GetPurposeAttr().Get() == UsdGeom.Tokens.proxy
     lv = volume.read_atlas(tmp_path / "forest" / f"{path.rsplit('/', 1)[-1]}.mip0.exr")
-    src = read_species_volumes(out["volumes.assets"])["bush"].levels
-    expect = 30 * src[0].density.astype(np.float64).sum() * src[0].voxel_m ** 3
+    src = read_species_volumes(out["volumes.assets"])["bush"].level(0)
+    expect = 30 * src.density.astype(np.float64).sum() * src.voxel_m ** 3
     assert lv.density.astype(np.float64).sum() * lv.voxel_m ** 3 == pytest.approx(expect, rel=1e-3)
     assert json.loads(far.GetCustomDataByKey("worldbake:volume"))["instances"] == {"bush": 30}
 
