@@ -79,6 +79,22 @@ def main(argv=None) -> None:
         for path, s in stats["sectors"].items():
             print(f"{path:<40} {sum(s['instances'].values()):>9} {'x'.join(map(str, s['grid'])):>13} {s['voxel_m']:>7.2f} "
                   f"{s['levels'][0]['bytes'] / 2**20:>8.2f} {s['seconds']:>6.2f}")
+        if a.pictures and stats["sectors"]:
+            # the sector with the most instances, from above at 35 degrees, every level
+            from pipeline import volume
+            from pipeline.render import Camera
+
+            path = max(stats["sectors"], key=lambda p: sum(stats["sectors"][p]["instances"].values()))
+            stem = path.rsplit("/", 1)[-1]
+            levels = [volume.read_atlas(a.sectors.parent / f"{stem}.mip{k}.exr")
+                      for k in range(len(stats["sectors"][path]["levels"]))]
+            lo, hi = levels[0].origin, levels[0].bbox_max
+            c, r = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
+            d = np.array([0.6, -0.57, 0.56])
+            d /= np.linalg.norm(d)
+            cam = Camera(tuple(c - d * 2 * r), tuple(d), ortho_height_m=1.2 * r)
+            _picture(a.pictures / f"sector_{stem}.png",
+                     [error.level_views(lv, [cam], 400, backend(True))[0] for lv in levels])
     print(json.dumps(rows))
 
 
