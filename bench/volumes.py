@@ -95,7 +95,40 @@ def main(argv=None) -> None:
             cam = Camera(tuple(c - d * 2 * r), tuple(d), ortho_height_m=1.2 * r)
             _picture(a.pictures / f"sector_{stem}.png",
                      [error.level_views(lv, [cam], 400, backend(True))[0] for lv in levels])
+    kernel_speedups(folder / f"{names[0]}.usdc")
     print(json.dumps(rows))
+
+
+def kernel_speedups(usdc: Path) -> None:
+    """Both kernels against their numpy references on the same small work:
+    the samples of 300 triangles of the asset, a 48 x 48 composite of its
+    32-voxel volume."""
+    from pipeline.render.usd_asset import load_asset
+    from stages.volumes import device, error, reference
+    from stages.volumes.samples import sample_table
+    from stages.volumes.voxelize import plant_grid, voxelize
+
+    level = load_asset(usdc, levels=[0])[0]
+    grid = plant_grid(level.scene, 32, 1)
+    table = sample_table(level.scene, np.arange(min(300, level.scene.n_triangles)), grid.voxel / 2)
+    timings = {}
+    device.surface_samples(table.take(0, 1), grid, level.scene.textures, 0.5)  # builds the program
+    for name, be in (("kernel", device), ("numpy", reference)):
+        t = time.perf_counter()
+        be.surface_samples(table, grid, level.scene.textures, 0.5)
+        timings[("samples", name)] = time.perf_counter() - t
+    lv = voxelize(level.scene, level.parts, 32, 1).level
+    cam = error.view_cameras(lv.origin, lv.bbox_max)[0]
+    g = error.composite_grid(lv)
+    for name, be in (("kernel", device), ("numpy", reference)):
+        t = time.perf_counter()
+        be.composite(cam.frame(48, 48), 48, 48, g, lv.origin, lv.voxel_m, 0.5 * lv.voxel_m)
+        timings[("composite", name)] = time.perf_counter() - t
+    n = int(table.offset[-1])
+    print(f"\nkernel vs numpy reference ({usdc.stem}): surface samples {n:,} in {timings['samples', 'kernel']:.3f} s vs "
+          f"{timings['samples', 'numpy']:.2f} s ({timings['samples', 'numpy'] / timings['samples', 'kernel']:.0f}x); "
+          f"composite 48^2 of 32 voxels {timings['composite', 'kernel']:.3f} s vs {timings['composite', 'numpy']:.2f} s "
+          f"({timings['composite', 'numpy'] / timings['composite', 'kernel']:.0f}x)")
 
 
 if __name__ == "__main__":
