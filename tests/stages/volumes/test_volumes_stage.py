@@ -98,7 +98,7 @@ def test_errors_and_the_woody_solid_are_measured(volumes):
     # occupied voxels vs manifold3d's volume of the Wood mesh: branches 1-2 voxels thick at 32 voxels
     assert abs(rep["wood"]["relative_error"]) < 0.1
     for e in rep["levels"]:
-        assert 0.0 <= e["alpha_iou_min"] <= 1.0 and e["psnr_db_min"] > 20 and len(e["views"]) == 4
+        assert 0.0 <= e["alpha_iou_min"] <= 1.0 and e["psnr_db_min"] > 20 and len(e["views"]) == 2
         assert e["bytes"] == 32 * np.prod(e["grid"])
     assert rep["levels"][0]["alpha_iou_min"] > 0.4  # a sparse 3-iteration shrub at 32 voxels
     attrs = volume.read_atlas(out["volumes.assets"].parent / "bush.mip0.exr").attributes
