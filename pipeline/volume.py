@@ -106,8 +106,8 @@ def grid_for_box(lo, hi, voxels_longest: int, multiple: int) -> tuple[np.ndarray
 def _pool(a: np.ndarray) -> np.ndarray:
     """Sum of each 2x2x2 block over the first three axes, in float64."""
     nz, ny, nx = a.shape[:3]
-    b = a.astype(np.float64).reshape(nz // 2, 2, ny // 2, 2, nx // 2, 2, *a.shape[3:])
-    return b.sum(axis=(1, 3, 5))
+    b = a.reshape(nz // 2, 2, ny // 2, 2, nx // 2, 2, *a.shape[3:])
+    return b.sum(axis=(1, 3, 5), dtype=np.float64)  # float64 sums without a float64 copy of the level
 
 
 def downsample(level: VolumeLevel) -> VolumeLevel:
@@ -179,15 +179,23 @@ def from_atlas(atlas: np.ndarray, shape_xyz: tuple[int, int, int], origin, voxel
                        np.asarray(origin, np.float64), float(voxel_m))
 
 
+HALF_MAX = 65504.0
+
+
 def write_atlas(path: Path | str, level: VolumeLevel, mip: int, provenance: dict[str, Any] | None = None,
-                stats: dict[str, Any] | None = None) -> None:
-    """One level as a float32 zip EXR atlas with the layout in its header."""
+                stats: dict[str, Any] | None = None, half: bool = False) -> None:
+    """One level as a zip EXR atlas with the layout in its header: float32,
+    or with `half` 16-bit floats (3 significant digits, half the disk; the
+    header's volume_pixel_type says which). A value a half cannot hold is
+    refused, never written as Inf."""
     import OpenImageIO as oiio
 
     atlas = to_atlas(level)
+    if half and np.abs(atlas).max(initial=0.0) > HALF_MAX:
+        raise ValueError(f"{path}: a value of {np.abs(atlas).max():.3g} does not fit a half float EXR")
     nx, ny, nz = level.shape_xyz
     tx, ty = atlas_tiles(nz)
-    spec = oiio.ImageSpec(atlas.shape[1], atlas.shape[0], atlas.shape[2], oiio.FLOAT)
+    spec = oiio.ImageSpec(atlas.shape[1], atlas.shape[0], atlas.shape[2], oiio.HALF if half else oiio.FLOAT)
     spec.channelnames = CHANNELS
     spec.attribute("compression", "zip")
     spec.attribute("DateTime", "")
@@ -195,7 +203,8 @@ def write_atlas(path: Path | str, level: VolumeLevel, mip: int, provenance: dict
              "volume_bbox_max": [float(v) for v in level.bbox_max], "volume_voxel_m": float(level.voxel_m),
              "volume_mip": int(mip), "volume_slice_axis": "z", "volume_row0": "largest y",
              "volume_tile_order": "slice z at tile column z % tiles_x, row z // tiles_x",
-             "units": dict(zip(CHANNELS, CHANNEL_UNITS)), "volume_bytes": level.nbytes}
+             "units": dict(zip(CHANNELS, CHANNEL_UNITS)), "volume_bytes": level.nbytes,
+             "volume_pixel_type": "half" if half else "float"}
     attrs.update(stats or {})
     for k, v in {**(provenance or {}), **attrs}.items():
         spec.attribute(f"worldbake:{k}", v if isinstance(v, str) else json.dumps(v, sort_keys=True))

@@ -9,15 +9,18 @@ Volumetric Billboards, Decaudin and Neyret 2009).
 2. Per tile with instances of a species at least forest_min_height_m tall:
    a grid of cubic voxels of voxel_m over the instances' boxes (coarser by
    powers of 2 while it would pass max_voxels), padded to whole mips.
-3. Splat: every occupied voxel of each species' level closest to half the
-   sector voxel is carried through each instance's transform and added to
-   the 8 sector voxels around it with trilinear weights; what it holds
-   (extinction x volume, premultiplied albedo, surface, surface x normal)
-   scales with the instance's area (scale^2), so the sector keeps the
-   plants' projected area. np.bincount adds in instance order: deterministic.
-4. Mips, EXR atlases (pipeline.volume) and sectors.usda: over each forest
-   tile /World/Vegetation/q<path> a FarVolume prim (purpose proxy) with a
-   `mip` variant set of UsdVol.Volume prims.
+3. Splat: every occupied voxel of each species' level pooled to about the
+   sector voxel (a tree is a few voxels) is carried through each
+   instance's transform and added to the 8 sector voxels around it with
+   trilinear weights; what it holds (extinction x volume, premultiplied
+   albedo, surface, surface x normal) scales with the instance's area
+   (scale^2), so the sector keeps the plants' projected area. np.bincount
+   adds in instance order: deterministic.
+4. The grid is clipped to its occupied voxels (whole mips kept), then mips,
+   EXR atlases in half floats (pipeline.volume; a far LOD needs no more
+   than 3 digits, and it halves the disk) and sectors.usda: over each
+   forest tile /World/Vegetation/q<path> a FarVolume prim (purpose proxy)
+   with a `mip` variant set of UsdVol.Volume prims.
 
 Only the instances change a sector; a world whose instances and plant
 volumes are unchanged reuses them (the key hashes both).
@@ -41,8 +44,9 @@ MAX_DEPOSITS = 4_000_000  # bounds the splat's index and weight buffers per batc
 
 
 class ForestVolumesParams(Params):
-    voxel_m: float = Param(4.0, units="m", description="voxel edge of the sector volumes (made coarser by powers of 2 "
-                           "where a sector would pass max_voxels)", gt=0.05, le=1000.0)
+    voxel_m: float = Param(8.0, units="m", description="voxel edge of the sector volumes (made coarser by powers of 2 "
+                           "where a sector would pass max_voxels; 8 m: a 1 km tile is 128 voxels across, a tree 2 "
+                           "to 3 voxels tall)", gt=0.05, le=1000.0)
     mip_levels: int = Param(3, units="levels", description="levels per sector, each with voxels twice the edge", ge=1,
                             le=6)
     max_voxels: int = Param(4_000_000, units="voxels", description="largest finest grid of one sector", ge=1000,
@@ -75,11 +79,12 @@ class SpeciesVolume:
 
     def level_for(self, voxel_m: float) -> volume.VolumeLevel:
         """The source of a splat into voxels of voxel_m: the coarsest level
-        at most half that edge (else the finest), pooled further while its
-        voxels stay under half the edge, so a shrub splats as a few voxels."""
-        fine = [k for k, e in enumerate(self.entries) if e["voxel_m"] <= 0.5 * voxel_m]
+        at most that edge (else the finest), pooled further while its voxels
+        stay at most the edge: a plant splats as a few voxels, each spread
+        over the 8 sector voxels around its centre."""
+        fine = [k for k, e in enumerate(self.entries) if e["voxel_m"] <= voxel_m]
         level = self.level(fine[-1] if fine else 0)
-        while 2 * level.voxel_m <= 0.5 * voxel_m and max(level.density.shape) > 1:
+        while 2 * level.voxel_m <= voxel_m and max(level.density.shape) > 1:
             level = volume.downsample(volume.pad_even(level))
         return level
 
@@ -215,16 +220,43 @@ def bake_sector(tile: TileInstances, species: dict[str, SpeciesVolume], params: 
         pos, rot, s = tile.species[n]
         splat(sector, species[n].level_for(voxel), pos, rot, s, acc)
         counts[n] = int(len(pos))
-    nz, ny, nx = sector.density.shape
-    sector.density = acc[0].reshape(nz, ny, nx).astype(np.float32)
-    sector.albedo = acc[1:4].T.reshape(nz, ny, nx, 3).astype(np.float32)
-    sector.surface = acc[4].reshape(nz, ny, nx).astype(np.float32)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        normal = np.where(acc[4][:, None] > 0, acc[5:8].T / acc[4][:, None], 0.0)
-    length = np.linalg.norm(normal, axis=1, keepdims=True)
+    full = sector.density.shape
+    grid = acc.reshape(8, *full)
+    box = occupied_box(grid[0] > 0, 2 ** (params.mip_levels - 1))
+    if box is None:
+        return None
+    grid = grid[(slice(None),) + box]
+    nz, ny, nx = grid.shape[1:]
+    sector = volume.empty_level((nx, ny, nz), origin + voxel * np.array([box[2].start, box[1].start, box[0].start]),
+                                voxel)
+    sector.density = grid[0].astype(np.float32)
+    sector.albedo = np.moveaxis(grid[1:4], 0, -1).astype(np.float32)
+    sector.surface = grid[4].astype(np.float32)
+    # normals only where there is surface: a sector is mostly air (a forest on a slope fills ~1 % of its box)
+    where = np.nonzero(grid[4].ravel() > 0)[0]
+    normal = grid[5:8].reshape(3, -1)[:, where].T / grid[4].ravel()[where, None]
+    length = np.linalg.norm(normal, axis=-1, keepdims=True)
     normal = np.where(length > 1.0, normal / np.maximum(length, 1e-30), normal)
-    sector.normal = normal.reshape(nz, ny, nx, 3).astype(np.float32)
-    return sector, {"instances": counts, "grid": list(shape), "voxel_m": voxel}
+    sector.normal.reshape(-1, 3)[where] = normal
+    return sector, {"instances": counts, "grid": [nx, ny, nz], "voxel_m": voxel,
+                    "grid_before_clip": [full[2], full[1], full[0]]}
+
+
+def occupied_box(occupied: np.ndarray, multiple: int) -> tuple[slice, slice, slice] | None:
+    """Per axis of `occupied` (whose sides are multiples of `multiple`) the
+    smallest range holding every True, grown to a multiple of `multiple`
+    (towards the far side, else the near one); None when nothing is."""
+    if not occupied.any():
+        return None
+    box = []
+    for axis in range(3):
+        rest = tuple(a for a in range(3) if a != axis)
+        hit = np.nonzero(occupied.any(axis=rest))[0]
+        lo, hi, n = int(hit[0]), int(hit[-1]) + 1, occupied.shape[axis]
+        size = -(-(hi - lo) // multiple) * multiple
+        lo = min(lo, n - size)
+        box.append(slice(lo, lo + size))
+    return tuple(box)
 
 
 def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) -> dict[str, Any]:
@@ -255,9 +287,13 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) ->
             drift = abs(lv.mean_density() - mean0) / mean0 if mean0 > 0 else 0.0
             if drift > 1e-6:
                 raise StageError(f"forest volumes: {tile.path}: mip {k} changes the mean coverage by {drift:.2e}")
+            # what the half-float atlas holds: each value rounded to 11 bits, so its mean moves a little
+            stored = float(np.mean(lv.density.astype(np.float16), dtype=np.float64))
             entry = {"mip": k, "grid": list(lv.shape_xyz), "voxel_m": lv.voxel_m, "bytes": lv.nbytes,
-                     "mean_density": lv.mean_density(), "mean_density_drift": drift}
-            volume.write_atlas(ctx.out_dir / f, lv, k, {**ctx.provenance, "tile": tile.path}, {"volume_errors": entry})
+                     "bytes_half": lv.nbytes // 2, "mean_density": lv.mean_density(), "mean_density_drift": drift,
+                     "stored_mean_density_drift": abs(stored - mean0) / mean0 if mean0 > 0 else 0.0}
+            volume.write_atlas(ctx.out_dir / f, lv, k, {**ctx.provenance, "tile": tile.path}, {"volume_errors": entry},
+                               half=True)
             info["levels"].append(entry)
         info["seconds"] = time.perf_counter() - t
         parts = tile.path.split("/")
@@ -298,7 +334,8 @@ STAGE = Stage(
             Input("instances", one_of=("vegetation.instances",), description="the PointInstancers per quadtree tile")),
     outputs=(Artifact("forest_volumes.sectors", kind="usd", file="sectors.usda", shape="any", beside=("*.mip*.exr",),
                       description="over each forest tile /World/Vegetation/q<path>: FarVolume (purpose proxy) with a "
-                      "`mip` variant set of UsdVol.Volume prims; each level an EXR Z-slice atlas q<path>.mip<k>.exr"),
+                      "`mip` variant set of UsdVol.Volume prims; each level an EXR Z-slice atlas q<path>.mip<k>.exr "
+                      "in half floats, clipped to the occupied voxels"),
              Artifact("forest_volumes.stats", kind="json", file="stats.json", shape="any",
                       description="per sector: instances per species, grid, voxel size, memory and mean coverage per "
                       "level, time")),

@@ -15,7 +15,8 @@ from pipeline import usdio, volume
 from pipeline.config import canonical_params
 from pipeline.contract import RunContext
 from stages.forest_volumes import STAGE as FOREST
-from stages.forest_volumes.stage import ForestVolumesParams, _rotations, read_species_volumes, read_tiles, splat
+from stages.forest_volumes.stage import (ForestVolumesParams, _rotations, occupied_box, read_species_volumes, read_tiles,
+                                         splat)
 from stages.volumes import STAGE
 from stages.volumes.stage import VolumesParams
 
@@ -155,6 +156,10 @@ def test_forest_tiles_get_sector_volumes(volumes, tmp_path):
     src = read_species_volumes(out["volumes.assets"])["bush"].level(0)
     expect = 30 * src.density.astype(np.float64).sum() * src.voxel_m ** 3
     assert lv.density.astype(np.float64).sum() * lv.voxel_m ** 3 == pytest.approx(expect, rel=1e-3)
+    assert lv.attributes["volume_pixel_type"] == "half"
+    info = list(sectors.values())[0]
+    assert all(a <= b for a, b in zip(info["grid"], info["grid_before_clip"]))
+    assert (lv.density[0] > 0).any() or (lv.density[:, 0] > 0).any() or (lv.density[..., 0] > 0).any()
     assert json.loads(far.GetCustomDataByKey("worldbake:volume"))["instances"] == {"bush": 30}
 
 
@@ -180,3 +185,10 @@ def test_vdb_levels_read_back_with_the_same_values(plants, tmp_path):
     stage = Usd.Stage.Open(str(out["volumes.assets"]))
     field = UsdVol.OpenVDBAsset(stage.GetPrimAtPath("/Volumes/bush/Volume/density"))
     assert field.GetFilePathAttr().Get().path == "./bush.mip0.vdb" and field.GetFieldNameAttr().Get() == "density"
+
+
+def test_a_sector_is_clipped_to_its_occupied_voxels_in_whole_mips():
+    occ = np.zeros((16, 8, 16), bool)
+    occ[3, 5, 9] = occ[6, 6, 10] = True
+    assert occupied_box(occ, 4) == (slice(3, 7), slice(4, 8), slice(9, 13))
+    assert occupied_box(np.zeros((4, 4, 4), bool), 2) is None
