@@ -185,9 +185,11 @@ HALF_MAX = 65504.0
 def write_atlas(path: Path | str, level: VolumeLevel, mip: int, provenance: dict[str, Any] | None = None,
                 stats: dict[str, Any] | None = None, half: bool = False) -> None:
     """One level as a zip EXR atlas with the layout in its header: float32,
-    or with `half` 16-bit floats (3 significant digits, half the disk; the
-    header's volume_pixel_type says which). A value a half cannot hold is
-    refused, never written as Inf."""
+    or with `half` every channel but density in 16-bit floats (3
+    significant digits, about half the disk; the header's
+    volume_pixel_type says which). Density stays float32 so that the stored
+    mips keep the finest level's mean coverage. A value a half cannot hold
+    is refused, never written as Inf."""
     import OpenImageIO as oiio
 
     atlas = to_atlas(level)
@@ -195,7 +197,9 @@ def write_atlas(path: Path | str, level: VolumeLevel, mip: int, provenance: dict
         raise ValueError(f"{path}: a value of {np.abs(atlas).max():.3g} does not fit a half float EXR")
     nx, ny, nz = level.shape_xyz
     tx, ty = atlas_tiles(nz)
-    spec = oiio.ImageSpec(atlas.shape[1], atlas.shape[0], atlas.shape[2], oiio.HALF if half else oiio.FLOAT)
+    spec = oiio.ImageSpec(atlas.shape[1], atlas.shape[0], atlas.shape[2], oiio.FLOAT)
+    if half:
+        spec.channelformats = [oiio.TypeDesc(oiio.FLOAT if c == "density" else oiio.HALF) for c in CHANNELS]
     spec.channelnames = CHANNELS
     spec.attribute("compression", "zip")
     spec.attribute("DateTime", "")
@@ -204,7 +208,7 @@ def write_atlas(path: Path | str, level: VolumeLevel, mip: int, provenance: dict
              "volume_mip": int(mip), "volume_slice_axis": "z", "volume_row0": "largest y",
              "volume_tile_order": "slice z at tile column z % tiles_x, row z // tiles_x",
              "units": dict(zip(CHANNELS, CHANNEL_UNITS)), "volume_bytes": level.nbytes,
-             "volume_pixel_type": "half" if half else "float"}
+             "volume_pixel_type": "half (density float)" if half else "float"}
     attrs.update(stats or {})
     for k, v in {**(provenance or {}), **attrs}.items():
         spec.attribute(f"worldbake:{k}", v if isinstance(v, str) else json.dumps(v, sort_keys=True))

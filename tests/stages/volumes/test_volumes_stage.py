@@ -156,7 +156,7 @@ def test_forest_tiles_get_sector_volumes(volumes, tmp_path):
     src = read_species_volumes(out["volumes.assets"])["bush"].level(0)
     expect = 30 * src.density.astype(np.float64).sum() * src.voxel_m ** 3
     assert lv.density.astype(np.float64).sum() * lv.voxel_m ** 3 == pytest.approx(expect, rel=1e-3)
-    assert lv.attributes["volume_pixel_type"] == "half"
+    assert lv.attributes["volume_pixel_type"] == "half (density float)"
     info = list(sectors.values())[0]
     assert all(a <= b for a, b in zip(info["grid"], info["grid_before_clip"]))
     assert (lv.density[0] > 0).any() or (lv.density[:, 0] > 0).any() or (lv.density[..., 0] > 0).any()
