@@ -117,11 +117,14 @@ def downsample(level: VolumeLevel) -> VolumeLevel:
         raise ValueError(f"a volume of {level.shape_xyz} voxels has no exact mip")
     surf = _pool(level.surface)
     weighted = _pool(level.normal * level.surface[..., None])
-    normal = np.where(surf[..., None] > 0, weighted / np.where(surf > 0, surf, 1.0)[..., None], 0.0)
-    length = np.linalg.norm(normal, axis=-1, keepdims=True)
-    normal = np.where(length > 1.0, normal / np.maximum(length, 1e-30), normal)
+    # only where there is surface: most of a plant's box, and nearly all of a forest sector's, is air
+    where = surf > 0
+    mean = weighted[where] / surf[where][:, None]
+    length = np.linalg.norm(mean, axis=-1, keepdims=True)
+    normal = np.zeros(weighted.shape, np.float32)
+    normal[where] = np.where(length > 1.0, mean / np.maximum(length, 1e-30), mean)
     return VolumeLevel((_pool(level.density) / 8).astype(np.float32), (_pool(level.albedo) / 8).astype(np.float32),
-                       normal.astype(np.float32), (surf / 8).astype(np.float32), level.origin.copy(), 2 * level.voxel_m)
+                       normal, (surf / 8).astype(np.float32), level.origin.copy(), 2 * level.voxel_m)
 
 
 def pad_even(level: VolumeLevel) -> VolumeLevel:
