@@ -21,74 +21,11 @@ from pathlib import Path
 import numpy as np
 
 
-def _read_png(path: Path) -> np.ndarray:
-    import OpenImageIO as oiio
-
-    buf = oiio.ImageBuf(str(path))
-    px = buf.get_pixels(oiio.FLOAT)
-    rgb = px[..., :3]
-    lin = np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
-    alpha = px[..., 3] if px.shape[2] > 3 else np.ones(px.shape[:2])
-    return np.concatenate([lin, alpha[..., None]], -1).astype(np.float32)
-
-
-def _resized(img: np.ndarray, size: int) -> np.ndarray:
-    h, w = img.shape[:2]
-    ys = (np.arange(size) * h // size).astype(int)
-    xs = (np.arange(size) * w // size).astype(int)
-    return img[ys][:, xs]
-
-
 def load_species(usdc: Path, size: int = 256):
-    """Per LOD a render Scene of the asset (texture 0: foliage cards, 1: bark,
-    2: blades, 3: grass slices; untextured meshes in their displayColor)."""
-    from pxr import Usd, UsdGeom, UsdShade
+    """Per LOD a render Scene of the asset (pipeline.render.usd_asset)."""
+    from pipeline.render.usd_asset import load_asset
 
-    from pipeline.render import Scene
-
-    stage = Usd.Stage.Open(str(usdc))
-    root = stage.GetDefaultPrim()
-    stack = np.ones((4, size, size, 4), np.float32)
-    slot = {"FoliageCards": 0, "Bark": 1, "Blades": 2, "GrassSlices": 3}
-    for look, k in slot.items():
-        tex = stage.GetPrimAtPath(root.GetPath().AppendPath(f"Looks/{look}/AlbedoTexture"))
-        if tex:
-            f = UsdShade.Shader(tex).GetInput("file").Get()
-            stack[k] = _resized(_read_png(Path(f.resolvedPath)), size)
-    vset = root.GetVariantSets().GetVariantSet("lod")
-    scenes = []
-    for name in vset.GetVariantNames():
-        vset.SetVariantSelection(name)
-        parts = []
-        for prim in Usd.PrimRange(root):
-            if not prim.IsA(UsdGeom.Mesh):
-                continue
-            mesh = UsdGeom.Mesh(prim)
-            pts = np.asarray(mesh.GetPointsAttr().Get(), np.float64)
-            idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), np.int64).reshape(-1, 3)
-            pv = UsdGeom.PrimvarsAPI(mesh)
-            st = pv.GetPrimvar("st")
-            nrm = pv.GetPrimvar("normals")
-            # corner-wise (faceVarying) arrays: flatten everything to one row per corner
-            st_c = np.asarray(st.ComputeFlattened(), np.float64)
-            n_c = np.asarray(nrm.ComputeFlattened(), np.float64)
-            if st.GetInterpolation() == UsdGeom.Tokens.vertex:
-                st_c, n_c = st_c[idx.ravel()], n_c[idx.ravel()]
-            P = pts[idx.ravel()]
-            mat, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
-            look = mat.GetPrim().GetName() if mat else ""
-            tex = slot.get(look, -1)
-            if tex >= 0:
-                tint = np.ones((len(idx), 3))
-            else:
-                dc = pv.GetPrimvar("displayColor")
-                col = np.asarray(dc.ComputeFlattened(), np.float64)
-                tint = np.broadcast_to(col[0], (len(idx), 3)) if len(col) == 1 else col[idx].mean(1)
-            T = np.arange(len(P)).reshape(-1, 3)
-            parts.append(Scene(P, n_c, st_c, T, tint, tex, stack))
-        scenes.append(Scene.concat(parts))
-    vset.SetVariantSelection("LOD0")
-    return scenes
+    return [level.scene for level in load_asset(usdc, size)]
 
 
 def _write(path: Path, linear: np.ndarray) -> None:

@@ -22,12 +22,15 @@ from stages.common import SPLAT_CHANNELS, TERRAIN_SOURCES, plant_asset_prim
 
 from pipeline.terrain_mesh import bilinear, build_terrain_mesh
 
+from .volume_layer import SECTOR_VOLUMES
+
 # Upstream USD layers composed into the world, strongest first; absent when
 # their stage is disabled or not needed.
 LAYER_INPUTS = (
     Input("water", one_of=("hydrology.water",), optional=True, description="rivers and lakes"),
     Input("vegetation", one_of=("vegetation.instances",), optional=True,
           description="PointInstancers per species and quadtree tile, with placeholder prototypes"),
+    SECTOR_VOLUMES,
 )
 # The plant assets that replace the vegetation placeholders.
 ASSET_INPUTS = (

@@ -311,6 +311,8 @@ def test_two_worlds_placing_the_same_species_share_the_plant_meshes(project):
     assert planned_b["vegetation"] == "will run" and planned_b["plants"] == "after inputs"
     assert steps_b["vegetation"]["status"] == "ran" and steps_b["vegetation"]["key"] != steps_a["vegetation"]["key"]
     assert steps_b["plants"]["status"] == "cached" and steps_b["plants"]["key"] == steps_a["plants"]["key"]
+    # nor voxelizes a plant again (the volumes' key hashes the assets' content); its forest sectors follow the new instances
+    assert steps_b["volumes"]["status"] == "cached" and steps_b["forest_volumes"]["status"] == "ran"
     # and `plan` now says so
     again = {s["stage"]: s["status"] for s in json.loads(worldbake(project, "plan", "configs/b.toml", *small,
                                                                    "--json").stdout)[0]["steps"]}

@@ -24,7 +24,8 @@ from .test_sources import ROOT
 STAGES = all_stages()
 TINY = ["heightmap.resolution=64", "world.texture_size=64", "shared.mesh_max_vertices=33",
         "world.ground_texel_m=16", "world.ground_tile_texels=256",
-        'plants.build=["grass", "shrub"]', "erosion.geological_years=20000", "erosion.geological_step_years=10000"]
+        'plants.build=["grass", "shrub"]', "erosion.geological_years=20000", "erosion.geological_step_years=10000",
+        "volumes.voxels=32", "volumes.mip_levels=3", "volumes.error_view_pixels=32"]
 
 
 @pytest.fixture(scope="module")

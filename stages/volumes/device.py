@@ -1,0 +1,74 @@
+"""The volume kernels on the OpenCL device, with the reference's signatures."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .samples import Grid3, Samples, SampleTable
+
+KERNELS = Path(__file__).with_name("kernels.cl")
+
+
+def _program():
+    from pipeline.opencl import load_program
+
+    return load_program(KERNELS)
+
+
+def _buf(a: np.ndarray):
+    import pyopencl as cl
+
+    from pipeline.opencl import get_cl
+
+    a = np.ascontiguousarray(a)
+    if a.size == 0:
+        a = np.zeros(4, a.dtype)
+    return cl.Buffer(get_cl().ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
+
+
+def surface_samples(table: SampleTable, grid: Grid3, textures: np.ndarray, alpha_threshold: float,
+                    local: int | None = 64) -> Samples:
+    import pyopencl as cl
+
+    from pipeline.opencl import get_cl, global_size
+
+    env = get_cl()
+    n = int(table.offset[-1]) if len(table.offset) else 0
+    out = Samples(np.full(n, -1, np.int32), np.zeros(n), np.zeros((n, 3)), np.zeros((n, 3)))
+    if n == 0:
+        return out
+    _, th, tw, _ = textures.shape
+    dev = [cl.Buffer(env.ctx, cl.mem_flags.WRITE_ONLY, a.nbytes) for a in (out.voxel, out.weight, out.rgb, out.normal)]
+    k = cl.Kernel(_program(), "surface_samples")
+    nt = len(table.m)
+    loc = None if local is None else (local,)
+    k(env.queue, global_size((nt,), loc), loc, np.int32(nt), _buf(table.pos), _buf(table.nrm), _buf(table.uv),
+      _buf(table.tint), _buf(table.tex), _buf(textures.astype(np.float32)), np.int32(tw), np.int32(th),
+      np.float32(alpha_threshold), _buf(table.m), _buf(table.offset[:-1]), *map(np.float64, grid.origin),
+      np.float64(grid.voxel), *map(np.int32, grid.shape), *dev)
+    for a, b in zip((out.voxel, out.weight, out.rgb, out.normal), dev):
+        cl.enqueue_copy(env.queue, a, b)
+    env.queue.finish()
+    return out
+
+
+def composite(camera_record: np.ndarray, width: int, height: int, grid: np.ndarray, origin, voxel: float, step: float,
+              local: tuple[int, int] | None = (8, 8)) -> tuple[np.ndarray, np.ndarray]:
+    import pyopencl as cl
+
+    from pipeline.opencl import get_cl, global_size
+
+    env = get_cl()
+    from pipeline.volume import LEAF_PROJECTION
+
+    nz, ny, nx = grid.shape[:3]
+    alpha, rgb = np.zeros((height, width), np.float32), np.zeros((height, width, 3), np.float32)
+    da, dr = (cl.Buffer(env.ctx, cl.mem_flags.WRITE_ONLY, a.nbytes) for a in (alpha, rgb))
+    k = cl.Kernel(_program(), "composite")
+    k(env.queue, global_size((width, height), local), local, np.int32(width), np.int32(height),
+      _buf(camera_record.astype(np.float32)), _buf(grid.astype(np.float32)), np.float64(LEAF_PROJECTION), np.int32(nx), np.int32(ny), np.int32(nz), *map(np.float64, origin), np.float64(voxel), np.float64(step), da, dr)
+    cl.enqueue_copy(env.queue, alpha, da)
+    cl.enqueue_copy(env.queue, rgb, dr)
+    env.queue.finish()
+    return alpha, rgb

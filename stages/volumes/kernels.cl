@@ -1,0 +1,163 @@
+/* Volume kernels: surface samples of textured triangles (voxelization) and
+ * front-to-back compositing of a voxel grid (the error views).
+ * Both one work-item per output record (triangle, pixel): no atomics, no
+ * shared memory, so results do not depend on the work-group size. float64
+ * throughout so the numpy reference (reference.py) gives the same numbers.
+ */
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+
+/* One work-item per triangle. Triangle t is cut into m[t]^2 equal
+ * sub-triangles (a regular barycentric grid); a sample sits at each
+ * sub-triangle's centroid and carries area / m^2. Where the triangle is
+ * textured, the texel under the sample (nearest, wrapping uv, as
+ * pipeline/render) gives its colour and alpha: alpha below the threshold is
+ * no surface (weight 0), the alpha test of the cards. Samples are written
+ * from offset[t]: the voxel they fall in (x fastest; -1 when rejected), the
+ * weight (m^2), linear albedo and the interpolated unit normal. */
+__kernel void surface_samples(const int n_tris, __global const double *pos, __global const double *nrm,
+                              __global const double *uv, __global const double *tint, __global const int *tex_id,
+                              __global const float *textures, const int tw, const int th, const float alpha_threshold,
+                              __global const int *m_sub, __global const long *offset,
+                              const double ox, const double oy, const double oz, const double voxel,
+                              const int nx, const int ny, const int nz,
+                              __global int *s_voxel, __global double *s_weight, __global double *s_rgb,
+                              __global double *s_normal)
+{
+    const int t = get_global_id(0);
+    if (t >= n_tris) return;
+    const int m = m_sub[t];
+    long o = offset[t];
+    double p[9], n[9], w[6];
+    for (int i = 0; i < 9; ++i) { p[i] = pos[9 * t + i]; n[i] = nrm[9 * t + i]; }
+    for (int i = 0; i < 6; ++i) w[i] = uv[6 * t + i];
+    const double e1x = p[3] - p[0], e1y = p[4] - p[1], e1z = p[5] - p[2];
+    const double e2x = p[6] - p[0], e2y = p[7] - p[1], e2z = p[8] - p[2];
+    const double cx = e1y * e2z - e1z * e2y, cy = e1z * e2x - e1x * e2z, cz = e1x * e2y - e1y * e2x;
+    const double area = 0.5 * sqrt(cx * cx + cy * cy + cz * cz);
+    const double weight = area / ((double)m * (double)m);
+    const int k = tex_id[t];
+    for (int up = 1; up >= 0; --up) {
+        const double shift = up ? 1.0 / 3.0 : 2.0 / 3.0;
+        const int rows = up ? m : m - 1;
+        for (int i = 0; i < rows; ++i)
+            for (int j = 0; j < rows - i; ++j) {
+                const double b1 = ((double)i + shift) / (double)m, b2 = ((double)j + shift) / (double)m;
+                const double b0 = 1.0 - b1 - b2;
+                double r = tint[3 * t], g = tint[3 * t + 1], b = tint[3 * t + 2];
+                int keep = 1;
+                if (k >= 0) {
+                    const double u = b0 * w[0] + b1 * w[2] + b2 * w[4];
+                    const double v = b0 * w[1] + b1 * w[3] + b2 * w[5];
+                    const double fu = u - floor(u), fv = v - floor(v);
+                    const int x = min((int)(fu * (double)tw), tw - 1);
+                    const int y = min((int)((1.0 - fv) * (double)th), th - 1);
+                    __global const float *texel = textures + 4 * (((long)k * th + y) * tw + x);
+                    r *= (double)texel[0]; g *= (double)texel[1]; b *= (double)texel[2];
+                    keep = (double)texel[3] >= (double)alpha_threshold;
+                }
+                const double px = b0 * p[0] + b1 * p[3] + b2 * p[6];
+                const double py = b0 * p[1] + b1 * p[4] + b2 * p[7];
+                const double pz = b0 * p[2] + b1 * p[5] + b2 * p[8];
+                const int ix = clamp((int)floor((px - ox) / voxel), 0, nx - 1);
+                const int iy = clamp((int)floor((py - oy) / voxel), 0, ny - 1);
+                const int iz = clamp((int)floor((pz - oz) / voxel), 0, nz - 1);
+                double qx = b0 * n[0] + b1 * n[3] + b2 * n[6];
+                double qy = b0 * n[1] + b1 * n[4] + b2 * n[7];
+                double qz = b0 * n[2] + b1 * n[5] + b2 * n[8];
+                const double ql = sqrt(qx * qx + qy * qy + qz * qz);
+                if (ql > 0.0) { qx /= ql; qy /= ql; qz /= ql; }
+                s_voxel[o] = keep ? (iz * ny + iy) * nx + ix : -1;
+                s_weight[o] = keep ? weight : 0.0;
+                s_rgb[3 * o] = r; s_rgb[3 * o + 1] = g; s_rgb[3 * o + 2] = b;
+                s_normal[3 * o] = qx; s_normal[3 * o + 1] = qy; s_normal[3 * o + 2] = qz;
+                ++o;
+            }
+    }
+}
+
+/* Trilinear sample of a grid at voxel coordinates (voxel centres at
+ * integers), zero outside. */
+static double trilinear(__global const float *g, const int stride, const int c, const int nx, const int ny,
+                        const int nz, const double u, const double v, const double w)
+{
+    const double fu = floor(u), fv = floor(v), fw = floor(w);
+    const int i0 = (int)fu, j0 = (int)fv, k0 = (int)fw;
+    const double a = u - fu, b = v - fv, d = w - fw;
+    double s = 0.0;
+    for (int dk = 0; dk < 2; ++dk)
+        for (int dj = 0; dj < 2; ++dj)
+            for (int di = 0; di < 2; ++di) {
+                const int i = i0 + di, j = j0 + dj, k = k0 + dk;
+                if (i < 0 || j < 0 || k < 0 || i >= nx || j >= ny || k >= nz) continue;
+                const double wt = (di ? a : 1.0 - a) * (dj ? b : 1.0 - b) * (dk ? d : 1.0 - d);
+                s += wt * (double)g[stride * (((long)k * ny + j) * nx + i) + c];
+            }
+    return s;
+}
+
+/* One work-item per pixel: the ray through the pixel centre (camera record
+ * of pipeline/render) is marched through the grid's box in steps of `step`
+ * metres from the box entry; each step takes the trilinear channels (grid:
+ * 7 floats a voxel: premultiplied albedo, density, surface x normal) and
+ * lets exp(-sigma step) through, where the extinction along the ray
+ * direction d, with S the surface and n its mean normal,
+ *     sigma = density + S (|n . d| - G |n|)   (at least 0)
+ * adds to the isotropic density (G = 1/2 of the surface) the part that
+ * depends on how the surface faces the ray: a voxel whose surfaces are one
+ * plane (|n| = 1) blocks S |n . d|, its exact projected area; one whose
+ * normals spread evenly (|n| = 0) blocks G S from every side. What a step
+ * stops adds the mean albedo (albedo / density). A ray stops once less
+ * than 1e-4 of it is left. Out: alpha = 1 - transmittance, premultiplied
+ * colour. */
+__kernel void composite(const int width, const int height, __global const float *cam,
+                        __global const float *grid, const double leaf_projection, const int nx, const int ny, const int nz,
+                        const double ox, const double oy, const double oz,
+                        const double voxel, const double step, __global float *out_alpha, __global float *out_rgb)
+{
+    const int px = get_global_id(0), py = get_global_id(1);
+    if (px >= width || py >= height) return;
+    const double x = 2.0 * (((double)px + 0.5) / (double)width) - 1.0;
+    const double y = 1.0 - 2.0 * (((double)py + 0.5) / (double)height);
+    double o[3], d[3];
+    for (int i = 0; i < 3; ++i) {
+        if (cam[12] > 0.5f) { o[i] = cam[i] + x * cam[6 + i] + y * cam[9 + i]; d[i] = cam[3 + i]; }
+        else { o[i] = cam[i]; d[i] = cam[3 + i] + x * cam[6 + i] + y * cam[9 + i]; }
+    }
+    const double dl = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+    const double lo[3] = {ox, oy, oz};
+    const double n[3] = {(double)nx, (double)ny, (double)nz};
+    double t0 = 0.0, t1 = INFINITY;
+    for (int i = 0; i < 3; ++i) {
+        d[i] /= dl;
+        const double hi = lo[i] + n[i] * voxel;
+        if (d[i] == 0.0) {
+            if (o[i] < lo[i] || o[i] > hi) t1 = -1.0;
+        } else {
+            double ta = (lo[i] - o[i]) / d[i], tb = (hi - o[i]) / d[i];
+            if (ta > tb) { const double s = ta; ta = tb; tb = s; }
+            t0 = fmax(t0, ta); t1 = fmin(t1, tb);
+        }
+    }
+    double T = 1.0, r = 0.0, g = 0.0, b = 0.0;
+    for (double t = t0 + 0.5 * step; t < t1 && T >= 1e-4; t += step) {
+        const double u = (o[0] + t * d[0] - ox) / voxel - 0.5;
+        const double v = (o[1] + t * d[1] - oy) / voxel - 0.5;
+        const double w = (o[2] + t * d[2] - oz) / voxel - 0.5;
+        double c[7];
+        c[3] = trilinear(grid, 7, 3, nx, ny, nz, u, v, w);
+        if (c[3] <= 0.0) continue;  /* empty space costs one channel's lookups */
+        for (int q = 0; q < 7; ++q)
+            if (q != 3) c[q] = trilinear(grid, 7, q, nx, ny, nz, u, v, w);
+        const double sn = sqrt(c[4] * c[4] + c[5] * c[5] + c[6] * c[6]);
+        const double sigma = fmax(c[3] + fabs(c[4] * d[0] + c[5] * d[1] + c[6] * d[2]) - leaf_projection * sn, 0.0);
+        const double a = 1.0 - exp(-sigma * step);
+        const double k = T * a / c[3];
+        r += k * c[0];
+        g += k * c[1];
+        b += k * c[2];
+        T *= 1.0 - a;
+    }
+    const long p = (long)py * width + px;
+    out_alpha[p] = (float)(1.0 - T);
+    out_rgb[3 * p] = (float)r; out_rgb[3 * p + 1] = (float)g; out_rgb[3 * p + 2] = (float)b;
+}

@@ -1,0 +1,194 @@
+"""The volumes and forest_volumes stages on one small plant asset (a
+3-iteration shrub built by the plants stage): only placed species get
+volumes, the atlases load back into the same grids, the mips keep the mean
+coverage, the error views and the woody solid are measured, and sectors
+splat the species volumes at each instance keeping their projected area."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline import usdio, volume
+from pipeline.config import canonical_params
+from pipeline.contract import RunContext
+from stages.forest_volumes import STAGE as FOREST
+from stages.forest_volumes.stage import (ForestVolumesParams, _rotations, occupied_box, read_species_volumes, read_tiles,
+                                         splat)
+from stages.volumes import STAGE
+from stages.volumes.stage import VolumesParams
+
+from tests.stages.plants.helpers import run_stage as run_plants
+
+BUSH = {"build": ["bush"], "hausdorff_samples": 1000, "lod_count": 1,
+        "species": {"bush": {"preset": "shrub", "lsystem": {"iterations": 3}}}}
+
+
+def _run(stage, params, inputs, out: Path):
+    out.mkdir(parents=True, exist_ok=True)
+    ctx = RunContext(stage=stage, key="test", out_dir=out, seed=1,
+                     provenance={"stage": stage.name, "version": stage.version, "key": "test",
+                                 "params": canonical_params(params), "seed": "none"}, project_root=Path("."))
+    return stage.run(ctx, inputs, params), ctx
+
+
+@pytest.fixture(scope="module")
+def plants(tmp_path_factory):
+    out, _ = run_plants(tmp_path_factory.mktemp("plants"), BUSH)
+    return out["plants.assets"]
+
+
+@pytest.fixture(scope="module")
+def volumes(plants, tmp_path_factory):
+    params = VolumesParams(voxels=32, mip_levels=3, error_view_pixels=64)
+    out, ctx = _run(STAGE, params, {"plants": plants, "placed": {"placed": ["bush", "oak"]}},
+                    tmp_path_factory.mktemp("volumes"))
+    return out, ctx
+
+
+def test_only_placed_species_with_an_asset_get_volumes(plants, volumes, tmp_path):
+    out, _ = volumes
+    stats = out["volumes.stats"]
+    assert stats["voxelized"] == ["bush"] and stats["not_voxelized"] == ["oak"]
+    assert sorted(p.name for p in out["volumes.assets"].parent.glob("*.exr")) == [f"bush.mip{k}.exr" for k in range(3)]
+    none, _ = _run(STAGE, VolumesParams(voxels=16, mip_levels=2, error_view_pixels=0),
+                   {"plants": plants, "placed": {"placed": ["grass"]}}, tmp_path / "none")
+    assert none["volumes.stats"]["voxelized"] == [] and not list((tmp_path / "none").glob("*.exr"))
+    assert usdio.validate(none["volumes.assets"]) == []
+
+
+def test_the_layer_validates_and_holds_a_volume_per_mip(volumes):
+    from pxr import Usd, UsdVol
+
+    out, _ = volumes
+    layer = out["volumes.assets"]
+    assert usdio.validate(layer) == []
+    stage = Usd.Stage.Open(str(layer))
+    prim = stage.GetPrimAtPath("/Volumes/bush")
+    vset = prim.GetVariantSets().GetVariantSet("mip")
+    assert vset.GetVariantNames() == ["mip0", "mip1", "mip2"]
+    vol = UsdVol.Volume(stage.GetPrimAtPath("/Volumes/bush/Volume"))
+    assert set(vol.GetFieldPaths()) == {"density", "albedo", "normal"}
+    assert vol.GetPrim().GetCustomDataByKey("worldbake:atlas")["file"] == "./bush.mip0.exr"
+
+
+def test_atlases_reassemble_into_the_grids_and_the_mips_keep_coverage(volumes):
+    out, _ = volumes
+    folder = out["volumes.assets"].parent
+    levels = [volume.read_atlas(folder / f"bush.mip{k}.exr") for k in range(3)]
+    for k, lv in enumerate(levels):
+        assert lv.attributes["volume_mip"] == k
+        assert tuple(lv.attributes["volume_grid"]) == lv.shape_xyz
+        assert np.array_equal(volume.to_atlas(lv), volume.to_atlas(volume.from_atlas(
+            volume.to_atlas(lv), lv.shape_xyz, lv.origin, lv.voxel_m)))
+        assert abs(lv.mean_density() - levels[0].mean_density()) <= 1e-6 * levels[0].mean_density()
+        assert (lv.albedo <= lv.density[..., None] * (1 + 1e-6) + 1e-9).all() and (lv.albedo >= 0).all()
+        assert (np.linalg.norm(lv.normal, axis=-1) <= 1 + 1e-6).all()
+    # the written mip 1 is the mip of the written finest level
+    again = volume.downsample(levels[0])
+    for name in ("density", "albedo", "normal", "surface"):
+        np.testing.assert_allclose(getattr(again, name), getattr(levels[1], name), rtol=1e-6, atol=1e-7)
+    assert max(levels[0].shape_xyz) == 32 and levels[1].voxel_m == pytest.approx(2 * levels[0].voxel_m)
+
+
+def test_errors_and_the_woody_solid_are_measured(volumes):
+    out, _ = volumes
+    rep = out["volumes.stats"]["species"]["bush"]
+    # occupied voxels vs manifold3d's volume of the Wood mesh: branches 1-2 voxels thick at 32 voxels
+    assert abs(rep["wood"]["relative_error"]) < 0.1
+    for e in rep["levels"]:
+        assert 0.0 <= e["alpha_iou_min"] <= 1.0 and e["psnr_db_min"] > 20 and len(e["views"]) == 2
+        assert e["bytes"] == 32 * np.prod(e["grid"])
+    assert rep["levels"][0]["alpha_iou_min"] > 0.4  # a sparse 3-iteration shrub at 32 voxels
+    attrs = volume.read_atlas(out["volumes.assets"].parent / "bush.mip0.exr").attributes
+    assert attrs["volume_errors"]["alpha_iou_min"] == rep["levels"][0]["alpha_iou_min"]
+
+
+def test_a_splat_keeps_the_projected_area_of_every_instance(volumes):
+    out, _ = volumes
+    src = read_species_volumes(out["volumes.assets"])["bush"].level(0)
+    sector = volume.empty_level((32, 16, 32), (-4.0, -2.0, -4.0), 0.25)
+    acc = np.zeros((8, sector.density.size))
+    q = np.array([[1.0, 0, 0, 0], [np.cos(0.3), 0, np.sin(0.3), 0]])
+    splat(sector, src, np.array([[0.0, 0, 0], [1.0, 0.5, 1.0]]), _rotations(q), np.array([1.0, 2.0]), acc)
+    per_instance = src.density.astype(np.float64).sum() * src.voxel_m ** 3
+    assert acc[0].sum() * sector.voxel_m ** 3 == pytest.approx(per_instance * (1 + 2 ** 2), rel=1e-9)
+
+
+def test_forest_tiles_get_sector_volumes(volumes, tmp_path):
+    """A two-tile instances layer as vegetation writes it: the tile with the
+    shrubs gets a sector volume over it, the tile of grass none."""
+    from pxr import Usd, UsdGeom
+
+    from stages.vegetation import usd_layer
+    from stages.vegetation.placement import Instances
+
+    rng = np.random.default_rng(3)
+
+    def inst(name, n, x0):
+        pos = np.stack([x0 + 10 * rng.random(n), np.zeros(n), 10 * rng.random(n)], 1).astype(np.float32)
+        quat = np.zeros((n, 4), np.float16)  # (i, j, k, real): a quarter turn about +y
+        quat[:, 1] = quat[:, 3] = np.sqrt(0.5)
+        return Instances(name, pos, quat, np.ones((n, 3), np.float32), np.ones(n, np.float32), rng.random(n).astype(np.float32),
+                         np.arange(n, dtype=np.int64), np.ones(n, np.float32))
+
+    sets = {"bush": inst("bush", 30, 0.0), "grass": inst("grass", 30, 20.0)}
+    layer = tmp_path / "instances.usdc"
+    usd_layer.write(layer, {"stage": "vegetation"}, sets, {"bush": 0.6, "grass": 0.3}, {"bush": "plant", "grass": "grass"},
+                    0.0, 0.0, 32.0, 40, 8.0)
+    tiles = read_tiles(layer)
+    assert sum(len(t.species.get("bush", ([],))[0]) for t in tiles) == 30
+    rot = next(t.species["bush"][1] for t in tiles if "bush" in t.species)
+    np.testing.assert_allclose(rot[0] @ [1.0, 0, 0], [0, 0, -1.0], atol=1e-3)  # x turns to -z about +y
+    out, _ = volumes
+    params = ForestVolumesParams(voxel_m=0.5, mip_levels=2, forest_min_height_m=0.1)
+    res, _ = _run(FOREST, params, {"volumes": out["volumes.assets"], "instances": layer}, tmp_path / "forest")
+    sectors = res["forest_volumes.stats"]["sectors"]
+    assert len(sectors) == 1 and list(sectors.values())[0]["instances"] == {"bush": 30}
+    path = next(iter(sectors))
+    assert usdio.validate(res["forest_volumes.sectors"]) == []
+    world = Usd.Stage.Open(str(res["forest_volumes.sectors"]))
+    far = world.GetPrimAtPath(f"{path}/FarVolume")
+    assert UsdGeom.Imageable(far).GetPurposeAttr().Get() == UsdGeom.Tokens.proxy
+    lv = volume.read_atlas(tmp_path / "forest" / f"{path.rsplit('/', 1)[-1]}.mip0.exr")
+    src = read_species_volumes(out["volumes.assets"])["bush"].level(0)
+    expect = 30 * src.density.astype(np.float64).sum() * src.voxel_m ** 3
+    assert lv.density.astype(np.float64).sum() * lv.voxel_m ** 3 == pytest.approx(expect, rel=1e-3)
+    assert lv.attributes["volume_pixel_type"] == "half (density float)"
+    info = list(sectors.values())[0]
+    assert all(a <= b for a, b in zip(info["grid"], info["grid_before_clip"]))
+    assert (lv.density[0] > 0).any() or (lv.density[:, 0] > 0).any() or (lv.density[..., 0] > 0).any()
+    assert json.loads(far.GetCustomDataByKey("worldbake:volume"))["instances"] == {"bush": 30}
+
+
+def test_vdb_levels_read_back_with_the_same_values(plants, tmp_path):
+    """With vdb = true every level is also an OpenVDB file (Debian's
+    python3-openvdb through pipeline/vdb.py) whose grids equal the atlas's,
+    and the Volume's fields name it."""
+    from pxr import Usd, UsdVol
+
+    from pipeline import vdb
+
+    if vdb.available() is not None:
+        pytest.skip(f"no OpenVDB writer here: {vdb.available()}")
+    params = VolumesParams(voxels=16, mip_levels=2, error_view_pixels=0, vdb=True)
+    out, _ = _run(STAGE, params, {"plants": plants, "placed": {"placed": ["bush"]}}, tmp_path)
+    assert usdio.validate(out["volumes.assets"]) == []
+    for k in range(2):
+        lv = volume.read_atlas(tmp_path / f"bush.mip{k}.exr")
+        grids = vdb.read_vdb(tmp_path / f"bush.mip{k}.vdb", lv.shape_xyz)
+        for name in ("density", "albedo", "normal", "surface"):
+            assert np.array_equal(grids[name], getattr(lv, name)), name
+        np.testing.assert_allclose(grids["density_voxel"], lv.voxel_m, rtol=1e-12)
+    stage = Usd.Stage.Open(str(out["volumes.assets"]))
+    field = UsdVol.OpenVDBAsset(stage.GetPrimAtPath("/Volumes/bush/Volume/density"))
+    assert field.GetFilePathAttr().Get().path == "./bush.mip0.vdb" and field.GetFieldNameAttr().Get() == "density"
+
+
+def test_a_sector_is_clipped_to_its_occupied_voxels_in_whole_mips():
+    occ = np.zeros((16, 8, 16), bool)
+    occ[3, 5, 9] = occ[6, 6, 10] = True
+    assert occupied_box(occ, 4) == (slice(3, 7), slice(4, 8), slice(9, 13))
+    assert occupied_box(np.zeros((4, 4, 4), bool), 2) is None
