@@ -80,3 +80,23 @@ def test_every_output_is_as_declared(baked, name):
             from pxr import Sdf
             assert Sdf.Layer.FindOrOpen(str(path)) is not None
     assert written <= claimed, f"stage {name} wrote undeclared files {sorted(written - claimed)}"
+
+
+def test_a_rebake_with_unchanged_plants_reuses_the_impostors(baked):
+    """The impostors' key hashes the content of the plant assets (and the
+    placed names) it reads, not the producers' keys: a re-bake whose change
+    leaves the plants as they were does not re-bake the impostors; a change
+    of the impostors' own params does."""
+    store, folders = baked
+    project = store.build.parent
+    sets = TINY + [f"outputs={json.dumps(sorted(STAGES))}"]
+
+    def rebake(*more):
+        config = load_config(project / "configs" / "default.toml", STAGES, project_root=project, sets=sets + list(more))
+        reports = bake_worlds(store, [config], build_graph(STAGES), log=open("/dev/null", "w"))[config.name]
+        return {r.stage: r.status for r in reports}
+
+    status = rebake("world.roughness=0.5")
+    assert status["world"] == "ran" and status["plants"] == "cached" and status["impostors"] == "cached"
+    status = rebake("world.roughness=0.5", "impostors.card_px=24")
+    assert status["plants"] == "cached" and status["impostors"] == "ran"
