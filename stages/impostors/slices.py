@@ -171,16 +171,18 @@ def grass_slices(scene: Scene, tile_px: int, samples: int) -> tuple[Sheet, Sheet
     return strip, top
 
 
-def sheet_scene(sheets: list[Sheet]) -> Scene:
-    """The billboards as a render scene (alpha-tested, one texture per tile)."""
+def sheet_scene(sheets: list[Sheet], rows: tuple[int, ...] | None = None) -> Scene:
+    """The billboards as a render scene (alpha-tested, one texture per tile);
+    `rows`: only the quads of these sheet rows (one slicing of a tree)."""
     size = max(s.tile_px for s in sheets)
     P, N, UV, T, TEX, stack = [], [], [], [], [], []
-    rows = 0
+    first = 0  # vertex rows so far
     for s in sheets:
-        p, _, tris, tiles = s.mesh()
         t = s.tile_px
         for q in range(len(s.positions)):
             r, c = s.tiles[q]
+            if rows is not None and r not in rows:
+                continue
             tile = s.rgba[r * t:(r + 1) * t, c * t:(c + 1) * t]
             if t != size:
                 idx = (np.arange(size) * t // size)
@@ -192,9 +194,9 @@ def sheet_scene(sheets: list[Sheet]) -> Scene:
             P.append(corners)
             N.append(np.tile(n, (4, 1)))
             UV.append(np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float))
-            T.append(np.array([[0, 1, 2], [0, 2, 3]]) + rows)
+            T.append(np.array([[0, 1, 2], [0, 2, 3]]) + first)
             TEX += [len(stack) - 1] * 2
-            rows += 4
+            first += 4
     return Scene(np.concatenate(P), np.concatenate(N), np.concatenate(UV), np.concatenate(T), np.ones((len(TEX), 3)),
                  np.array(TEX), np.stack(stack))
 
@@ -206,3 +208,21 @@ def slab_spacing(positions: np.ndarray, direction: np.ndarray, slabs: int) -> fl
     d = np.asarray(direction, np.float64)
     proj = np.asarray(positions, np.float64) @ (d / np.linalg.norm(d))
     return float(proj.max() - proj.min()) / slabs
+
+
+def slicing_weights(direction, orientations=(0.0, 120.0, 240.0)) -> list[tuple[int, float]]:
+    """Jakulin's blend of static slicings for a view direction: the two
+    slicings (sheet rows: orientation k front = 2k, back = 2k + 1, facing
+    azimuths theta_k and theta_k + 180) whose azimuths bracket the view's,
+    weighted linearly, w = 1 - |delta azimuth| / spacing."""
+    d = np.asarray(direction, np.float64)
+    phi = np.degrees(np.arctan2(d[2], d[0])) % 360.0
+    facing = {2 * k + side: (theta + 180.0 * side) % 360.0 for k, theta in enumerate(orientations) for side in (0, 1)}
+    order = sorted(facing, key=lambda r: facing[r])
+    spacing = 360.0 / len(order)
+    for a, b in zip(order, order[1:] + order[:1]):
+        delta = (phi - facing[a]) % 360.0
+        if delta <= spacing + 1e-9:
+            w = delta / spacing
+            return [(a, 1.0 - w), (b, w)]
+    return [(order[0], 1.0)]

@@ -50,6 +50,10 @@ class ImpostorsParams(Params):
     frames: int = Param(16, units="frames per side", description="N x N frames of the view atlas", ge=3, le=64)
     atlas_px: int = Param(2048, units="texels", description="side of the view atlas (a power of two); frames are "
                           "the largest size m 2^L that fits, so their mip levels stay inside them", ge=64, le=8192)
+    small_plant_m: float = Param(1.0, units="m", description="plants lower than this (grass, flowers) are baked into "
+                                 "small_atlas_px: they cover few pixels wherever an impostor is used", ge=0.0, le=1000.0)
+    small_atlas_px: int = Param(512, units="texels", description="side of the view atlas of plants lower than "
+                                "small_plant_m (a power of two)", ge=64, le=8192)
     layout: Layout = Param("hemi", description="hemi: views from above the horizon only (plants on the ground); "
                            "octahedral: the whole sphere")
     layouts: dict[str, Layout] = Param({}, description="per-species layout overriding `layout`")
@@ -79,7 +83,7 @@ class ImpostorsParams(Params):
     error_px: float = Param(1.0, units="pixels", description="an LOD is used from the distance where its measured error "
                             "projects to at most this many screen pixels", gt=0.0, le=100.0)
 
-    @pydantic.field_validator("atlas_px")
+    @pydantic.field_validator("atlas_px", "small_atlas_px")
     @classmethod
     def _power_of_two(cls, v: int) -> int:
         if v & (v - 1):
@@ -140,7 +144,8 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
     timings: dict[str, float] = {"load_s": time.perf_counter() - t0}
 
     t = time.perf_counter()
-    at = atlas.build(prepared, ps.centre, ps.radius, params.frames, params.atlas_px, layout, params.samples,
+    atlas_px = params.small_atlas_px if float(ps.hi[1] - ps.lo[1]) < params.small_plant_m else params.atlas_px
+    at = atlas.build(prepared, ps.centre, ps.radius, params.frames, atlas_px, layout, params.samples,
                      params.ao_rays, params.padding_px, seed)
     timings["atlas_s"] = time.perf_counter() - t
 
@@ -160,15 +165,24 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
     t = time.perf_counter()
     sheets = ([*slices.grass_slices(ps.scene, params.grass_slice_px, params.samples)] if grass
               else [slices.tree_slices(ps.scene, params.slice_slabs, params.slice_px, params.samples)])
-    billboards = Prepared(slices.sheet_scene(sheets))
+    if grass:  # seed 001: the tuft's five quads are drawn together
+        billboards = {None: Prepared(slices.sheet_scene(sheets))}
+    else:  # seed 002 / Jakulin: the two slicings nearest the view, blended
+        billboards = {r: Prepared(slices.sheet_scene(sheets, rows=(r,))) for r in range(sheets[0].rows)}
     timings["slices_s"] = time.perf_counter() - t
     t = time.perf_counter()
     view_settings = Settings(params.heldout_px, params.heldout_px, samples=params.heldout_samples)
 
     def slice_view(d):
         cam, _ = heldout.view_camera(d, ps.centre, ps.radius)
-        img = billboards.render(cam, view_settings)
-        return np.concatenate([img.albedo, img.alpha[..., None]], -1), img.depth
+        blend = [(None, 1.0)] if grass else slices.slicing_weights(d)
+        rgba = np.zeros((params.heldout_px, params.heldout_px, 4))
+        depth = np.zeros((params.heldout_px, params.heldout_px))
+        for row, w in blend:
+            img = billboards[row].render(cam, view_settings)
+            rgba += w * np.concatenate([img.albedo, img.alpha[..., None]], -1)
+            depth += w * img.alpha * np.where(np.isfinite(img.depth), img.depth, 0.0)
+        return rgba, np.where(rgba[..., 3] > 0, depth / np.maximum(rgba[..., 3], 1e-12), np.inf)
 
     slice_errors = heldout.summarize(_measure(prepared, ps, views, params.heldout_px, params.heldout_samples, slice_view),
                                      height)
@@ -200,7 +214,9 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
                      "elevation_step_deg": params.heldout_elevation_step_deg},
         "error": atlas_errors, "slices_error": slice_errors,
         "slices": {"kind": "grass tuft (seed 001)" if grass else "3 orientations x front/back x slabs (seed 002)",
-                   "slabs": None if grass else params.slice_slabs},
+                   "slabs": None if grass else params.slice_slabs,
+                   "error_measured_as": "the five quads together" if grass else
+                   "Jakulin's blend of the two slicings nearest the view's azimuth (w = 1 - |delta| / 60 deg)"},
     }
     files = {"atlas": f"{name}_atlas.exr", "atlas_png": f"{name}_atlas_albedo.png"}
     attrs = {**ctx.provenance, "species": name, "impostor": info}
@@ -259,10 +275,11 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ImpostorsParams) -> dic
 def check(params: ImpostorsParams, ctx: CheckContext) -> Check:
     """The atlas levels held at once: 9 float32 channels, 4/3 for the mips,
     about 3x for the padding's distance transform; per species, one at a time."""
-    frame_px, _ = atlas.frame_layout(params.atlas_px, params.frames)
-    if frame_px < 4:
-        raise ParamError("frames", f"{params.frames} frames leave {frame_px} texels per frame in atlas_px = "
-                         f"{params.atlas_px}; at least 4 are needed")
+    for key in ("atlas_px", "small_atlas_px"):
+        side = getattr(params, key)
+        if side // params.frames < 4:
+            raise ParamError("frames", f"{params.frames} frames leave {side // params.frames} texels per frame in "
+                             f"{key} = {side}; at least 4 are needed")
     texels = params.atlas_px ** 2
     return Check(memory_bytes=texels * 9 * 4 * 4.0, memory_how=f"atlas_px = {params.atlas_px}: {texels:,} texels x "
                  "9 channels x 4 B x (mips and padding)")

@@ -138,3 +138,21 @@ def test_the_sampler_at_a_frame_direction_reproduces_that_frame():
         view = sampler.render_view(at, dirs[j, i], f, depth_steps=0)
         frame = at.frame(i, j)
         np.testing.assert_allclose(view.rgba, frame[..., 0:4], atol=1e-5)
+
+
+def test_slicing_blend_weights_and_slab_spacing():
+    from stages.impostors import slices
+
+    for az in np.arange(0.0, 360.0, 7.5):
+        w = slices.slicing_weights(octahedral.view_direction(az, 30.0))
+        assert sum(x for _, x in w) == pytest.approx(1.0)
+        assert all(0.0 <= x <= 1.0 for _, x in w)
+    facing = slices.slicing_weights(octahedral.view_direction(120.0, 0.0))
+    assert max(facing, key=lambda rw: rw[1]) == (2, pytest.approx(1.0))  # orientation 1, front
+    back = slices.slicing_weights(octahedral.view_direction(300.0, 0.0))
+    assert max(back, key=lambda rw: rw[1]) == (3, pytest.approx(1.0))  # orientation 1, back
+    rng = np.random.default_rng(4)
+    pts = rng.normal(size=(200, 3))
+    for d in rng.normal(size=(50, 3)):  # seed 002's sanity check: spacing = extent / N along any direction, > 0
+        proj = pts @ (d / np.linalg.norm(d))
+        assert slices.slab_spacing(pts, d, 5) == pytest.approx((proj.max() - proj.min()) / 5) and np.ptp(proj) > 0
