@@ -26,7 +26,8 @@ TINY = ["heightmap.resolution=64", "world.texture_size=64", "shared.mesh_max_ver
         'plants.build=["grass", "shrub"]', "erosion.geological_years=20000", "erosion.geological_step_years=10000",
         "impostors.frames=4", "impostors.atlas_px=64", "impostors.small_atlas_px=64", "impostors.samples=1",
         "impostors.ao_rays=1", "impostors.slice_px=16", "impostors.grass_slice_px=16", "impostors.card_px=16",
-        "impostors.heldout_px=24", "impostors.heldout_samples=1", "impostors.heldout_azimuth_every=36", "impostors.heldout_elevation_step_deg=40"]
+        "impostors.heldout_px=24", "impostors.heldout_samples=1", "impostors.heldout_azimuth_every=36",
+        "impostors.heldout_elevation_step_deg=40"]
 
 
 @pytest.fixture(scope="module")
