@@ -80,12 +80,12 @@ def frame_camera(direction: np.ndarray, centre: np.ndarray, radius: float) -> tu
 
 
 def render_frames(prepared: Prepared, centre: np.ndarray, radius: float, frames: int, frame_px: int, layout: str,
-                  samples: int, ao_rays: int, seed: int, progress=None) -> tuple[np.ndarray, np.ndarray]:
+                  samples: int, ao_rays: int, seed: int, progress=None, ao_radius: float = 0.08) -> tuple[np.ndarray, np.ndarray]:
     """(frames F, frames F, 9) level-0 texels before padding, and the directions."""
     dirs = octahedral.frame_directions(frames, layout)
     side = frames * frame_px
     out = np.zeros((side, side, len(CHANNELS)), np.float32)
-    settings = Settings(frame_px, frame_px, samples=samples, ao_rays=ao_rays, ao_radius_m=0.25 * radius,
+    settings = Settings(frame_px, frame_px, samples=samples, ao_rays=ao_rays, ao_radius_m=ao_radius * radius,
                         seed=seed & 0xFFFFFFFF)
     for j in range(frames):
         if progress is not None:
@@ -177,9 +177,10 @@ def mip_chain(tiles: np.ndarray, frames: int, atlas_px: int, frame_levels: int) 
 
 
 def build(prepared: Prepared, centre: np.ndarray, radius: float, frames: int, atlas_px: int, layout: str,
-          samples: int, ao_rays: int, padding_px: int, seed: int, progress=None) -> Atlas:
+          samples: int, ao_rays: int, padding_px: int, seed: int, progress=None, ao_radius: float = 0.08) -> Atlas:
     frame_px, frame_levels = frame_layout(atlas_px, frames)
-    raw, dirs = render_frames(prepared, centre, radius, frames, frame_px, layout, samples, ao_rays, seed, progress)
+    raw, dirs = render_frames(prepared, centre, radius, frames, frame_px, layout, samples, ao_rays, seed, progress,
+                              ao_radius)
     tiles = _frames_view(raw, frames, frame_px)
     alpha = tiles[..., 3]
     straight = tiles[..., 0:3] / np.maximum(alpha, 1e-6)[..., None]

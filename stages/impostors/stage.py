@@ -59,6 +59,9 @@ class ImpostorsParams(Params):
     layouts: dict[str, Layout] = Param({}, description="per-species layout overriding `layout`")
     samples: int = Param(2, units="samples per side", description="n x n samples per atlas texel", ge=1, le=8)
     ao_rays: int = Param(1, units="rays", description="ambient-occlusion rays per sample", ge=0, le=64)
+    ao_radius: float = Param(0.08, units="bounding-sphere radii", description="occluders farther than this do not "
+                             "darken the ao channel (a whole crown's radius would make every inner leaf black)",
+                             gt=0.0, le=4.0)
     padding_px: int = Param(32, units="texels", description="padding of each frame: alpha = 0 texels take the nearest "
                             "covered texel's normal, depth, ao (and colour in the PNG) within this distance, the "
                             "frame's mean beyond", ge=0, le=4096)
@@ -146,7 +149,7 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
     t = time.perf_counter()
     atlas_px = params.small_atlas_px if float(ps.hi[1] - ps.lo[1]) < params.small_plant_m else params.atlas_px
     at = atlas.build(prepared, ps.centre, ps.radius, params.frames, atlas_px, layout, params.samples,
-                     params.ao_rays, params.padding_px, seed)
+                     params.ao_rays, params.padding_px, seed, ao_radius=params.ao_radius)
     timings["atlas_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
