@@ -70,7 +70,7 @@ def main() -> None:
         for layout, frames, atlas_px in itertools.product(args.layouts, args.frames, args.atlas):
             t0 = time.perf_counter()
             at = atlas.build(prepared, ps.centre, ps.radius, frames, atlas_px, layout, defaults.samples, defaults.ao_rays,
-                             defaults.padding_px, seed=1)
+                             defaults.padding_px, seed=1, ao_radius=defaults.ao_radius)
             bake_s = time.perf_counter() - t0
             views = heldout.held_out(heldout.directions(layout, subsample=args.azimuth_every), at.directions)
             errors = []

@@ -80,7 +80,8 @@ def frame_camera(direction: np.ndarray, centre: np.ndarray, radius: float) -> tu
 
 
 def render_frames(prepared: Prepared, centre: np.ndarray, radius: float, frames: int, frame_px: int, layout: str,
-                  samples: int, ao_rays: int, seed: int, progress=None, ao_radius: float = 0.08) -> tuple[np.ndarray, np.ndarray]:
+                  samples: int, ao_rays: int, seed: int, progress=None,
+                  ao_radius: float = 0.08) -> tuple[np.ndarray, np.ndarray]:
     """(frames F, frames F, 9) level-0 texels before padding, and the directions."""
     dirs = octahedral.frame_directions(frames, layout)
     side = frames * frame_px
