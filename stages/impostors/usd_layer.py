@@ -137,6 +137,18 @@ def _mesh_lods(plants_layer: Path, name: str) -> tuple[list[str], list[dict]]:
     return variants, (json.loads(lods) if lods else [])
 
 
+def lod_ladder(own: dict[str, float]) -> dict[str, float]:
+    """The LODs in order (meshes, impostor, slices), each used from its own
+    distance, where a later representation whose distance is smaller takes
+    over the earlier ones it beats (they are dropped); increasing."""
+    ladder: list[tuple[str, float]] = []
+    for name, d in own.items():
+        while ladder and ladder[-1][1] >= d and ladder[-1][0] != "LOD0":
+            ladder.pop()
+        ladder.append((name, max(d, ladder[-1][1]) if ladder else 0.0))
+    return {name: round(d, 3) for name, d in ladder}
+
+
 def write(path: Path, provenance: dict, baked: list[dict], plants_layer: Path | None, params) -> dict:
     from pxr import Gf, Sdf, Usd, UsdGeom
 
@@ -183,23 +195,20 @@ def write(path: Path, provenance: dict, baked: list[dict], plants_layer: Path | 
         with vset.GetVariantEditContext():
             UsdGeom.Imageable(stage.OverridePrim(f"{base}/Impostor")).CreatePurposeAttr(UsdGeom.Tokens.default_)
         vset.ClearVariantSelection()  # the plant asset's selection (LOD0) stands
-        # from where each LOD is used: the mesh LODs by their Hausdorff error, then the impostor
-        switch = {}
-        last = 0.0
-        for entry in lods:
-            d = max(last, switch_distance_m(float(entry.get("hausdorff_m", 0.0)), params))
-            switch[f"LOD{entry['level']}"] = round(d, 3)
-            last = d
-        switch["impostor"] = round(max(last, b["switch_m"]["impostor"]), 3)
-        switch["slices"] = round(max(switch["impostor"], b["switch_m"]["slices"]), 3)
+        # each representation's own distance: from where its measured error is at most error_px
+        own = {f"LOD{e['level']}": switch_distance_m(float(e.get("hausdorff_m", 0.0)), params) for e in lods}
+        own["impostor"] = b["switch_m"]["impostor"]
+        own["slices"] = b["switch_m"]["slices"]
+        switch = lod_ladder(own)
         switches[name] = switch
         info = dict(b["info"])
         info["files"] = {k: f"./textures/{v}" for k, v in b["files"].items()}
         info["slice_files"] = {k: {kk: f"./textures/{vv}" for kk, vv in v.items()} for k, v in b["sheet_files"].items()}
         prim.SetCustomDataByKey("worldbake:impostor", json.dumps(info, sort_keys=True))
         prim.SetCustomDataByKey("worldbake:lod_switch_m", json.dumps(
-            {"distances_m": switch, "screen_px": params.screen_px, "fov_deg": params.screen_fov_deg,
+            {"ladder_m": switch, "own_distance_m": {k: round(v, 3) for k, v in own.items()}, "screen_px": params.screen_px, "fov_deg": params.screen_fov_deg,
              "error_px": params.error_px, "from": "each LOD's measured error (Hausdorff for meshes, held-out "
-             "silhouette displacement and texel size for impostors) projected to error_px pixels"}, sort_keys=True))
+             "silhouette displacement and texel size for impostors) projected to error_px pixels; the ladder drops "
+             "a mesh LOD that a later, cheaper representation already matches at that distance"}, sort_keys=True))
     stage.GetRootLayer().Save()
     return {"lod_switch_m": switches}

@@ -76,8 +76,8 @@ def test_held_out_error_is_measured_and_plausible(baked):
     assert tree["alpha_iou"]["median"] > 0.6, tree  # thin grass blades at 48 px are another matter
     for s in ctx.metrics["species"].values():
         d = s["lod_switch_m"]
-        order = [d[k] for k in ("LOD0", "LOD1", "impostor", "slices")]
-        assert order == sorted(order) and d["impostor"] > 0
+        assert list(d)[0] == "LOD0" and d["LOD0"] == 0.0 and list(d.values()) == sorted(d.values())
+        assert {"impostor", "slices"} & set(d) and list(d.values())[-1] > 0  # the far end is an impostor
 
 
 def _world(folder: Path, plants: Path, impostors: Path):
@@ -153,9 +153,18 @@ def test_prototypes_gain_the_impostor_lod_purposes_and_cards(baked, tmp_path):
     assert model.GetModelCardGeometryAttr().Get() == "box"
     card = model.GetModelCardTextureXPosAttr().Get()
     assert card.resolvedPath and Path(card.resolvedPath).is_file()
-    switch = json.loads(proto.GetCustomDataByKey("worldbake:lod_switch_m"))["distances_m"]
-    assert switch["impostor"] >= switch["LOD1"] >= switch["LOD0"] == 0.0
+    switch = json.loads(proto.GetCustomDataByKey("worldbake:lod_switch_m"))["ladder_m"]
+    assert switch["LOD0"] == 0.0 and list(switch.values()) == sorted(switch.values())
+    assert list(switch)[-1] in ("impostor", "slices")
     assert json.loads(proto.GetCustomDataByKey("worldbake:impostor"))["error"]["views"] > 0
     vset.SetVariantSelection("impostor")
     assert UsdGeom.Imageable(imp).ComputePurpose() == UsdGeom.Tokens.default_
     assert not [p for p in Usd.PrimRange(geom) if p.IsA(UsdGeom.Mesh)]
+
+
+def test_the_lod_ladder_drops_what_a_cheaper_lod_beats():
+    from stages.impostors.usd_layer import lod_ladder
+
+    assert lod_ladder({"LOD0": 0.0, "LOD1": 5.0, "LOD2": 400.0, "impostor": 90.0, "slices": 300.0}) == \
+        {"LOD0": 0.0, "LOD1": 5.0, "impostor": 90.0, "slices": 300.0}
+    assert lod_ladder({"LOD0": 0.0, "LOD1": 5.0, "impostor": 2.0}) == {"LOD0": 0.0, "impostor": 2.0}
