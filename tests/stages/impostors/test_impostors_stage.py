@@ -168,3 +168,15 @@ def test_the_lod_ladder_drops_what_a_cheaper_lod_beats():
     assert lod_ladder({"LOD0": 0.0, "LOD1": 5.0, "LOD2": 400.0, "impostor": 90.0, "slices": 300.0}) == \
         {"LOD0": 0.0, "LOD1": 5.0, "impostor": 90.0, "slices": 300.0}
     assert lod_ladder({"LOD0": 0.0, "LOD1": 5.0, "impostor": 2.0}) == {"LOD0": 0.0, "impostor": 2.0}
+
+
+def test_bad_sizes_are_refused_before_any_work():
+    import pydantic
+
+    from pipeline.contract import CheckContext, ParamError
+    from stages.impostors.stage import check
+
+    with pytest.raises(pydantic.ValidationError, match="power of two"):
+        ImpostorsParams(atlas_px=1000)
+    with pytest.raises(ParamError, match="texels per frame"):
+        check(ImpostorsParams(frames=64, atlas_px=128), CheckContext(seed=1, project_root=Path("."), inputs={}))
