@@ -283,7 +283,7 @@ def test_world_instancers_use_the_plant_assets(project):
 
 def test_with_only_heightmap_and_world_a_heightmap_change_reruns_just_those(project):
     only = ["--set", "erosion.enabled=false", "--set", "hydrology.enabled=false",
-            "--set", "vegetation.enabled=false", "--set", "plants.enabled=false"]
+            "--set", "vegetation.enabled=false", "--set", "plants.enabled=false", "--set", "impostors.enabled=false"]
     first = bake_json(project, *only)
     assert set(first) == {"heightmap", "world"}
     assert plan_json(project, *only, "--set", "heightmap.octaves=6") == {"heightmap": "will run", "world": "after inputs"}
