@@ -425,10 +425,11 @@ STAGE = Stage(
               "grass density (probability of a tuft, 0..1) and grass height (m)"),
         _grid("vegetation.canopy", "canopy.exr", ("canopy.cover", "canopy.density"), "1, 1/ha",
               "tree and shrub crown cover (0..1) and their total target density (plants per ha)"),
-        Artifact("vegetation.instances", kind="usd", file="instances.usdc", shape="any",
+        Artifact("vegetation.instances", kind="usd", file="instances.usdc", shape="any", beside=("tiles/*.usdc",),
                  description="/World/Vegetation: quadtree tiles of UsdGeom.PointInstancers, one per species per tile, "
-                 "whose prototypes inherit /World/Vegetation/Prototypes/<species> (placeholder cones until the plant "
-                 "assets are referenced there)"),
+                 "each leaf tile a payload (tiles/q<digits>.usdc), whose instanceable prototypes inherit "
+                 "/World/Vegetation/Prototypes/<species> (placeholder cones until the plant assets are referenced "
+                 "there): one set of meshes per species"),
         Artifact("vegetation.species", kind="json", file="species.json", shape="any",
                  description="the placed species with instance counts (the plants stage builds only these), the "
                  "unplaced ones, the prototype prim paths and the per-species maps in species.exr"),

@@ -7,13 +7,17 @@
                  the species' height_m), customData asset hint
     q (Xform, kind group): the quadtree root tile; children q0 (north-west),
       q1 (north-east), q2 (south-west), q3 (south-east), q01 ... down to the
-      leaves, which hold
+      leaves, each a payload of tiles/q<digits>.usdc (defaultPrim /Tile, kind
+      group, so a viewer can open the world with the tiles unloaded and load
+      the ones it wants), which holds
       <species> (PointInstancer, kind group): positions, orientations (half
                  quaternions), scales, protoIndices, ids, primvars age and
                  random (per instance), extent
         Prototypes (Scope, kind group)
-          <species> (Xform, kind component) inherits
-                    /World/Vegetation/Prototypes/<species>
+          <species> (Xform, kind component, instanceable) inherits
+                    /World/Vegetation/Prototypes/<species>: every tile's
+                    prototype shares one USD prototype, so the species'
+                    meshes exist once however many tiles there are
 
 Every tile carries extentsHint and customData (bounds in metres, instance
 counts). The prototype of every instancer inherits one class prim per
@@ -31,6 +35,8 @@ import numpy as np
 from stages.common import VEGETATION_PROTOTYPES, plant_asset_prim, prototype_prim
 
 from .placement import Instances
+
+TILES_DIR = "tiles"  # beside the layer: one payload file per leaf tile
 
 PALETTE = {  # displayColor of the placeholders and preview dots
     "conifer": (0.04, 0.22, 0.16), "broadleaf": (0.45, 0.80, 0.12), "shrub": (0.80, 0.55, 0.20),
@@ -99,6 +105,7 @@ def write(path: Path, provenance: dict, sets: dict[str, Instances], heights: dic
 
     from pipeline import usdio
 
+    (path.parent / TILES_DIR).mkdir(exist_ok=True)
     stage, _ = usdio.create_stage(path, provenance)
     veg = UsdGeom.Xform.Define(stage, "/World/Vegetation")
     Usd.ModelAPI(veg).SetKind(Kind.Tokens.group)
@@ -141,15 +148,21 @@ def write(path: Path, provenance: dict, sets: dict[str, Instances], heights: dic
                     ext.append(e)
         else:
             stats["leaf_tiles"] += 1
+            # the leaf's instancers in a file of their own, loaded as a payload
+            tile_file = f"{TILES_DIR}/q{tile.path}.usdc"
+            tstage, _ = usdio.create_stage(path.parent / tile_file, provenance, root="/Tile", kind="group")
             for name, ii in tile.index.items():
                 inst = sets[name]
-                ipath = f"{prim_path}/{name}"
-                pi = UsdGeom.PointInstancer.Define(stage, ipath)
+                ipath = f"/Tile/{name}"
+                pi = UsdGeom.PointInstancer.Define(tstage, ipath)
                 Usd.ModelAPI(pi).SetKind(Kind.Tokens.group)
-                scope = UsdGeom.Scope.Define(stage, f"{ipath}/Prototypes")
+                scope = UsdGeom.Scope.Define(tstage, f"{ipath}/Prototypes")
                 Usd.ModelAPI(scope).SetKind(Kind.Tokens.group)
-                proto = UsdGeom.Xform.Define(stage, f"{ipath}/Prototypes/{name}")
+                proto = UsdGeom.Xform.Define(tstage, f"{ipath}/Prototypes/{name}")
                 proto.GetPrim().GetInherits().AddInherit(prototype_prim(name))
+                # every tile's prototype is the same instance of the species' class: USD shares one
+                # prototype (one set of meshes) among all tiles instead of composing a copy per tile
+                proto.GetPrim().SetInstanceable(True)
                 pi.CreatePrototypesRel().SetTargets([proto.GetPath()])
                 n = len(ii)
                 pi.CreatePositionsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(inst.positions[ii])))
@@ -167,6 +180,8 @@ def write(path: Path, provenance: dict, sets: dict[str, Instances], heights: dic
                 ext.append(e)
                 count += n
                 stats["instancers"] += 1
+            tstage.GetRootLayer().Save()
+            x.GetPrim().GetPayloads().AddPayload(f"./{tile_file}")
         if not ext:
             return None
         e = np.stack([np.min([a[0] for a in ext], axis=0), np.max([a[1] for a in ext], axis=0)])

@@ -22,6 +22,7 @@ from stages.common import SPLAT_CHANNELS, TERRAIN_SOURCES, plant_asset_prim
 
 from pipeline.terrain_mesh import bilinear, build_terrain_mesh
 
+from .impostor_layer import IMPOSTOR_INPUT, bind_impostors
 from .volume_layer import SECTOR_VOLUMES
 
 # Upstream USD layers composed into the world, strongest first; absent when
@@ -36,6 +37,7 @@ LAYER_INPUTS = (
 ASSET_INPUTS = (
     Input("placed", one_of=("vegetation.placed",), optional=True, description="which species were placed, where their prototypes are"),
     Input("plants", one_of=("plants.assets",), optional=True, description="the plant assets (plants.usda)"),
+    IMPOSTOR_INPUT,
 )
 
 
@@ -268,6 +270,9 @@ def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
     ctx.metrics["layers"] = layers
     if "placed" in inputs and "plants" in inputs:
         ctx.metrics["plant_assets"] = bind_plant_assets(root_path, inputs["placed"], inputs["plants"], ctx)
+        if "impostors" in inputs:
+            ctx.metrics["impostors"] = bind_impostors(root_path, ctx.metrics["plant_assets"], inputs["placed"],
+                                                      inputs["impostors"], ctx)
     return {"world.root": root_path, "world.terrain": terrain_path, "world.albedo": albedo_path}
 
 

@@ -25,7 +25,11 @@ STAGES = all_stages()
 TINY = ["heightmap.resolution=64", "world.texture_size=64", "shared.mesh_max_vertices=33",
         "world.ground_texel_m=16", "world.ground_tile_texels=256",
         'plants.build=["grass", "shrub"]', "erosion.geological_years=20000", "erosion.geological_step_years=10000",
-        "volumes.voxels=32", "volumes.mip_levels=3", "volumes.error_view_pixels=32"]
+        "volumes.voxels=32", "volumes.mip_levels=3", "volumes.error_view_pixels=32",
+        "impostors.frames=4", "impostors.atlas_px=64", "impostors.small_atlas_px=64", "impostors.samples=1",
+        "impostors.ao_rays=1", "impostors.slice_px=16", "impostors.grass_slice_px=16", "impostors.card_px=16",
+        "impostors.heldout_px=24", "impostors.heldout_samples=1", "impostors.heldout_azimuth_every=36",
+        "impostors.heldout_elevation_step_deg=40"]
 
 
 @pytest.fixture(scope="module")
@@ -79,3 +83,20 @@ def test_every_output_is_as_declared(baked, name):
             from pxr import Sdf
             assert Sdf.Layer.FindOrOpen(str(path)) is not None
     assert written <= claimed, f"stage {name} wrote undeclared files {sorted(written - claimed)}"
+
+
+def test_a_rebake_with_unchanged_plants_reuses_the_impostors(baked):
+    """The impostors' key hashes the content of the plant assets (and the
+    placed names) it reads, not the producers' keys: a re-bake whose change
+    leaves the plants as they were does not re-bake the impostors."""
+    store, folders = baked
+    project = store.build.parent
+    sets = TINY + [f"outputs={json.dumps(sorted(STAGES))}"]
+
+    def rebake(*more):
+        config = load_config(project / "configs" / "default.toml", STAGES, project_root=project, sets=sets + list(more))
+        reports = bake_worlds(store, [config], build_graph(STAGES), log=open("/dev/null", "w"))[config.name]
+        return {r.stage: r.status for r in reports}
+
+    status = rebake("world.roughness=0.5")
+    assert status["world"] == "ran" and status["plants"] == "cached" and status["impostors"] == "cached"

@@ -1,0 +1,3 @@
+from .stage import STAGE
+
+__all__ = ["STAGE"]

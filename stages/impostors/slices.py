@@ -1,0 +1,228 @@
+"""Static slice billboards: geometry any viewer draws, textured with renders
+of slabs of the plant.
+
+Trees and shrubs (seed 002, after Jakulin 2000): 3 orientations (0, 120,
+240 degrees about y) x front and back x N slabs. For orientation k with
+horizontal direction d_k, the plant's extent along d_k (its vertices'
+projections) is cut into N equal slabs; every triangle belongs to the slab
+of its centroid. Each slab is rendered orthographically from the front
+(viewer on the +d_k side) and from the back (a real render, not a mirror)
+onto a quad at the slab's middle plane, spanning the plant's extent across
+and up; the front quad faces +d_k, the back quad -d_k, 1 mm apart, so a
+viewer with back-face culling sees the render made from its side. Sheet
+layout: rows 2k (front) and 2k + 1 (back), column i for slab i.
+
+Grass (seed 001): 4 vertical quads, two parallel plates per axis (the
+near and far half of the tuft seen from the front, then from the side),
+in a 4:1 strip of square tiles, and 1 horizontal quad at half height
+carrying the tuft seen from above, in a square sheet of its own.
+
+Tile texels: straight linear albedo padded into transparent texels, alpha
+(coverage), tangent-space normal of the tile's quad.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.render import Camera, Prepared, Scene, Settings
+
+from . import octahedral
+
+GAP_M = 0.001  # between a slab's front and back quads
+
+
+@dataclass
+class Sheet:
+    name: str
+    rows: int
+    cols: int
+    tile_px: int
+    rgba: np.ndarray  # (rows T, cols T, 4): straight padded RGB, alpha
+    normal: np.ndarray  # (rows T, cols T, 3) tangent space of each tile's quad
+    positions: list = field(default_factory=list)  # per quad (4, 3), counter-clockwise seen from its viewer
+    uvs: list = field(default_factory=list)  # per quad (4, 2) in the sheet
+    tiles: list = field(default_factory=list)  # per quad (row, col)
+
+    def mesh(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(points (4q, 3), st (4q, 2), triangles (2q, 3), tile (q,) index row * cols + col)."""
+        p = np.concatenate(self.positions)
+        st = np.concatenate(self.uvs)
+        base = 4 * np.arange(len(self.positions))[:, None]
+        tris = np.concatenate([base + [0, 1, 2], base + [0, 2, 3]])
+        tiles = np.array([r * self.cols + c for r, c in self.tiles])
+        return p, st, tris, tiles
+
+
+def _subscene(scene: Scene, keep: np.ndarray) -> Scene:
+    return Scene(scene.positions, scene.normals, scene.uv, scene.triangles[keep], scene.tint[keep],
+                 scene.texture[keep], scene.textures)
+
+
+def _render_tile(scene: Scene, eye, forward, up, width: float, height: float, tile_px: int, samples: int):
+    if scene.n_triangles == 0:
+        return np.zeros((tile_px, tile_px, 4), np.float32), np.zeros((tile_px, tile_px, 3), np.float32)
+    cam = Camera(tuple(eye), tuple(forward), tuple(up), ortho_height_m=height, ortho_width_m=width)
+    img = Prepared(scene).render(cam, Settings(tile_px, tile_px, samples=samples))
+    rgb = img.albedo / np.maximum(img.alpha, 1e-6)[..., None]
+    return np.concatenate([rgb, img.alpha[..., None]], -1), img.normal
+
+
+def _pad(rgba: np.ndarray, normal: np.ndarray) -> None:
+    """Colour and normal of the nearest covered texel into uncovered ones (in place)."""
+    from scipy import ndimage
+
+    empty = rgba[..., 3] <= 0
+    if empty.all() or not empty.any():
+        return
+    _, (iy, ix) = ndimage.distance_transform_edt(empty, return_indices=True)
+    rgba[..., :3] = rgba[iy, ix, :3]
+    normal[:] = normal[iy, ix]
+
+
+def _sheet(name: str, rows: int, cols: int, tile_px: int) -> Sheet:
+    return Sheet(name, rows, cols, tile_px, np.zeros((rows * tile_px, cols * tile_px, 4), np.float32),
+                 np.zeros((rows * tile_px, cols * tile_px, 3), np.float32))
+
+
+def _place(sheet: Sheet, row: int, col: int, rgba, normal, corners: np.ndarray, right, up, view) -> None:
+    """The tile into the sheet, its normals turned into the quad's tangent
+    space (x along u, y along v, z toward the viewer; what a material's
+    normal map holds), and the quad with its uv rectangle."""
+    t = sheet.tile_px
+    rgba = rgba.copy()
+    normal = np.ascontiguousarray(normal @ np.stack([right, up, view], 1))
+    normal[rgba[..., 3] <= 0] = (0.0, 0.0, 1.0)
+    _pad(rgba, normal)
+    sheet.rgba[row * t:(row + 1) * t, col * t:(col + 1) * t] = rgba
+    sheet.normal[row * t:(row + 1) * t, col * t:(col + 1) * t] = normal
+    u0, u1 = col / sheet.cols, (col + 1) / sheet.cols
+    v0, v1 = 1.0 - (row + 1) / sheet.rows, 1.0 - row / sheet.rows
+    sheet.positions.append(corners)
+    sheet.uvs.append(np.array([[u0, v0], [u1, v0], [u1, v1], [u0, v1]]))
+    sheet.tiles.append((row, col))
+
+
+def _slabbed(scene: Scene, direction: np.ndarray, slabs: int):
+    """(edges of the slabs along direction, slab index of every triangle)."""
+    depth = scene.positions.astype(np.float64) @ direction
+    lo, hi = float(depth.min()), float(depth.max())
+    centroid = depth[scene.triangles].mean(1)
+    which = np.clip(((centroid - lo) / max(hi - lo, 1e-9) * slabs).astype(int), 0, slabs - 1)
+    return np.linspace(lo, hi, slabs + 1), which
+
+
+def _quad(origin_along: float, direction, right, up, a0, a1, b0, b1) -> np.ndarray:
+    base = origin_along * direction
+    return np.array([base + a0 * right + b0 * up, base + a1 * right + b0 * up,
+                     base + a1 * right + b1 * up, base + a0 * right + b1 * up])
+
+
+def tree_slices(scene: Scene, slabs: int, tile_px: int, samples: int, orientations=(0.0, 120.0, 240.0)) -> Sheet:
+    sheet = _sheet("slices", 2 * len(orientations), slabs, tile_px)
+    p = scene.positions.astype(np.float64)
+    for k, theta in enumerate(orientations):
+        d = octahedral.view_direction(theta, 0.0)
+        edges, which = _slabbed(scene, d, slabs)
+        for side, sign in ((0, 1.0), (1, -1.0)):
+            view = sign * d  # toward this side's viewer
+            right, up = octahedral.frame_basis(view)
+            a, b = p @ right, p @ up
+            a0, a1, b0, b1 = float(a.min()), float(a.max()), float(b.min()), float(b.max())
+            mid_a, mid_b = 0.5 * (a0 + a1), 0.5 * (b0 + b1)
+            for i in range(slabs):
+                sub = _subscene(scene, which == i)
+                eye = (edges[-1] + 1.0) * d if sign > 0 else (edges[0] - 1.0) * d
+                eye = eye + mid_a * right + mid_b * up
+                rgba, nrm = _render_tile(sub, eye, -view, up, a1 - a0, b1 - b0, tile_px, samples)
+                plane = 0.5 * (edges[i] + edges[i + 1]) + sign * 0.5 * GAP_M
+                corners = _quad(plane, d, right, up, a0, a1, b0, b1)
+                _place(sheet, 2 * k + side, i, rgba, nrm, corners, right, up, view)
+    return sheet
+
+
+def grass_slices(scene: Scene, tile_px: int, samples: int) -> tuple[Sheet, Sheet]:
+    """(the 4:1 strip of vertical plates, the top sheet)."""
+    strip = _sheet("tuft", 1, 4, tile_px)
+    p = scene.positions.astype(np.float64)
+    col = 0
+    for theta in (90.0, 0.0):  # the front view looks along -z, the side view along -x
+        d = octahedral.view_direction(theta, 0.0)
+        edges, which = _slabbed(scene, d, 2)
+        right, up = octahedral.frame_basis(d)
+        a, b = p @ right, p @ up
+        a0, a1, b0, b1 = float(a.min()), float(a.max()), float(b.min()), float(b.max())
+        for i in (1, 0):  # the front plate (nearer the viewer) first
+            sub = _subscene(scene, which == i)
+            eye = (edges[-1] + 1.0) * d + 0.5 * (a0 + a1) * right + 0.5 * (b0 + b1) * up
+            rgba, nrm = _render_tile(sub, eye, -d, up, a1 - a0, b1 - b0, tile_px, samples)
+            _place(strip, 0, col, rgba, nrm, _quad(0.5 * (edges[i] + edges[i + 1]), d, right, up, a0, a1, b0, b1), right, up, d)
+            col += 1
+    top = _sheet("tuft_top", 1, 1, tile_px)
+    d = np.array([0.0, 1.0, 0.0])
+    right, up = octahedral.frame_basis(d)
+    a, b = p @ right, p @ up
+    a0, a1, b0, b1 = float(a.min()), float(a.max()), float(b.min()), float(b.max())
+    half = 0.5 * (float(p[:, 1].min()) + float(p[:, 1].max()))
+    eye = (float(p[:, 1].max()) + 1.0) * d + 0.5 * (a0 + a1) * right + 0.5 * (b0 + b1) * up
+    rgba, nrm = _render_tile(scene, eye, -d, up, a1 - a0, b1 - b0, tile_px, samples)
+    _place(top, 0, 0, rgba, nrm, _quad(half, d, right, up, a0, a1, b0, b1), right, up, d)
+    return strip, top
+
+
+def sheet_scene(sheets: list[Sheet], rows: tuple[int, ...] | None = None) -> Scene:
+    """The billboards as a render scene (alpha-tested, one texture per tile);
+    `rows`: only the quads of these sheet rows (one slicing of a tree)."""
+    size = max(s.tile_px for s in sheets)
+    P, N, UV, T, TEX, stack = [], [], [], [], [], []
+    first = 0  # vertex rows so far
+    for s in sheets:
+        t = s.tile_px
+        for q in range(len(s.positions)):
+            r, c = s.tiles[q]
+            if rows is not None and r not in rows:
+                continue
+            tile = s.rgba[r * t:(r + 1) * t, c * t:(c + 1) * t]
+            if t != size:
+                idx = (np.arange(size) * t // size)
+                tile = tile[idx][:, idx]
+            stack.append(tile)
+            corners = s.positions[q]
+            n = np.cross(corners[1] - corners[0], corners[2] - corners[0])
+            n /= max(np.linalg.norm(n), 1e-12)
+            P.append(corners)
+            N.append(np.tile(n, (4, 1)))
+            UV.append(np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float))
+            T.append(np.array([[0, 1, 2], [0, 2, 3]]) + first)
+            TEX += [len(stack) - 1] * 2
+            first += 4
+    return Scene(np.concatenate(P), np.concatenate(N), np.concatenate(UV), np.concatenate(T), np.ones((len(TEX), 3)),
+                 np.array(TEX), np.stack(stack))
+
+
+def slab_spacing(positions: np.ndarray, direction: np.ndarray, slabs: int) -> float:
+    """The spacing of N slabs along a view direction: (max - min of the
+    points' projections) / N (seed 002's sanity check: positive for any
+    direction, no diagonal stepping)."""
+    d = np.asarray(direction, np.float64)
+    proj = np.asarray(positions, np.float64) @ (d / np.linalg.norm(d))
+    return float(proj.max() - proj.min()) / slabs
+
+
+def slicing_weights(direction, orientations=(0.0, 120.0, 240.0)) -> list[tuple[int, float]]:
+    """Jakulin's blend of static slicings for a view direction: the two
+    slicings (sheet rows: orientation k front = 2k, back = 2k + 1, facing
+    azimuths theta_k and theta_k + 180) whose azimuths bracket the view's,
+    weighted linearly, w = 1 - |delta azimuth| / spacing."""
+    d = np.asarray(direction, np.float64)
+    phi = np.degrees(np.arctan2(d[2], d[0])) % 360.0
+    facing = {2 * k + side: (theta + 180.0 * side) % 360.0 for k, theta in enumerate(orientations) for side in (0, 1)}
+    order = sorted(facing, key=lambda r: facing[r])
+    spacing = 360.0 / len(order)
+    for a, b in zip(order, order[1:] + order[:1]):
+        delta = (phi - facing[a]) % 360.0
+        if delta <= spacing + 1e-9:
+            w = delta / spacing
+            return [(a, 1.0 - w), (b, w)]
+    return [(order[0], 1.0)]

@@ -1,0 +1,313 @@
+"""The impostors stage: for every plant asset the plants stage built for a
+placed species (and nothing else), the far LODs a technical artist expects
+from Amplify Impostors or UE's ImpostorBaker, baked headless, with their
+error against the mesh published.
+
+Per species, in the artifact's textures/:
+  <species>_atlas.exr        the (hemi-)octahedral view atlas (atlas.py):
+                             frames x frames frames, albedo.RGBA premultiplied
+                             linear, normal.XYZ, depth.Z, ao.Y, per-frame mip
+                             levels; header: layout, frames, frame size, the
+                             bounding sphere, the held-out error
+  <species>_atlas_albedo.png sRGB copy of the albedo (straight alpha, padded)
+  <species>_slices.exr/.png  slice billboards (slices.py): seed 002's 3
+                             orientations x front/back x N slabs for trees and
+                             shrubs; for grass seed 001's 4 vertical plates
+                             (<species>_tuft) and the top slice (<species>_tuft_top)
+  <species>_card_{x,y,z}{pos,neg}.png  the six axis views of USD's cards draw mode
+impostors.usda (usd_layer.py): overs on the plants layer's /Plants/<species>
+  that the world composes over the prototypes: the `lod` variant set gains
+  `impostor`, the Impostor prim (the slice billboards, purpose proxy)
+  beside Geom (purpose render), the cards textures, and customData
+  worldbake:impostor (atlas, error) and worldbake:lod_switch_m.
+
+Steps (run): read the asset's LOD0 into a render scene; bake the atlas;
+measure it from held-out views (heldout.py, sampler.py); bake the slices and
+measure them the same way; render the cards; derive the switch distances;
+write the layer.
+"""
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import pydantic
+
+from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, RunContext, Stage
+from pipeline.errors import StageError
+from pipeline.render import Prepared, Settings
+from stages.common import PLANTS_ROOT, plant_asset_prim
+
+from . import asset_scene, atlas, heldout, images, octahedral, sampler, slices, usd_layer
+
+Layout = Literal["hemi", "octahedral"]
+
+
+class ImpostorsParams(Params):
+    frames: int = Param(16, units="frames per side", description="N x N frames of the view atlas", ge=3, le=64)
+    atlas_px: int = Param(2048, units="texels", description="side of the view atlas (a power of two); frames are "
+                          "the largest size m 2^L that fits, so their mip levels stay inside them", ge=64, le=8192)
+    small_plant_m: float = Param(1.0, units="m", description="plants lower than this (grass, flowers) are baked into "
+                                 "small_atlas_px: they cover few pixels wherever an impostor is used", ge=0.0, le=1000.0)
+    small_atlas_px: int = Param(512, units="texels", description="side of the view atlas of plants lower than "
+                                "small_plant_m (a power of two)", ge=64, le=8192)
+    layout: Layout = Param("hemi", description="hemi: views from above the horizon only (plants on the ground); "
+                           "octahedral: the whole sphere")
+    layouts: dict[str, Layout] = Param({}, description="per-species layout overriding `layout`")
+    samples: int = Param(2, units="samples per side", description="n x n samples per atlas texel", ge=1, le=8)
+    ao_rays: int = Param(1, units="rays", description="ambient-occlusion rays per sample", ge=0, le=64)
+    ao_radius: float = Param(0.08, units="bounding-sphere radii", description="occluders farther than this do not "
+                             "darken the ao channel (a whole crown's radius would make every inner leaf black)",
+                             gt=0.0, le=4.0)
+    padding_px: int = Param(32, units="texels", description="padding of each frame: alpha = 0 texels take the nearest "
+                            "covered texel's normal, depth, ao (and colour in the PNG) within this distance, the "
+                            "frame's mean beyond", ge=0, le=4096)
+    depth_steps: int = Param(2, units="steps", description="parallax steps of the depth-aware blend (0: plane only)",
+                             ge=0, le=16)
+    slice_slabs: int = Param(3, units="slabs", description="slabs per orientation of the tree slice billboards (seed 002: "
+                             "1, 3 or 5)", ge=1, le=16)
+    slice_px: int = Param(128, units="texels", description="texels per side of a tree slice tile", ge=8, le=2048)
+    grass_slice_px: int = Param(256, units="texels", description="texels per side of a grass tuft slice (seed 001: 256)",
+                                ge=8, le=2048)
+    card_px: int = Param(256, units="texels", description="texels per side of each cards draw-mode texture", ge=8, le=4096)
+    heldout_px: int = Param(96, units="pixels", description="size of the held-out error views", ge=16, le=1024)
+    heldout_samples: int = Param(3, units="samples per side", description="n x n samples per pixel of the mesh's "
+                                 "held-out views (the reference)", ge=1, le=8)
+    heldout_azimuth_every: int = Param(12, units="5-degree steps", description="the bake measures every k-th azimuth of "
+                                       "the 5-degree held-out set (bench/impostors.py measures all)", ge=1, le=72)
+    heldout_elevation_step_deg: float = Param(20.0, units="deg", description="elevation step of the bake's held-out views",
+                                              ge=1.0, le=90.0)
+    screen_px: int = Param(1080, units="pixels", description="screen height the LOD switch distances are for", ge=16, le=16384)
+    screen_fov_deg: float = Param(60.0, units="deg", description="vertical field of view the LOD switch distances are for",
+                                  gt=1.0, lt=179.0)
+    error_px: float = Param(1.0, units="pixels", description="an LOD is used from the distance where its measured error "
+                            "projects to at most this many screen pixels", gt=0.0, le=100.0)
+
+    @pydantic.field_validator("atlas_px", "small_atlas_px")
+    @classmethod
+    def _power_of_two(cls, v: int) -> int:
+        if v & (v - 1):
+            raise ValueError(f"atlas_px = {v} must be a power of two (mip levels halve it exactly)")
+        return v
+
+
+def _plant_names(plants_layer: Path, placed: dict | None) -> list[str]:
+    from pxr import Sdf
+
+    layer = Sdf.Layer.FindOrOpen(str(plants_layer))
+    root = layer.GetPrimAtPath(PLANTS_ROOT) if layer else None
+    names = [c.name for c in root.nameChildren] if root else []
+    if placed is not None:
+        names = [n for n in names if n in placed.get("placed", [])]
+    return sorted(names)
+
+
+def _measure(prepared: Prepared, ps, views: list[tuple[float, float]], size: int, samples: int, impostor) -> list:
+    """Held-out errors of an impostor: `impostor(direction)` -> (rgba, depth)."""
+    errors = []
+    for az, el in views:
+        d = octahedral.view_direction(az, el)
+        m = heldout.mesh_view(prepared, d, ps.centre, ps.radius, size, samples)
+        rgba, depth = impostor(d)
+        mesh_rgba = np.concatenate([m.albedo, m.alpha[..., None]], -1)
+        errors.append(heldout.ViewError(az, el, *heldout.compare(mesh_rgba, m.depth, rgba, depth)))
+    return errors
+
+
+def switch_distance_m(error_m: float, params: ImpostorsParams) -> float:
+    """The distance beyond which `error_m` of geometric error projects to at
+    most error_px pixels on the reference screen (pinhole: one pixel covers
+    2 d tan(fov / 2) / screen_px metres at distance d)."""
+    pixel_at_1m = 2.0 * math.tan(math.radians(0.5 * params.screen_fov_deg)) / params.screen_px
+    return error_m / (params.error_px * pixel_at_1m)
+
+
+def _silhouette_error_m(summary: dict, ps, size: int) -> float:
+    """The median silhouette displacement of a held-out set, in metres: the
+    mismatched share of the view (1 - IoU) over the plant's outline, taken as
+    the outline of its bounding sphere's projection (a disc of the view's
+    pixels), times the pixel size."""
+    pixel_m = 2.0 * ps.radius / size
+    disc_area_px = math.pi * (0.5 * size) ** 2
+    disc_perimeter_px = math.pi * size
+    mismatch_px = (1.0 - summary["alpha_iou"]["median"]) * disc_area_px * 0.5
+    return mismatch_px / disc_perimeter_px * pixel_m
+
+
+def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: ImpostorsParams, tex_dir: Path) -> dict:
+    t0 = time.perf_counter()
+    ps = asset_scene.load(plants_layer, plant_asset_prim(name))
+    prepared = Prepared(ps.scene)
+    layout = params.layouts.get(name, params.layout)
+    grass = "Blades" in ps.parts
+    seed = (ctx.seed * 1_000_003 + sum(map(ord, name))) & 0xFFFFFFFF
+    timings: dict[str, float] = {"load_s": time.perf_counter() - t0}
+
+    t = time.perf_counter()
+    atlas_px = params.small_atlas_px if float(ps.hi[1] - ps.lo[1]) < params.small_plant_m else params.atlas_px
+    at = atlas.build(prepared, ps.centre, ps.radius, params.frames, atlas_px, layout, params.samples,
+                     params.ao_rays, params.padding_px, seed, ao_radius=params.ao_radius)
+    timings["atlas_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    views = heldout.held_out(heldout.directions(layout, elevation_step_deg=params.heldout_elevation_step_deg,
+                                                subsample=params.heldout_azimuth_every, offset=1), at.directions)
+
+    def atlas_view(d):
+        v = sampler.render_view(at, d, params.heldout_px, params.depth_steps)
+        return v.rgba, v.depth
+
+    height = float(ps.hi[1] - ps.lo[1])
+    atlas_errors = heldout.summarize(_measure(prepared, ps, views, params.heldout_px, params.heldout_samples, atlas_view),
+                                     height)
+    timings["atlas_error_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    sheets = ([*slices.grass_slices(ps.scene, params.grass_slice_px, params.samples)] if grass
+              else [slices.tree_slices(ps.scene, params.slice_slabs, params.slice_px, params.samples)])
+    if grass:  # seed 001: the tuft's five quads are drawn together
+        billboards = {None: Prepared(slices.sheet_scene(sheets))}
+    else:  # seed 002 / Jakulin: the two slicings nearest the view, blended
+        billboards = {r: Prepared(slices.sheet_scene(sheets, rows=(r,))) for r in range(sheets[0].rows)}
+    timings["slices_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    view_settings = Settings(params.heldout_px, params.heldout_px, samples=params.heldout_samples)
+
+    def slice_view(d):
+        cam, _ = heldout.view_camera(d, ps.centre, ps.radius)
+        blend = [(None, 1.0)] if grass else slices.slicing_weights(d)
+        rgba = np.zeros((params.heldout_px, params.heldout_px, 4))
+        depth = np.zeros((params.heldout_px, params.heldout_px))
+        for row, w in blend:
+            img = billboards[row].render(cam, view_settings)
+            rgba += w * np.concatenate([img.albedo, img.alpha[..., None]], -1)
+            depth += w * img.alpha * np.where(np.isfinite(img.depth), img.depth, 0.0)
+        return rgba, np.where(rgba[..., 3] > 0, depth / np.maximum(rgba[..., 3], 1e-12), np.inf)
+
+    slice_errors = heldout.summarize(_measure(prepared, ps, views, params.heldout_px, params.heldout_samples, slice_view),
+                                     height)
+    timings["slices_error_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    cards = usd_layer.card_views(prepared, ps.lo, ps.hi, params.card_px, params.samples)
+    timings["cards_s"] = time.perf_counter() - t
+
+    for summary in (atlas_errors, slice_errors):
+        for key in ("psnr_db", "alpha_iou"):
+            if summary.get("views") and not math.isfinite(summary[key]["median"]):
+                raise StageError(f"impostors: {name}: the held-out {key} is not finite")
+    atlas_error_m = _silhouette_error_m(atlas_errors, ps, params.heldout_px) if atlas_errors.get("views") else 0.0
+    slice_error_m = _silhouette_error_m(slice_errors, ps, params.heldout_px) if slice_errors.get("views") else 0.0
+    texel_m = 2.0 * ps.radius / at.frame_px
+    # an impostor is no sharper than its texels: it is used where they are at most a pixel too
+    atlas_switch = switch_distance_m(max(atlas_error_m, texel_m), params)
+    slice_switch = max(atlas_switch, switch_distance_m(max(slice_error_m, (ps.hi - ps.lo).max() / params.slice_px), params))
+    info = {
+        "layout": layout, "frames": params.frames, "frame_px": at.frame_px, "atlas_px": at.atlas_px,
+        "frame_mip_levels": at.frame_levels, "mip_levels": len(at.levels),
+        "bounding_sphere": {"centre_m": [float(v) for v in ps.centre], "radius_m": ps.radius},
+        "channels": list(atlas.CHANNELS), "grid": "vertex-centred: frame (i, j) looks from octahedral decode(i/(N-1), j/(N-1))",
+        "sampling": "3 frames of the grid triangle, barycentric weights, premultiplied blend, frame-clamped bilinear",
+        "depth": "metres from the frame's plane through the sphere centre toward the viewer",
+        "held_out": {"views": len(views), "size_px": params.heldout_px, "reference_samples": params.heldout_samples,
+                     "azimuth_step_deg": 5.0 * params.heldout_azimuth_every,
+                     "elevation_step_deg": params.heldout_elevation_step_deg},
+        "error": atlas_errors, "slices_error": slice_errors,
+        "slices": {"kind": "grass tuft (seed 001)" if grass else "3 orientations x front/back x slabs (seed 002)",
+                   "slabs": None if grass else params.slice_slabs,
+                   "error_measured_as": "the five quads together" if grass else
+                   "Jakulin's blend of the two slicings nearest the view's azimuth (w = 1 - |delta| / 60 deg)"},
+    }
+    files = {"atlas": f"{name}_atlas.exr", "atlas_png": f"{name}_atlas_albedo.png"}
+    attrs = {**ctx.provenance, "species": name, "impostor": info}
+    images.write_exr(tex_dir / files["atlas"], at.levels, atlas.CHANNELS, attrs, float_channels=("depth.Z",))
+    images.write_png(tex_dir / files["atlas_png"], at.straight_rgb, at.levels[0][..., 3])
+    sheet_files = {}
+    for sheet in sheets:
+        stem = f"{name}_{sheet.name}"
+        images.write_exr(tex_dir / f"{stem}.exr", [np.concatenate([sheet.rgba, sheet.normal], -1)],
+                         ("albedo.R", "albedo.G", "albedo.B", "albedo.A", "normal.X", "normal.Y", "normal.Z"),
+                         {**ctx.provenance, "species": name, "tiles": {"rows": sheet.rows, "cols": sheet.cols,
+                                                                         "tile_px": sheet.tile_px}})
+        images.write_png(tex_dir / f"{stem}.png", sheet.rgba[..., :3], sheet.rgba[..., 3])
+        sheet_files[sheet.name] = {"albedo": f"{stem}.png", "exr": f"{stem}.exr"}
+    card_files = {}
+    for axis, (rgb, alpha) in cards.items():
+        card_files[axis] = f"{name}_card_{axis}.png"
+        images.write_png(tex_dir / card_files[axis], rgb, alpha)
+    timings["total_s"] = time.perf_counter() - t0
+    return {"name": name, "info": info, "files": files, "sheets": sheets, "sheet_files": sheet_files,
+            "card_files": card_files, "lo": ps.lo, "hi": ps.hi, "grass": grass,
+            "switch_m": {"impostor": atlas_switch, "slices": slice_switch},
+            "error_m": {"impostor": atlas_error_m, "slices": slice_error_m, "atlas_texel": texel_m},
+            "timings": timings, "triangles": int(ps.scene.n_triangles)}
+
+
+def run(ctx: RunContext, inputs: dict[str, Any], params: ImpostorsParams) -> dict[str, Path]:
+    plants_layer = inputs.get("plants")
+    layer_path = ctx.path("impostors.layer")
+    out_dir = Path(ctx.out_dir)
+    tex_dir = out_dir / "textures"
+    tex_dir.mkdir(exist_ok=True)
+    names = _plant_names(plants_layer, inputs.get("placed")) if plants_layer is not None else []
+    baked = []
+    for k, name in enumerate(names):
+        ctx.progress(k / max(len(names), 1), f"impostors: {name}")
+        baked.append(_bake_species(ctx, name, plants_layer, params, tex_dir))
+    stats = usd_layer.write(layer_path, ctx.provenance, baked, plants_layer, params)
+    errors = []
+    if baked:
+        from pipeline import usdio
+
+        errors = usdio.validate(layer_path)
+    if errors:
+        raise StageError("impostors: the layer fails USD validation: " + "; ".join(errors[:10]))
+    species = {b["name"]: {"error": b["info"]["error"], "slices_error": b["info"]["slices_error"],
+                           "switch_m": b["switch_m"], "lod_switch_m": stats["lod_switch_m"].get(b["name"]),
+                           "error_m": b["error_m"], "seconds": b["timings"], "triangles": b["triangles"],
+                           "frame_px": b["info"]["frame_px"], "layout": b["info"]["layout"]} for b in baked}
+    ctx.metrics.update({"species": species, "built": names,
+                        "seconds": float(sum(b["timings"]["total_s"] for b in baked))})
+    ctx.progress(1.0, "impostors: done")
+    return {"impostors.layer": layer_path, "impostors.stats": {"species": species, "built": names}}
+
+
+def check(params: ImpostorsParams, ctx: CheckContext) -> Check:
+    """The atlas levels held at once: 9 float32 channels, 4/3 for the mips,
+    about 3x for the padding's distance transform; per species, one at a time."""
+    for key in ("atlas_px", "small_atlas_px"):
+        side = getattr(params, key)
+        if side // params.frames < 4:
+            raise ParamError("frames", f"{params.frames} frames leave {side // params.frames} texels per frame in "
+                             f"{key} = {side}; at least 4 are needed")
+    texels = params.atlas_px ** 2
+    return Check(memory_bytes=texels * 9 * 4 * 4.0, memory_how=f"atlas_px = {params.atlas_px}: {texels:,} texels x "
+                 "9 channels x 4 B x (mips and padding)")
+
+
+STAGE = Stage(
+    name="impostors",
+    version=1,
+    description="impostors of every placed plant: (hemi-)octahedral view atlases, slice billboards, cards textures, "
+    "the error against the mesh from held-out views, LOD switch distances",
+    inputs=(Input("plants", one_of=("plants.assets",), optional=True, description="the plant assets (plants.usda)"),
+            Input("placed", one_of=("vegetation.placed",), optional=True,
+                  description="the species the vegetation map placed; only those get impostors")),
+    outputs=(Artifact("impostors.layer", kind="usd", file="impostors.usda", shape="any",
+                      beside=("textures/*.exr", "textures/*.png"),
+                      description="overs on /Plants/<species>: lod variant `impostor`, the Impostor prim (slice "
+                      "billboards, purpose proxy) beside Geom (purpose render), cards textures, customData "
+                      "worldbake:impostor (atlas, held-out error) and worldbake:lod_switch_m; the textures beside"),
+             Artifact("impostors.stats", kind="json", file="stats.json", shape="any",
+                      description="per species: held-out error of the atlas and the slices (median, worst view), "
+                      "switch distances, bake seconds")),
+    params=ImpostorsParams,
+    run=run,
+    check=check,
+    source_dir=Path(__file__).parent,
+    uses_seed=True,
+    uses_opencl=True,
+)

@@ -1,0 +1,158 @@
+"""The octahedral grids, the per-frame padding and mip levels, the atlas
+EXR, and the impostor sampler against the frames it was made from."""
+import numpy as np
+import pytest
+
+from stages.impostors import atlas, images, octahedral, sampler
+
+
+@pytest.mark.parametrize("layout", octahedral.LAYOUTS)
+def test_encode_decode_round_trip(layout):
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(500, 3))
+    if layout == "hemi":
+        d[:, 1] = np.abs(d[:, 1])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    back = octahedral.decode(octahedral.encode(d, layout), layout)
+    np.testing.assert_allclose(back, d, atol=1e-12)
+
+
+def test_hemi_views_from_below_use_the_horizon():
+    below = octahedral.view_direction(40.0, -30.0)
+    horizon = octahedral.view_direction(40.0, 0.0)
+    np.testing.assert_allclose(octahedral.encode(below, "hemi"), octahedral.encode(horizon, "hemi"), atol=1e-12)
+
+
+@pytest.mark.parametrize("layout", octahedral.LAYOUTS)
+def test_a_frame_direction_selects_that_frame_alone(layout):
+    n = 7
+    dirs = octahedral.frame_directions(n, layout)
+    for j in range(n):
+        for i in range(n):
+            idx, w = octahedral.select_frames(dirs[j, i], n, layout)
+            assert w.sum() == pytest.approx(1.0)
+            k = int(np.argmax(w))
+            assert w[k] == pytest.approx(1.0, abs=1e-9)
+            # the grid's duplicate directions (octahedral border) may name a twin frame
+            np.testing.assert_allclose(dirs[idx[k][1], idx[k][0]], dirs[j, i], atol=1e-9)
+
+
+def test_views_between_frames_blend_three_neighbours():
+    n = 9
+    rng = np.random.default_rng(1)
+    d = octahedral.view_direction(rng.uniform(0, 360, 200), rng.uniform(0, 85, 200))
+    idx, w = octahedral.select_frames(d, n, "hemi")
+    np.testing.assert_allclose(w.sum(-1), 1.0, atol=1e-12)
+    assert (w >= 0).all()
+    span = np.abs(idx[..., None, :] - idx[..., None, :, :]).max((-1, -2, -3))
+    assert (span <= 1).all()  # the three frames are grid neighbours
+
+
+def _frame_stack(frames, f):
+    """Frames of a distinct constant per channel (frame number + channel / 10),
+    each with a covered blob in one corner (alpha 1) and alpha 0 elsewhere."""
+    n = frames * frames
+    tiles = np.zeros((n, f, f, len(atlas.CHANNELS)), np.float32)
+    for k in range(n):
+        tiles[k] = k + np.arange(len(atlas.CHANNELS)) / 10.0
+        tiles[k, ..., 3] = 0.0
+        tiles[k, :3, :3, 3] = 1.0  # covered
+    return tiles
+
+
+def test_padding_takes_values_from_the_same_frame_only():
+    frames, f = 3, 16
+    tiles = _frame_stack(frames, f)
+    values = tiles[..., atlas.PADDED].copy()
+    values[tiles[..., 3] <= 0] = -99.0  # what padding must replace
+    filled = atlas.pad_frames(tiles[..., 3], values, padding_px=f)
+    for k in range(frames * frames):
+        np.testing.assert_allclose(filled[k], tiles[k, ..., atlas.PADDED], rtol=1e-6)
+
+
+def test_every_mip_level_sampled_at_every_frame_border_reads_its_own_frame():
+    """No frame's mip level reads texels of another frame: each frame holds
+    its own constants, and sampling just inside, on and past each border of
+    every frame at every per-frame level returns exactly them (colour and
+    alpha averaged within the frame only)."""
+    frames, atlas_px = 4, 128
+    f, frame_levels = atlas.frame_layout(atlas_px, frames)
+    tiles = _frame_stack(frames, f)
+    tiles[..., 3] = 1.0  # opaque frames: every level's values are the frame's constants exactly
+    levels = atlas.mip_chain(tiles, frames, atlas_px, frame_levels)
+    assert len(levels) == int(np.log2(atlas_px)) + 1
+    assert frame_levels >= 4
+    for level in range(frame_levels):
+        fl = f >> level
+        border = np.array([-0.75, -0.5, 0.0, 0.3, fl - 1.3, fl - 1.0, fl - 0.5, fl - 0.25])
+        x, y = np.meshgrid(border, np.linspace(-1.0, fl, 7))
+        for j in range(frames):
+            for i in range(frames):
+                k = j * frames + i
+                for xs, ys in ((x, y), (y, x)):
+                    s = atlas.sample_frame(levels[level], fl, i, j, xs, ys)
+                    np.testing.assert_allclose(s[..., 0:3], np.broadcast_to(k + np.arange(3) / 10.0, s[..., 0:3].shape), atol=1e-5)
+                    np.testing.assert_allclose(s[..., 7:9], np.broadcast_to([k + 0.7, k + 0.8], s[..., 7:9].shape), atol=1e-5)
+
+
+def test_a_partly_covered_frame_keeps_its_coverage_in_its_mips():
+    frames, atlas_px = 2, 64
+    f, frame_levels = atlas.frame_layout(atlas_px, frames)
+    tiles = _frame_stack(frames, f)
+    tiles[..., 0:3] *= tiles[..., 3:4]  # premultiplied colour
+    tiles[..., atlas.PADDED] = atlas.pad_frames(tiles[..., 3], tiles[..., atlas.PADDED], f)
+    levels = atlas.mip_chain(tiles, frames, atlas_px, frame_levels)
+    for level in range(frame_levels):
+        fl = f >> level
+        for j in range(frames):
+            for i in range(frames):
+                a = levels[level][j * fl:(j + 1) * fl, i * fl:(i + 1) * fl, 3]
+                assert a.mean() == pytest.approx(9.0 / f ** 2, rel=1e-5)
+
+
+def test_atlas_exr_has_layer_channels_and_every_level(tmp_path):
+    frames, atlas_px = 2, 32
+    f, frame_levels = atlas.frame_layout(atlas_px, frames)
+    levels = atlas.mip_chain(_frame_stack(frames, f), frames, atlas_px, frame_levels)
+    path = tmp_path / "a.exr"
+    images.write_exr(path, levels, atlas.CHANNELS, {"species": "x", "impostor": {"frames": 2}}, ("depth.Z",))
+    back, names, attrs = images.read_exr_levels(path)
+    assert sorted(names) == sorted(atlas.CHANNELS)
+    assert {"albedo.R", "albedo.A", "normal.X", "depth.Z", "ao.Y"} <= set(names)
+    assert [lv.shape[0] for lv in back] == [32, 16, 8, 4, 2, 1]
+    order = [names.index(c) for c in atlas.CHANNELS]
+    np.testing.assert_allclose(back[1][..., order], levels[1], atol=2e-2)
+    assert attrs["worldbake:species"] == "x"
+
+
+def test_the_sampler_at_a_frame_direction_reproduces_that_frame():
+    """Seen exactly from a baked direction, the impostor is that frame:
+    weight 1, the ray meets the frame's plane at the texel it came from."""
+    rng = np.random.default_rng(3)
+    frames, f = 5, 24
+    tiles = rng.uniform(0.1, 0.9, (frames * frames, f, f, len(atlas.CHANNELS))).astype(np.float32)
+    img = atlas._from_frames(tiles, frames)
+    dirs = octahedral.frame_directions(frames, "hemi")
+    at = atlas.Atlas("hemi", frames, f, frames * f, np.array([0.0, 1.0, 0.0]), 1.5, [img], 1, None, dirs)
+    for (i, j) in ((0, 0), (2, 2), (4, 1), (1, 3)):
+        view = sampler.render_view(at, dirs[j, i], f, depth_steps=0)
+        frame = at.frame(i, j)
+        np.testing.assert_allclose(view.rgba, frame[..., 0:4], atol=1e-5)
+
+
+def test_slicing_blend_weights_and_slab_spacing():
+    from stages.impostors import slices
+
+    for az in np.arange(0.0, 360.0, 7.5):
+        w = slices.slicing_weights(octahedral.view_direction(az, 30.0))
+        assert sum(x for _, x in w) == pytest.approx(1.0)
+        assert all(0.0 <= x <= 1.0 for _, x in w)
+    facing = slices.slicing_weights(octahedral.view_direction(120.0, 0.0))
+    assert max(facing, key=lambda rw: rw[1]) == (2, pytest.approx(1.0))  # orientation 1, front
+    back = slices.slicing_weights(octahedral.view_direction(300.0, 0.0))
+    assert max(back, key=lambda rw: rw[1]) == (3, pytest.approx(1.0))  # orientation 1, back
+    rng = np.random.default_rng(4)
+    pts = rng.normal(size=(200, 3))
+    for d in rng.normal(size=(50, 3)):  # seed 002's sanity check: spacing = extent / N along any direction, > 0
+        proj = pts @ (d / np.linalg.norm(d))
+        assert slices.slab_spacing(pts, d, 5) == pytest.approx((proj.max() - proj.min()) / 5) and np.ptp(proj) > 0

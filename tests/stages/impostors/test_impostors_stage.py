@@ -1,0 +1,182 @@
+"""The impostors stage on a tiny plants layer (helpers.make_plants): what it
+writes, the layer a DCC composes over the prototypes, and the forest a
+viewport opens (one set of meshes per species, payload tiles)."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline import exr, usdio
+from pipeline.config import canonical_params
+from pipeline.contract import RunContext
+from stages.impostors import STAGE
+from stages.impostors.stage import ImpostorsParams
+
+from .helpers import make_plants
+
+SMALL = {"frames": 6, "atlas_px": 256, "small_atlas_px": 128, "samples": 1, "ao_rays": 1, "slice_px": 32,
+         "grass_slice_px": 32, "card_px": 32, "heldout_px": 48, "heldout_samples": 2, "heldout_azimuth_every": 18,
+         "heldout_elevation_step_deg": 40.0}
+
+
+def _run(folder: Path, plants: Path, placed, params=SMALL):
+    folder.mkdir(parents=True, exist_ok=True)
+    p = ImpostorsParams.model_validate(params)
+    ctx = RunContext(stage=STAGE, key="test", out_dir=folder, seed=7,
+                     provenance={"stage": "impostors", "version": 1, "key": "test", "params": canonical_params(p),
+                                 "seed": 7}, project_root=Path("."))
+    inputs = {"plants": plants}
+    if placed is not None:
+        inputs["placed"] = {"placed": placed}
+    return STAGE.run(ctx, inputs, p), ctx
+
+
+@pytest.fixture(scope="module")
+def baked(tmp_path_factory):
+    root = tmp_path_factory.mktemp("impostors")
+    plants = make_plants(root / "plants")
+    out, ctx = _run(root / "run", plants, ["tree", "grass"])
+    return root, plants, out, ctx
+
+
+def test_every_placed_species_has_its_textures(baked):
+    root, plants, out, ctx = baked
+    tex = root / "run" / "textures"
+    assert ctx.metrics["built"] == ["grass", "tree"]
+    for name in ("tree", "grass"):
+        names = exr.read_attributes(tex / f"{name}_atlas.exr")
+        assert (tex / f"{name}_atlas_albedo.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        info = json.loads(names["worldbake:impostor"])
+        assert info["layout"] == "hemi" and info["frames"] == 6
+        assert info["error"]["views"] > 0 and "worst_view" in info["error"]
+        for axis in ("xpos", "xneg", "ypos", "yneg", "zpos", "zneg"):
+            assert (tex / f"{name}_card_{axis}.png").is_file()
+    assert (tex / "tree_slices.exr").is_file() and (tex / "tree_slices.png").is_file()
+    assert (tex / "grass_tuft.png").is_file() and (tex / "grass_tuft_top.png").is_file()
+    assert not (tex / "grass_slices.png").exists()
+
+
+def test_unplaced_species_get_nothing(tmp_path, baked):
+    root, plants, _, _ = baked
+    out, ctx = _run(tmp_path / "only_grass", plants, ["grass", "oak"],
+                    {**SMALL, "frames": 3, "atlas_px": 64, "small_atlas_px": 64, "heldout_azimuth_every": 72})
+    assert ctx.metrics["built"] == ["grass"]
+    assert not list((tmp_path / "only_grass" / "textures").glob("tree_*"))
+
+
+def test_held_out_error_is_measured_and_plausible(baked):
+    _, _, out, ctx = baked
+    for name, s in ctx.metrics["species"].items():
+        for which in ("error", "slices_error"):
+            e = s[which]
+            assert 0.0 <= e["alpha_iou"]["min"] <= e["alpha_iou"]["median"] <= 1.0
+            assert e["psnr_db"]["median"] > 15.0, (name, which, e)
+    tree = ctx.metrics["species"]["tree"]["error"]
+    assert tree["alpha_iou"]["median"] > 0.6, tree  # thin grass blades at 48 px are another matter
+    for s in ctx.metrics["species"].values():
+        d = s["lod_switch_m"]
+        assert list(d)[0] == "LOD0" and d["LOD0"] == 0.0 and list(d.values()) == sorted(d.values())
+        assert {"impostor", "slices"} & set(d) and list(d.values())[-1] > 0  # the far end is an impostor
+
+
+def _world(folder: Path, plants: Path, impostors: Path):
+    """The world's composition: the plants and impostors referenced on the
+    vegetation's prototype classes, over a vegetation layer of 2 species x
+    many tiles (stages.vegetation.usd_layer) -- as stages/world does it."""
+    from stages.vegetation import usd_layer as veg
+    from stages.vegetation.placement import Instances
+    from stages.world import impostor_layer
+    from stages.world.stage import bind_plant_assets
+
+    rng = np.random.default_rng(2)
+    sets = {}
+    for name, n in (("tree", 120), ("grass", 300)):
+        pos = np.stack([rng.uniform(0, 100, n), np.zeros(n), rng.uniform(0, 100, n)], 1).astype(np.float32)
+        q = np.tile(np.array([0, 0, 0, 1], np.float16), (n, 1))
+        sets[name] = Instances(name, pos, q, np.ones((n, 3), np.float32), np.ones(n, np.float32),
+                               rng.random(n).astype(np.float32), np.arange(n, dtype=np.int64), np.ones(n, np.float32))
+    folder.mkdir(parents=True, exist_ok=True)
+    veg.write(folder / "instances.usdc", {}, sets, {"tree": 4.0, "grass": 0.4}, {"tree": "lsystem", "grass": "grass"},
+              0.0, 0.0, 100.0, 40, 5.0)
+    root = folder / "world.usda"
+    usdio.write_root_layer(root, {}, ["./instances.usdc"])
+    placed = {"placed": ["grass", "tree"], "prototypes": {n: f"/World/Vegetation/Prototypes/{n}" for n in sets}}
+
+    class Ctx:
+        def asset_path(self, target):
+            return usdio.relative_asset_path(target, root)
+
+    bound = bind_plant_assets(root, placed, plants, Ctx())
+    done = impostor_layer.bind_impostors(root, bound, placed, impostors, Ctx())
+    assert done == ["grass", "tree"]
+    return root
+
+
+def test_the_forest_has_one_set_of_meshes_per_species_and_payload_tiles(baked, tmp_path):
+    from pxr import Usd, UsdGeom
+
+    root, plants, out, _ = baked
+    world = _world(tmp_path / "world", plants, out["impostors.layer"])
+    assert usdio.validate(world) == []
+    stage = Usd.Stage.Open(str(world))
+    instancers = [p for p in stage.Traverse() if p.IsA(UsdGeom.PointInstancer)]
+    tiles = {p.GetParent().GetPath() for p in instancers}
+    assert len(tiles) >= 4
+    assert all(stage.GetPrimAtPath(t).HasAuthoredPayloads() for t in tiles)
+    meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+    for proto in stage.GetPrototypes():
+        meshes += [p for p in Usd.PrimRange(proto) if p.IsA(UsdGeom.Mesh)]
+    # per species its LOD0 meshes and its impostor billboards, once: tree Wood, Leaves, Slices; grass Blades, Tuft, TuftTop
+    assert sorted(p.GetName() for p in meshes) == sorted(["Wood", "Leaves", "Slices", "Blades", "Tuft", "TuftTop"])
+    for pi in instancers:
+        proto = stage.GetPrimAtPath(UsdGeom.PointInstancer(pi).GetPrototypesRel().GetTargets()[0])
+        assert proto.IsInstance()
+    unloaded = Usd.Stage.Open(str(world), Usd.Stage.LoadNone)
+    assert not [p for p in unloaded.Traverse() if p.IsA(UsdGeom.PointInstancer)]
+
+
+def test_prototypes_gain_the_impostor_lod_purposes_and_cards(baked, tmp_path):
+    from pxr import Usd, UsdGeom
+
+    root, plants, out, _ = baked
+    stage = Usd.Stage.Open(str(_world(tmp_path / "world", plants, out["impostors.layer"])))
+    proto = stage.GetPrimAtPath("/World/Vegetation/Prototypes/tree")
+    vset = proto.GetVariantSets().GetVariantSet("lod")
+    assert vset.GetVariantNames() == ["LOD0", "LOD1", "impostor"]
+    assert vset.GetVariantSelection() == "LOD0"
+    geom, imp = proto.GetChild("Geom"), proto.GetChild("Impostor")
+    assert UsdGeom.Imageable(geom).ComputePurpose() == UsdGeom.Tokens.render
+    assert UsdGeom.Imageable(imp).ComputePurpose() == UsdGeom.Tokens.proxy
+    assert UsdGeom.Imageable(geom).GetProxyPrimRel().GetTargets() == [imp.GetPath()]
+    model = UsdGeom.ModelAPI(proto)
+    assert model.GetModelCardGeometryAttr().Get() == "box"
+    card = model.GetModelCardTextureXPosAttr().Get()
+    assert card.resolvedPath and Path(card.resolvedPath).is_file()
+    switch = json.loads(proto.GetCustomDataByKey("worldbake:lod_switch_m"))["ladder_m"]
+    assert switch["LOD0"] == 0.0 and list(switch.values()) == sorted(switch.values())
+    assert list(switch)[-1] in ("impostor", "slices")
+    assert json.loads(proto.GetCustomDataByKey("worldbake:impostor"))["error"]["views"] > 0
+    vset.SetVariantSelection("impostor")
+    assert UsdGeom.Imageable(imp).ComputePurpose() == UsdGeom.Tokens.default_
+    assert not [p for p in Usd.PrimRange(geom) if p.IsA(UsdGeom.Mesh)]
+
+
+def test_the_lod_ladder_drops_what_a_cheaper_lod_beats():
+    from stages.impostors.usd_layer import lod_ladder
+
+    assert lod_ladder({"LOD0": 0.0, "LOD1": 5.0, "LOD2": 400.0, "impostor": 90.0, "slices": 300.0}) == \
+        {"LOD0": 0.0, "LOD1": 5.0, "impostor": 90.0, "slices": 300.0}
+    assert lod_ladder({"LOD0": 0.0, "LOD1": 5.0, "impostor": 2.0}) == {"LOD0": 0.0, "impostor": 2.0}
+
+
+def test_bad_sizes_are_refused_before_any_work():
+    import pydantic
+
+    from pipeline.contract import CheckContext, ParamError
+    from stages.impostors.stage import check
+
+    with pytest.raises(pydantic.ValidationError, match="power of two"):
+        ImpostorsParams(atlas_px=1000)
+    with pytest.raises(ParamError, match="texels per frame"):
+        check(ImpostorsParams(frames=64, atlas_px=128), CheckContext(seed=1, project_root=Path("."), inputs={}))
