@@ -387,7 +387,13 @@ def publish_world(store: Store, config: WorldConfig, planned: list[KeyedStep], s
                       for r in steps or ()],
         }
         write_json(work / MANIFEST, manifest)
-    return store.worlds / config.name
+    final = store.worlds / config.name
+    if os.environ.get("WORLDBAKE_REPORT", "1").strip() != "0":  # 0: no report (the test suite's many small bakes)
+        from .report import write_report  # after the rename: the layer's relative paths resolve from there
+
+        world_usda = final / "world.usda"
+        write_report(store, final, manifest, world_usda if world_usda.is_file() else None)
+    return final
 
 
 # --------------------------------------------------------------------------- the bake
