@@ -78,7 +78,7 @@ class HeightmapParams(Params):
     )
     # DEM import
     dem_path: Optional[ProjectPath] = Param(
-        None, units="path", validate_default=True, description="dem: the DEM file (EXR, TIFF, 16-bit PNG; first channel), stretched over the square world",
+        None, units="path", validate_default=True, description="dem: the DEM file (EXR, TIFF, 16-bit PNG; first channel), at its own cells when its cell size is known (dem_cell_size_m), else stretched over the square world",
     )
     dem_cell_size_m: Optional[float] = Param(
         None, units="m", description="dem: the DEM's cell size; the world is then the DEM's own cells (rows x cols, "
