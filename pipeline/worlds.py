@@ -12,7 +12,7 @@ replace it (`--replace`).
 from __future__ import annotations
 
 import json
-from pathlib import Path
+import os
 
 from .config import WorldConfig
 from .errors import InputError
@@ -45,7 +45,8 @@ def list_worlds(store: Store) -> list[dict]:
 
 def _same_world(manifest: dict, config: WorldConfig) -> bool:
     return (manifest.get("overrides", {}) == json.loads(json.dumps(config.overrides))
-            and Path(manifest.get("config", "")) == config.path and manifest.get("variant") == config.variant)
+            and os.path.normpath(manifest.get("config", "")) == os.path.normpath(config.path)
+            and manifest.get("variant") == config.variant)
 
 
 def check_replace(store: Store, configs: list[WorldConfig], replace: bool) -> None:
