@@ -72,10 +72,18 @@ def _write_png(path: Path, rgb: np.ndarray) -> None:
     write_png(path, np.ascontiguousarray(rgb, np.uint8))
 
 
+def _map_size(shape: tuple[int, int], px: int = MAP_PX) -> tuple[int, int]:
+    """Map pixels (rows, cols) for a grid: the long side about px, cells square."""
+    f = px / max(shape)
+    return max(1, round(shape[0] * f)), max(1, round(shape[1] * f))
+
+
 def _upscale(rgb: np.ndarray, px: int = MAP_PX) -> np.ndarray:
-    """Nearest-neighbour upscale so that the long side is about px (cells stay square)."""
-    k = max(1, px // max(rgb.shape[:2]))
-    return np.repeat(np.repeat(rgb, k, axis=0), k, axis=1)
+    """Nearest-neighbour resampling so that the long side is about px."""
+    rows, cols = _map_size(rgb.shape[:2], px)
+    r = ((np.arange(rows) + 0.5) * rgb.shape[0] / rows).astype(int)
+    c = ((np.arange(cols) + 0.5) * rgb.shape[1] / cols).astype(int)
+    return rgb[r][:, c]
 
 
 def _hillshade(h: np.ndarray, cell: float) -> np.ndarray:
@@ -234,11 +242,9 @@ class Maps:
 
         stage = Usd.Stage.Open(str(world_usda))
         rows, cols = height.shape
-        k = max(1, MAP_PX // max(rows, cols))
-        px = grid.cell_size_m / k  # metres per map pixel
+        base = _upscale(_hillshade(height, grid.cell_size_m))
+        px = cols * grid.cell_size_m / base.shape[1]  # metres per map pixel
         ox, oz = grid.origin_m
-        shade = _hillshade(height, grid.cell_size_m)
-        base = np.repeat(np.repeat(shade, k, 0), k, 1)
         rgb = (np.stack([base] * 3, -1) * np.array([200, 200, 190]) * 0.5 + np.array([110, 110, 100])).clip(0, 255)
         lake_mask = np.zeros(base.shape, bool)
         river_mask = np.zeros(base.shape, bool)
@@ -264,7 +270,7 @@ class Maps:
                         steps = max(2, int(np.hypot(b[0] - a[0], b[2] - a[2]) / (0.5 * px)) + 1)
                         for t in np.linspace(0, 1, steps):
                             x, z = a[0] + t * (b[0] - a[0]), a[2] + t * (b[2] - a[2])
-                            r = max(0.5 * wseg[i], 0.6 * px)
+                            r = max(0.5 * wseg[i], 1.0 * px)  # at least a pixel either side: visible
                             c0, r0 = int((x - ox) / px), int((z - oz) / px)
                             rr = int(r / px) + 1
                             sl = (slice(max(r0 - rr, 0), r0 + rr + 1), slice(max(c0 - rr, 0), c0 + rr + 1))
@@ -286,7 +292,7 @@ class Maps:
         rgb[river_mask] = (40, 110, 220)
         rgb[lake_mask] = (30, 80, 190)
         legend = (f'<div class="legend"><span class="swatch" style="background:rgb(40,110,220)"></span>rivers '
-                  f'({n_curves} curves, drawn at their USD widths, at least a pixel) '
+                  f'({n_curves} curves, drawn at their USD widths, at least 3 pixels wide) '
                   f'<span class="swatch" style="background:rgb(30,80,190)"></span>lakes ({n_lakes} lake meshes)</div>')
         file = "report_water.png"
         _write_png(self.out / file, rgb.astype(np.uint8))
