@@ -8,6 +8,7 @@
     worldbake gc [--dry-run]
     worldbake export WORLD DEST
     worldbake diff A B [--json]
+    worldbake report WORLD
     worldbake describe
     worldbake devices [--json]
 
@@ -168,6 +169,20 @@ def _cmd_worlds(args) -> int:
     return 0
 
 
+def _cmd_report(args) -> int:
+    from .report import write_report
+    from .worlds import world_manifest
+
+    store = Store(Path(args.project) / args.build)
+    manifest = world_manifest(store, args.world)
+    if manifest is None:
+        raise InputError(f"no baked world {args.world!r} in {store.worlds}")
+    folder = store.worlds / args.world
+    usd = folder / "world.usda"
+    print(write_report(store, folder, manifest, usd if usd.is_file() else None))
+    return 0
+
+
 def _cmd_diff(args) -> int:
     from .diff import diff_worlds, format_diff
 
@@ -230,6 +245,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dry-run", action="store_true", help="print what would be removed; remove nothing")
     p = sub.add_parser("worlds", help="list the baked worlds with their config and overrides")
     p.add_argument("--json", action="store_true", help="print as JSON")
+    p = sub.add_parser("report", help="(re)write build/worlds/WORLD/report.html (a bake writes it unless WORLDBAKE_REPORT=0)")
+    p.add_argument("world", help="the world's name (a folder in build/worlds/)")
     p = sub.add_parser("diff", help="what differs between two worlds: parameters, stage keys, artifacts "
                                     "(exit 0 equal, 1 different)")
     p.add_argument("a", help="a world name, a world folder, or a saved world manifest.json")
@@ -243,7 +260,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true", help="print as JSON")
     args = parser.parse_args(argv)
     handlers = {"bake": _cmd_bake, "plan": _cmd_plan, "validate": _cmd_validate, "gc": _cmd_gc, "export": _cmd_export,
-                "describe": _cmd_describe, "devices": _cmd_devices, "worlds": _cmd_worlds, "diff": _cmd_diff}
+                "describe": _cmd_describe, "devices": _cmd_devices, "worlds": _cmd_worlds, "diff": _cmd_diff,
+                "report": _cmd_report}
     try:
         return handlers[args.command](args)
     except InputError as e:  # a bad config or input file
