@@ -322,7 +322,8 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
                 terrain_shape = terrain_shape or (grid.shape if art.shape == "terrain" else None)
                 units = art.channel_units(tuple(grid.channels))
                 exr.write_grid(target, grid, {**provenance, "units": units})
-                meta.update(channels=list(grid.channels), channel_units=units, shape=list(grid.shape),
+                # the file's order (OpenEXR sorts channels by name), not the order the stage made them in
+                meta.update(channels=exr.channel_names(target), channel_units=units, shape=list(grid.shape),
                             cell_size_m=grid.cell_size_m, content=grid_content_hash(grid))
             elif art.kind == "image":
                 exr.write_png(target, value)
@@ -344,6 +345,7 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
             "inputs": {role: {"artifact": a, "stage": s, "key": k, "content": ps.key_material["inputs"][role][1]}
                        for role, (a, s, k) in ps.inputs.items()},
             "outputs": out_meta, "files": files,
+            "exr_channels": {f: exr.channel_names(work / f) for f in files if f.lower().endswith(".exr")},
             "timings": {"run_s": round(t_run, 4), "write_s": round(time.perf_counter() - t1, 4)},
             "metrics": _finite_metrics(ctx.metrics),
             "key_material": ps.key_material,
@@ -355,12 +357,15 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
 # --------------------------------------------------------------------------- publishing
 
 
-def publish_world(store: Store, config: WorldConfig, planned: list[KeyedStep]) -> Path:
+def publish_world(store: Store, config: WorldConfig, planned: list[KeyedStep], steps: list | None = None) -> Path:
     """build/worlds/<name>/: manifest.json naming every artifact key used
     (with early cutoff, a cached step may reference the output of an earlier
-    run of its producer: those are named too, so gc keeps them) and,
+    run of its producer: those are named too, so gc keeps them), the
+    --set overrides and each stage's params (what `worldbake worlds` and
+    `worldbake diff` read), how each step went (`steps`: StepReports), and,
     when a planned stage publishes a root layer, world.usda composing it by a
-    relative path."""
+    relative path, with the overrides in its customLayerData; then
+    report.html beside them (pipeline.report)."""
     with store.publishing(config.name) as work:
         roots = [(ps, art) for ps in planned for art in ps.stage.outputs if art.publish]
         if roots:
@@ -369,15 +374,26 @@ def publish_world(store: Store, config: WorldConfig, planned: list[KeyedStep]) -
             # relative to the final folder, not to work/ (a temporary folder elsewhere)
             final_layer = store.worlds / config.name / "world.usda"
             usdio.write_root_layer(work / "world.usda",
-                                   {"world": config.name, "config": str(config.path), "seed": config.seed, "key": ps.key},
+                                   {"world": config.name, "config": str(config.path), "seed": config.seed, "key": ps.key,
+                                    "overrides": config.overrides},
                                    [usdio.relative_asset_path(target, final_layer)])
-        write_json(work / MANIFEST, {
+        manifest = {
             "world": config.name, "config": str(config.path), "variant": config.variant, "seed": config.seed,
-            "outputs": list(config.outputs),
+            "outputs": list(config.outputs), "overrides": config.overrides,
+            "params": {ps.stage.name: json.loads(ps.params_json) for ps in planned},
             "artifacts": [{"stage": ps.stage.name, "key": ps.key} for ps in planned],
             "uses": [{"stage": s, "key": k} for s, k in sorted(store.closure({(ps.stage.name, ps.key) for ps in planned}))],
-        })
-    return store.worlds / config.name
+            "steps": [{"stage": r.stage, "key": r.key, "status": r.status, "seconds": round(r.seconds, 3)}
+                      for r in steps or ()],
+        }
+        write_json(work / MANIFEST, manifest)
+    final = store.worlds / config.name
+    if os.environ.get("WORLDBAKE_REPORT", "1").strip() != "0":  # 0: no report (the test suite's many small bakes)
+        from .report import write_report  # after the rename: the layer's relative paths resolve from there
+
+        world_usda = final / "world.usda"
+        write_report(store, final, manifest, world_usda if world_usda.is_file() else None)
+    return final
 
 
 # --------------------------------------------------------------------------- the bake

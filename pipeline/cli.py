@@ -1,20 +1,25 @@
 """The `worldbake` command.
 
-    worldbake bake CONFIG [--variant NAME | --all-variants] [--set KEY=VALUE ...] [--json] [--executor local|dask|ADDRESS]
-    worldbake plan CONFIG [--variant NAME | --all-variants] [--set KEY=VALUE ...] [--json]
+    worldbake bake CONFIG [--variant NAME | --all-variants] [--set KEY=VALUE ...] [--name WORLD] [--replace] [--json]
+                          [--executor local|dask|ADDRESS]
+    worldbake plan CONFIG [--variant NAME | --all-variants] [--set KEY=VALUE ...] [--name WORLD] [--json]
     worldbake validate WORLD_DIR_OR_USD
-    worldbake gc
+    worldbake worlds [--json]
+    worldbake gc [--dry-run]
     worldbake export WORLD DEST
+    worldbake diff A B [--json]
+    worldbake report WORLD
     worldbake describe
     worldbake devices [--json]
 
-Exit status: 0 done, 1 a stage failed (numerical blow-up, broken invariant),
+Exit status: 0 done (diff: equal), 1 a stage failed (diff: different) (numerical blow-up, broken invariant),
 2 bad config or input file (nothing written), 3 no usable OpenCL device
 (the message names each device tried and why it failed).
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -23,11 +28,12 @@ from pathlib import Path
 from . import usdio
 from .bake import check_world, key_step, plan_bake
 from .executors import bake_worlds
-from .config import list_variants, load_config
+from .config import check_name, list_variants, load_config
 from .errors import DeviceError, InputError, StageError
 from .graph import build_graph
 from .registry import all_stages
 from .store import Store, StoreBusy
+from .worlds import check_replace, list_worlds
 
 
 def _configs(args) -> list:
@@ -43,6 +49,10 @@ def _configs(args) -> list:
         load_config(path, stages, project_root=root, variant=args.variant, sets=args.set)  # names the problem
     wanted = every if args.all_variants else [args.variant]
     configs = {v: load_config(path, stages, project_root=root, variant=v, sets=args.set) for v in every}
+    if args.name is not None:  # the world's name instead of the config's (variants: NAME-variant)
+        check_name(args.name, "--name", "name", "the world name")
+        configs = {v: dataclasses.replace(c, name=args.name if v is None else f"{args.name}-{v}")
+                   for v, c in configs.items()}
     for config in configs.values():
         check_world(graph, config)
     return [configs[v] for v in wanted]
@@ -83,6 +93,7 @@ def _cmd_bake(args) -> int:
     graph = build_graph(all_stages())
     configs = _configs(args)  # every config validated before any work
     store = Store(Path(args.project) / args.build)
+    check_replace(store, configs, args.replace)
     reports = bake_worlds(store, configs, graph, executor=args.executor, checked=True)
     summary = []
     for config in configs:
@@ -117,7 +128,7 @@ def _cmd_validate(args) -> int:
 def _cmd_export(args) -> int:
     store = Store(Path(args.project) / args.build)
     dest = store.export(args.world, Path(args.dest))
-    errors = usdio.validate(dest / "world.usda" if dest.is_dir() else dest)
+    errors = usdio.validate(dest)
     print(f"exported world {args.world} to {dest} ({len(errors)} validation errors)")
     return 1 if errors else 0
 
@@ -132,14 +143,52 @@ def _cmd_describe(args) -> int:
 def _cmd_gc(args) -> int:
     store = Store(Path(args.project) / args.build)
     try:
-        removed = store.gc(wait=not args.no_wait)
+        removed = store.gc(wait=not args.no_wait, dry_run=args.dry_run)
     except StoreBusy as e:
         print(f"worldbake: gc: {e}; nothing removed (without --no-wait, gc waits for it)", file=sys.stderr)
         return 1
+    verb = "would remove" if args.dry_run else "removed"
     for p in removed:
-        print(f"removed {p}")
-    print(f"{len(removed)} unreferenced artifact folders removed")
+        print(f"{verb} {p}")
+    print(f"{len(removed)} unreferenced artifact folders " + ("would be removed (dry run: nothing removed)"
+                                                              if args.dry_run else "removed"))
     return 0
+
+
+def _cmd_worlds(args) -> int:
+    rows = list_worlds(Store(Path(args.project) / args.build))
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return 0
+    for r in rows:
+        overrides = " ".join(f"{k}={json.dumps(v)}" for k, v in r["overrides"].items()) or "(no overrides)"
+        variant = f" [variant {r['variant']}]" if r["variant"] else ""
+        usd = "world.usda" if r["world_usda"] else "no world.usda"
+        print(f"{r['world']:<20} {r['config']}{variant}  {usd}  {overrides}")
+    print(f"{len(rows)} worlds")
+    return 0
+
+
+def _cmd_report(args) -> int:
+    from .report import write_report
+    from .worlds import world_manifest
+
+    store = Store(Path(args.project) / args.build)
+    manifest = world_manifest(store, args.world)
+    if manifest is None:
+        raise InputError(f"no baked world {args.world!r} in {store.worlds}")
+    folder = store.worlds / args.world
+    usd = folder / "world.usda"
+    print(write_report(store, folder, manifest, usd if usd.is_file() else None))
+    return 0
+
+
+def _cmd_diff(args) -> int:
+    from .diff import diff_worlds, format_diff
+
+    result = diff_worlds(Store(Path(args.project) / args.build), args.a, args.b)
+    print(json.dumps(result, indent=2) if args.json else format_diff(result), end="" if not args.json else "\n")
+    return 0 if result["equal"] else 1
 
 
 def _cmd_devices(args) -> int:
@@ -181,7 +230,11 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                        help="override a config key, e.g. --set heightmap.octaves=8 (repeatable)")
         p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
+        p.add_argument("--name", help="the world's name (default: the config's name); with variants, NAME-variant")
         if name == "bake":
+            p.add_argument("--replace", action="store_true",
+                           help="replace a world of the same name baked from another config, variant or overrides "
+                                "(without it such a bake is refused)")
             p.add_argument("--executor", default="local", metavar="local|dask|ADDRESS",
                            help="local: in this process (default); dask: an embedded Dask LocalCluster "
                                 "(2 worker processes); tcp://HOST:PORT: a running Dask scheduler")
@@ -189,6 +242,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("path", help="a world folder or USD file")
     p = sub.add_parser("gc", help="remove artifacts no world references (waits for running bakes)")
     p.add_argument("--no-wait", action="store_true", help="refuse (exit 1) instead of waiting while a bake runs")
+    p.add_argument("--dry-run", action="store_true", help="print what would be removed; remove nothing")
+    p = sub.add_parser("worlds", help="list the baked worlds with their config and overrides")
+    p.add_argument("--json", action="store_true", help="print as JSON")
+    p = sub.add_parser("report", help="(re)write build/worlds/WORLD/report.html (a bake writes it unless WORLDBAKE_REPORT=0)")
+    p.add_argument("world", help="the world's name (a folder in build/worlds/)")
+    p = sub.add_parser("diff", help="what differs between two worlds: parameters, stage keys, artifacts "
+                                    "(exit 0 equal, 1 different)")
+    p.add_argument("a", help="a world name, a world folder, or a saved world manifest.json")
+    p.add_argument("b", help="a world name, a world folder, or a saved world manifest.json")
+    p.add_argument("--json", action="store_true", help="print as JSON")
     p = sub.add_parser("export", help="a self-contained copy of a baked world: a folder, or a .usdz file")
     p.add_argument("world", help="the world's name (a folder in build/worlds/)")
     p.add_argument("dest", help="a new folder, or a path ending in .usdz")
@@ -197,7 +260,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true", help="print as JSON")
     args = parser.parse_args(argv)
     handlers = {"bake": _cmd_bake, "plan": _cmd_plan, "validate": _cmd_validate, "gc": _cmd_gc, "export": _cmd_export,
-                "describe": _cmd_describe, "devices": _cmd_devices}
+                "describe": _cmd_describe, "devices": _cmd_devices, "worlds": _cmd_worlds, "diff": _cmd_diff,
+                "report": _cmd_report}
     try:
         return handlers[args.command](args)
     except InputError as e:  # a bad config or input file

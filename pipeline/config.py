@@ -89,6 +89,7 @@ class WorldConfig:
     params: dict[str, Params]  # per stage, validated
     file_hashes: dict[str, str]  # "stage.param" -> sha256 of the file a ProjectPath names
     origin: dict[str, str] = dataclasses.field(default_factory=dict, compare=False)  # key -> the file (or --set) it came from
+    overrides: dict[str, Any] = dataclasses.field(default_factory=dict)  # --set KEY=VALUE, in order (the world's history)
 
 
 def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -275,6 +276,7 @@ def load_config(path: Path | str, stages: dict[str, Stage], *, project_root: Pat
     path = Path(path)
     root = Path(project_root or Path.cwd()).resolve()
     origin: dict[str, str] = {}
+    overrides: dict[str, Any] = {}
     shown = _display(path, root)
     tree = _read_toml(path, root, (), origin)
 
@@ -294,6 +296,7 @@ def load_config(path: Path | str, stages: dict[str, Stage], *, project_root: Pat
                              f"(it is read before --set applies); edit the config file")
         _set_dotted(tree, key, value)
         origin[key] = "--set"
+        overrides[key] = value
     _check_values(tree, origin, shown)
 
     for key in tree:
@@ -352,7 +355,8 @@ def load_config(path: Path | str, stages: dict[str, Stage], *, project_root: Pat
         for other in variants:
             load_config(path, stages, project_root=root, variant=other, sets=sets)
     return WorldConfig(path=path, project_root=root, name=name, variant=variant, seed=seed,
-                       outputs=tuple(outputs), params=params, file_hashes=file_hashes, origin=dict(origin))
+                       outputs=tuple(outputs), params=params, file_hashes=file_hashes, origin=dict(origin),
+                       overrides=overrides)
 
 
 def canonical_params(model: Params) -> str:

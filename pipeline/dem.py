@@ -7,7 +7,10 @@ The first channel is taken. Values become metres:
 - integer files (8/16/32-bit, signed or not) need dem_min_m and dem_max_m:
   the full range of the type (0..65535 for 16-bit PNG) maps linearly onto them.
 
-The DEM covers the whole square world; it is resampled to the world grid by
+A DEM whose file states its cell size (GeoTIFF pixel scale, EXR attribute
+worldbake:cell_size_m), or given one by the config, is used at its own cells:
+the world is its rows x cols (rectangular when the DEM is). Otherwise the
+DEM covers the whole square world; it is resampled to the world grid by
 bilinear interpolation between pixel centres (pixel-is-area on both sides,
 clamped at the borders), so a linear ramp stays the same ramp. Each cell is
 computed independently from the same formula, so a window is bit-identical
@@ -75,6 +78,86 @@ def read_dem(path: str | Path, dem_min_m: float | None = None, dem_max_m: float 
     return values
 
 
+# GeoTIFF ModelPixelScaleTag: (x, y, z) size of a pixel in the model's units (metres for projected DEMs)
+GEOTIFF_PIXEL_SCALE = 33550
+CELL_SIZE_ATTRIBUTES = ("worldbake:cell_size_m", "cell_size_m")  # EXR header attributes read as the cell size
+
+
+def _tiff_pixel_scale(path: Path) -> tuple[float, float] | None:
+    """The GeoTIFF pixel scale (x, y) of a TIFF's first image, from its tag
+    directory (OpenImageIO does not report GeoTIFF tags); None without one."""
+    import struct
+
+    with open(path, "rb") as f:
+        head = f.read(16)
+        if len(head) < 8 or head[:2] not in (b"II", b"MM"):
+            return None
+        e = "<" if head[:2] == b"II" else ">"
+        magic = struct.unpack(e + "H", head[2:4])[0]
+        big = magic == 43
+        if magic not in (42, 43):
+            return None
+        offset = struct.unpack(e + "Q", head[8:16])[0] if big else struct.unpack(e + "I", head[4:8])[0]
+        f.seek(offset)
+        count_fmt, entry_size = (e + "Q", 20) if big else (e + "H", 12)
+        raw = f.read(8 if big else 2)
+        if len(raw) < (8 if big else 2):
+            return None
+        n = struct.unpack(count_fmt, raw)[0]
+        entries = f.read(min(n, 4096) * entry_size)
+        for i in range(len(entries) // entry_size):
+            entry = entries[i * entry_size:(i + 1) * entry_size]
+            tag, kind = struct.unpack(e + "HH", entry[:4])
+            if tag != GEOTIFF_PIXEL_SCALE or kind != 12:  # 12: DOUBLE
+                continue
+            count = struct.unpack(e + "Q", entry[4:12])[0] if big else struct.unpack(e + "I", entry[4:8])[0]
+            if count < 2:
+                return None
+            where = struct.unpack(e + "Q", entry[12:20])[0] if big else struct.unpack(e + "I", entry[8:12])[0]
+            f.seek(where)
+            data = f.read(16)
+            return struct.unpack(e + "dd", data) if len(data) == 16 else None
+    return None
+
+
+def dem_cell_size(path: str | Path, label: str = "DEM file") -> float | None:
+    """The cell size in metres a DEM file states: the GeoTIFF pixel scale of
+    a TIFF, or an EXR header attribute worldbake:cell_size_m (or cell_size_m);
+    None when it states none. Cells that are not square are refused."""
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if path.suffix.lower() in (".tif", ".tiff"):
+        scale = _tiff_pixel_scale(path)
+        if scale is None:
+            return None
+        sx, sy = (abs(float(v)) for v in scale)
+        if not (np.isfinite(sx) and sx > 0 and np.isfinite(sy) and sy > 0):
+            raise InputError(f"{label} {path}: GeoTIFF pixel scale {scale} is not a positive size")
+        if abs(sx - sy) > 1e-6 * max(sx, sy):
+            raise InputError(f"{label} {path}: its pixels are {sx:g} x {sy:g} (GeoTIFF pixel scale), not square; "
+                             f"resample it to square cells first")
+        return sx
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        return None
+    try:
+        spec = inp.spec()
+        for name in CELL_SIZE_ATTRIBUTES:
+            value = spec.getattribute(name)
+            if value is not None:
+                try:
+                    cell = float(value)
+                except (TypeError, ValueError):
+                    raise InputError(f"{label} {path}: attribute {name} = {value!r} is not a number") from None
+                if not (np.isfinite(cell) and cell > 0):
+                    raise InputError(f"{label} {path}: attribute {name} = {cell!r} is not a positive size")
+                return cell
+    finally:
+        inp.close()
+    return None
+
+
 def _taps(n_out: int, n_src: int, first: int, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Source indices and weight for output cells [first, first+count) of n_out
     cells spanning the same extent as n_src source pixels (centre to centre)."""
@@ -114,6 +197,8 @@ def load_dem(
     h, w = src.shape
     if abs(w / h - 1.0) > max_aspect_error:
         raise InputError(
-            f"DEM file {path} is {w}x{h} pixels but the world is square: crop or pad it to a square first"
+            f"DEM file {path} is {w}x{h} pixels but the world is square: crop or pad it to a square, or give "
+            f"its cell size (heightmap.dem_cell_size_m, or in the file: GeoTIFF pixel scale, EXR attribute "
+            f"worldbake:cell_size_m) to bake it at its own cells"
         )
     return resample(src, resolution, window)

@@ -125,7 +125,7 @@ def _bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, executo
                     print(f"{head} {report.key} ran in {report.seconds:.2f} s", file=log, flush=True)
                 keys[ps.stage.name] = report.key
                 done.append(report)
-            publish_world(store, config, _keyed(store, planned, graph, keys))
+            publish_world(store, config, _keyed(store, planned, graph, keys), done)
             reports[config.name] = done
         return reports
 
@@ -147,7 +147,7 @@ def _bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, executo
         for config, planned in plans:
             reports[config.name] = [results[ps.recipe] for ps in planned]
             keys = {r.stage: r.key for r in reports[config.name]}
-            publish_world(store, config, _keyed(store, planned, graph, keys))
+            publish_world(store, config, _keyed(store, planned, graph, keys), reports[config.name])
     finally:
         client.close()
         if cluster is not None:

@@ -80,6 +80,14 @@ def read_grid(path: Path | str) -> Grid:
     return Grid(np.ascontiguousarray(data), float(cell), names, origin)
 
 
+def channel_names(path: Path | str) -> list[str]:
+    """The channel names of an image in the order the file stores them
+    (OpenEXR sorts them by name: lake.depth, lake.id, lake.level whatever
+    order they were written in); read a channel by its name, not its place."""
+    with _image_input(path) as inp:
+        return list(inp.spec().channelnames)
+
+
 def read_attributes(path: Path | str) -> dict[str, Any]:
     """The header attributes of an image, as a dict."""
     with _image_input(path) as inp:

@@ -176,15 +176,16 @@ class Store:
                     refs.add((entry["stage"], entry["key"]))
         return self.closure(refs)
 
-    def gc(self, wait: bool = True) -> list[Path]:
+    def gc(self, wait: bool = True, dry_run: bool = False) -> list[Path]:
         """Remove every artifact folder that no world references, once no
-        bake uses the store (wait: until then; else StoreBusy)."""
+        bake uses the store (wait: until then; else StoreBusy). dry_run:
+        the folders that would go, nothing removed."""
         if not self.build.is_dir():
             return []
         with self._locked(fcntl.LOCK_EX, wait, f"worldbake: gc waits for the bakes using {self.build}"):
-            return self._gc()
+            return self._gc(dry_run)
 
-    def _gc(self) -> list[Path]:
+    def _gc(self, dry_run: bool = False) -> list[Path]:
         keep = self.referenced_keys()
         removed = []
         if not self.artifacts.is_dir():
@@ -192,40 +193,18 @@ class Store:
         for stage_dir in sorted(self.artifacts.iterdir()):
             for key_dir in sorted(stage_dir.iterdir()):
                 if (stage_dir.name, key_dir.name) not in keep:
-                    shutil.rmtree(key_dir)
+                    if not dry_run:
+                        shutil.rmtree(key_dir)
                     removed.append(key_dir)
-            if not any(stage_dir.iterdir()):
+            if not dry_run and not any(stage_dir.iterdir()):
                 stage_dir.rmdir()
-        self.clean_stale()
+        if not dry_run:
+            self.clean_stale()
         return removed
 
     def export(self, world: str, dest: Path) -> Path:
-        """A self-contained copy of a world for handoff. A folder keeps the
-        store's layout (worlds/<world>/ beside artifacts/<stage>/<key>/ of
-        just the artifacts it uses), so every relative path in the USD still
-        resolves; a .usdz packs every layer and texture into one file."""
-        from .errors import InputError
+        """A self-contained copy of a world for handoff (pipeline.export):
+        a folder with readable names, or a .usdz. Returns its root layer."""
+        from .export import export_world
 
-        src = self.worlds / world
-        if not (src / MANIFEST).is_file():
-            raise InputError(f"no baked world {world!r} in {self.worlds}")
-        if dest.exists():
-            raise InputError(f"{dest} exists; export writes a new folder or file")
-        if dest.suffix == ".usdz":
-            from pxr import Sdf, UsdUtils
-
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(src / "world.usda")), str(dest)):
-                raise OSError(f"cannot write {dest}")
-            return dest
-        work = dest.with_name(dest.name + f".part-{os.getpid()}")
-        shutil.rmtree(work, ignore_errors=True)
-        try:
-            shutil.copytree(src, work / "worlds" / world)
-            named = {(e["stage"], e["key"]) for e in json.loads((src / MANIFEST).read_text())["artifacts"]}
-            for stage, key in sorted(self.closure(named)):
-                shutil.copytree(self.folder(stage, key), work / "artifacts" / stage / key)
-            os.rename(work, dest)
-        finally:
-            shutil.rmtree(work, ignore_errors=True)
-        return dest / "worlds" / world
+        return export_world(self, world, dest)

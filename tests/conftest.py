@@ -9,8 +9,13 @@ with the same strictness. Unmarked tests run on the device a bake would use.
 from __future__ import annotations
 
 import functools
+import os
 
 import pytest
+
+# The suite's many small bakes write no report.html (its world picture costs seconds
+# a bake); tests/pipeline/test_handoff.py bakes with it and checks it.
+os.environ.setdefault("WORLDBAKE_REPORT", "0")
 
 
 @functools.lru_cache(maxsize=1)

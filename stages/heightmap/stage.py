@@ -78,7 +78,13 @@ class HeightmapParams(Params):
     )
     # DEM import
     dem_path: Optional[ProjectPath] = Param(
-        None, units="path", validate_default=True, description="dem: the DEM file (EXR, TIFF, 16-bit PNG; first channel), stretched over the square world",
+        None, units="path", validate_default=True, description="dem: the DEM file (EXR, TIFF, 16-bit PNG; first channel), at its own cells when its cell size is known (dem_cell_size_m), else stretched over the square world",
+    )
+    dem_cell_size_m: Optional[float] = Param(
+        None, units="m", description="dem: the DEM's cell size; the world is then the DEM's own cells (rows x cols, "
+        "rectangular when the DEM is; resolution and size_m unused). Default: the cell size the file states "
+        "(GeoTIFF pixel scale, EXR attribute worldbake:cell_size_m); a file stating none is stretched over the square world",
+        gt=0.0, le=1e5,
     )
     dem_min_m: Optional[float] = Param(
         None, units="m", description="dem: height of the smallest integer value (or of 0.0 for a normalised float file)", ge=-1e5, le=1e5,
@@ -172,7 +178,15 @@ def heights(
     tile = p.tile
     if p.generator == "dem":
         t0 = time.perf_counter()
-        h = dem.load_dem(dem_file or p.dem_path, p.resolution, tile, p.dem_min_m, p.dem_max_m)
+        path = dem_file or p.dem_path
+        cell = p.dem_cell_size_m or dem.dem_cell_size(path)
+        if cell is not None:  # the DEM's own cells: the world is its rows x cols
+            src = dem.read_dem(path, p.dem_min_m, p.dem_max_m)
+            col0, row0, cols, rows = tile if p.window is not None else (0, 0, src.shape[1], src.shape[0])
+            h = np.ascontiguousarray(src[row0:row0 + rows, col0:col0 + cols], np.float32)
+            return h, {"dem_seconds": time.perf_counter() - t0, "dem_cell_size_m": float(cell),
+                       "dem_shape": list(src.shape)}
+        h = dem.load_dem(path, p.resolution, tile, p.dem_min_m, p.dem_max_m)
         return h, {"dem_seconds": time.perf_counter() - t0}
     from pipeline.opencl import get_cl
 
@@ -190,7 +204,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HeightmapParams) -> dic
     if not np.isfinite(h).all():
         raise StageError(f"heightmap: generator {params.generator!r} produced {int((~np.isfinite(h)).sum())} non-finite heights")
     col0, row0, _, _ = params.tile
-    dx = params.cell_size_m
+    dx = info.get("dem_cell_size_m", params.cell_size_m)
     grid = Grid(h, cell_size_m=dx, channels=("height",), origin_m=(col0 * dx, row0 * dx))
     ctx.progress(0.9, "hillshade")
     shade = hillshade(grid)
@@ -213,15 +227,27 @@ def check(params: HeightmapParams, ctx: CheckContext) -> Check:
     cols, rows = (params.window[2], params.window[3]) if params.window else (res, res)
     memory = BYTES_PER_CELL * rows * cols
     how = f"heightmap.resolution = {res}: {rows} x {cols} cells x {BYTES_PER_CELL} B"
+    grid = GridInfo((rows, cols), params.size_m / res, "heightmap.resolution")
     if params.generator == "dem":
         try:
             src = dem.read_dem(ctx.resolve(params.dem_path), params.dem_min_m, params.dem_max_m)
+            cell = params.dem_cell_size_m or dem.dem_cell_size(ctx.resolve(params.dem_path))
         except InputError as e:
             raise ParamError("dem_path", str(e)) from None
+        if cell is not None:  # the world is the DEM's own cells
+            if params.window is not None:
+                c0, r0, cols, rows = params.window
+                if c0 + cols > src.shape[1] or r0 + rows > src.shape[0]:
+                    raise ParamError("window", f"window {list(params.window)} reaches past the DEM's "
+                                               f"{src.shape[1]} x {src.shape[0]} cells")
+            else:
+                rows, cols = src.shape
+            memory = BYTES_PER_CELL * rows * cols
+            how = f"heightmap.dem_path: {rows} x {cols} cells x {BYTES_PER_CELL} B"
+            grid = GridInfo((rows, cols), float(cell), "heightmap.dem_path")
         memory += 16 * src.size
         how += f" + the DEM's {src.shape[1]} x {src.shape[0]} pixels x 16 B"
-    return Check(memory_bytes=memory, memory_how=how,
-                 grids={"heightmap.height": GridInfo((rows, cols), params.size_m / res, "heightmap.resolution")})
+    return Check(memory_bytes=memory, memory_how=how, grids={"heightmap.height": grid})
 
 
 STAGE = Stage(

@@ -154,3 +154,49 @@ def test_run_resolves_dem_path_against_project_root(tmp_path):
     g = STAGE.run(ctx, {}, p)["heightmap.height"]
     np.testing.assert_allclose(g.data, ramp(16), atol=1e-3)
     assert "dem_seconds" in ctx.metrics
+
+
+def _exr_with_cell_size(path, data, cell):
+    out = oiio.ImageOutput.create(str(path))
+    spec = oiio.ImageSpec(data.shape[1], data.shape[0], 1, "float")
+    spec.attribute("worldbake:cell_size_m", float(cell))
+    assert out.open(str(path), spec), out.geterror()
+    assert out.write_image(np.ascontiguousarray(data[:, :, None].astype(np.float32))), out.geterror()
+    out.close()
+
+
+def test_dem_stating_its_cell_size_is_baked_at_its_own_cells(tmp_path):
+    """A 40 x 30 DEM with worldbake:cell_size_m: the world is its 30 rows x 40
+    columns at that cell size, the heights its values; the config's
+    dem_cell_size_m overrides the file's; resolution and size_m are unused."""
+    from pipeline.contract import RunContext
+    from stages.heightmap import STAGE
+
+    src = np.add.outer(np.arange(30) * -2.0, np.arange(40) * 3.0) + 150.0
+    path = tmp_path / "rect.exr"
+    _exr_with_cell_size(path, src, 12.5)
+    assert dem.dem_cell_size(path) == 12.5
+    ctx = RunContext(stage=STAGE, key="k", out_dir=tmp_path / "out", seed=0, provenance={}, project_root=tmp_path)
+    g = STAGE.run(ctx, {}, dem_params(path, 16))["heightmap.height"]
+    assert g.shape == (30, 40) and g.cell_size_m == 12.5 and g.size_m == (500.0, 375.0)
+    np.testing.assert_array_equal(g.data, src.astype(np.float32))
+    g = STAGE.run(ctx, {}, dem_params(path, 16, dem_cell_size_m=4.0))["heightmap.height"]
+    assert g.shape == (30, 40) and g.cell_size_m == 4.0
+    window = STAGE.run(ctx, {}, dem_params(path, 64, window=[5, 4, 20, 10]))["heightmap.height"]
+    np.testing.assert_array_equal(window.data, src[4:14, 5:25].astype(np.float32))
+    assert window.origin_m == (5 * 12.5, 4 * 12.5)
+
+
+def test_geotiff_pixel_scale_is_the_cell_size(tmp_path):
+    tifffile = pytest.importorskip("tifffile")
+    src = np.random.default_rng(0).random((30, 40)).astype(np.float32) * 100
+    for name, scale, big in (("geo.tif", (10.0, 10.0, 0.0), False), ("big.tif", (2.5, 2.5, 0.0), True)):
+        tifffile.imwrite(tmp_path / name, src, bigtiff=big, extratags=[(33550, 12, 3, scale, False)])
+        assert dem.dem_cell_size(tmp_path / name) == scale[0]
+        h, info = heights(dem_params(tmp_path / name, 16), seed=0)
+        assert h.shape == (30, 40) and info["dem_cell_size_m"] == scale[0]
+    tifffile.imwrite(tmp_path / "plain.tif", src)
+    assert dem.dem_cell_size(tmp_path / "plain.tif") is None
+    tifffile.imwrite(tmp_path / "skew.tif", src, extratags=[(33550, 12, 3, (10.0, 5.0, 0.0), False)])
+    with pytest.raises(InputError, match="skew.tif.*not square"):
+        dem.dem_cell_size(tmp_path / "skew.tif")

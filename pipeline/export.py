@@ -1,0 +1,211 @@
+"""`worldbake export`: a baked world as a self-contained copy for handoff.
+
+A folder export holds world.usda, the world's manifest (and report, when
+there is one) and one folder per stage named after the stage (`terrain/`
+would be the world stage's `world/`), with every file the stage run wrote;
+a stage whose earlier run a cached step still reads (early cutoff) gets a
+second folder `<stage>-<key prefix>`. Every asset path in every layer is
+rewritten to point inside the copy, relative to the layer, so the copy
+opens wherever it is moved and after build/ is deleted.
+
+A .usdz is made from such a folder in a temporary place, after replacing
+each EXR texture the layers reference by an 8-bit PNG (USDZ viewers such as
+ARKit and Quick Look read PNG and JPEG only): colour textures are encoded
+sRGB (the shader's sourceColorSpace set to sRGB), data textures (normal maps,
+which carry scale and bias) keep their 0..1 values as raw. UDIM patterns
+(`ground.<UDIM>.exr`) are converted tile by tile; USD resolves each tile.
+Only what the layers reference goes into the package.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .store import MANIFEST, Store
+
+LAYER_SUFFIXES = (".usda", ".usdc", ".usd")
+WORLD_FILES = ("world.usda", MANIFEST, "report.html")
+
+
+def export_world(store: Store, world: str, dest: Path) -> Path:
+    """Write the export; returns the root layer (folder) or the .usdz file."""
+    src = store.worlds / world
+    if not (src / MANIFEST).is_file():
+        raise InputError(f"no baked world {world!r} in {store.worlds}")
+    if not (src / "world.usda").is_file():
+        raise InputError(f"world {world!r} has no world.usda (its bake did not include the world stage)")
+    if dest.exists():
+        raise InputError(f"{dest} exists; export writes a new folder or file")
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    if dest.suffix == ".usdz":
+        with tempfile.TemporaryDirectory(prefix="worldbake-usdz-", dir=dest.parent) as tmp:
+            folder = Path(tmp) / "world"
+            _copy_folder(store, world, folder)
+            _textures_to_png(folder)
+            _package(folder / "world.usda", dest)
+        return dest
+    work = dest.with_name(dest.name + f".part-{os.getpid()}")
+    shutil.rmtree(work, ignore_errors=True)
+    try:
+        _copy_folder(store, world, work)
+        os.rename(work, dest)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return dest / "world.usda"
+
+
+def folder_names(store: Store, world: str) -> dict[tuple[str, str], str]:
+    """(stage, key) -> its folder in the export: the stage's name for the
+    run the world names, `<stage>-<key[:8]>` for earlier runs it still reads."""
+    manifest = json.loads((store.worlds / world / MANIFEST).read_text())
+    named = {e["stage"]: e["key"] for e in manifest["artifacts"]}
+    names = {}
+    for stage, key in sorted(store.closure(set(named.items()))):
+        names[(stage, key)] = stage if named.get(stage) == key else f"{stage}-{key[:8]}"
+    return names
+
+
+def _copy_folder(store: Store, world: str, out: Path) -> None:
+    src = store.worlds / world
+    names = folder_names(store, world)
+    where = {store.folder(s, k).resolve(): out / name for (s, k), name in names.items()}
+    where[src.resolve()] = out
+    out.mkdir(parents=True)
+    for f in WORLD_FILES:
+        if (src / f).is_file():
+            shutil.copy2(src / f, out / f)
+    for p in src.glob("*.png"):  # the report's pictures
+        shutil.copy2(p, out / p.name)
+    for (stage, key), name in names.items():
+        shutil.copytree(store.folder(stage, key), out / name)
+    layers = [out / "world.usda"] + [p for name in names.values() for p in sorted((out / name).rglob("*"))
+                                     if p.suffix in LAYER_SUFFIXES]
+    back = {v: k for k, v in where.items()}  # export folder -> the store folder it came from
+    for layer_path in layers:
+        origin = _origin(layer_path, out, back)
+        _rewrite_layer(layer_path, origin, where)
+
+
+def _origin(layer_path: Path, out: Path, back: dict[Path, Path]) -> Path:
+    """Where a copied layer was in the store."""
+    for folder, source in back.items():
+        try:
+            rel = layer_path.relative_to(folder)
+        except ValueError:
+            continue
+        if folder == out and len(rel.parts) > 1:
+            continue  # a file of a stage folder, not of the world folder
+        return source / rel
+    raise AssertionError(layer_path)
+
+
+def _rewrite_layer(layer_path: Path, origin: Path, where: dict[Path, Path]) -> None:
+    """Every asset path of the layer, which sat at `origin`, re-pointed to
+    the copy of its target, relative to the layer's new place."""
+    from pxr import Sdf, UsdUtils
+
+    layer = Sdf.Layer.FindOrOpen(str(layer_path))
+
+    def remap(path: str) -> str:
+        if not path or "://" in path:
+            return path
+        target = Path(os.path.normpath(origin.parent / path)) if not os.path.isabs(path) else Path(path)
+        for folder, copy in where.items():
+            try:
+                rel = target.relative_to(folder)
+            except ValueError:
+                continue
+            new = os.path.relpath(copy / rel, layer_path.parent).replace(os.sep, "/")
+            return new if new.startswith("../") else "./" + new
+        raise InputError(f"{origin}: asset path {path!r} points outside the world's artifacts; cannot export it")
+
+    UsdUtils.ModifyAssetPaths(layer, remap)
+    layer.Save()
+
+
+# --------------------------------------------------------------------------- .usdz
+
+
+def _texture_attributes(layer):
+    """(attribute spec, its shader prim spec) for every asset-valued input
+    of the layer's shaders ending in .exr."""
+    from pxr import Sdf
+
+    found = []
+
+    def visit(path):
+        if not path.IsPropertyPath():
+            return
+        spec = layer.GetAttributeAtPath(path)
+        if spec is None or spec.typeName != Sdf.ValueTypeNames.Asset or not spec.HasDefaultValue():
+            return
+        value = spec.default
+        if isinstance(value, Sdf.AssetPath) and value.path.lower().endswith(".exr"):
+            found.append((spec, layer.GetPrimAtPath(path.GetPrimPath())))
+    layer.Traverse(Sdf.Path.absoluteRootPath, visit)
+    return found
+
+
+def _exr_to_png(src: Path, dst: Path, colour: bool) -> None:
+    import OpenImageIO as oiio
+
+    buf = oiio.ImageBuf(str(src))
+    pixels = np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float32)
+    if colour:
+        from .render import srgb8
+
+        out = srgb8(pixels[..., :3]) if pixels.shape[-1] >= 3 else srgb8(np.repeat(pixels, 3, axis=-1))
+        if pixels.shape[-1] == 4:
+            out = np.concatenate([out, np.round(np.clip(pixels[..., 3:4], 0, 1) * 255).astype(np.uint8)], axis=-1)
+    else:
+        out = np.round(np.clip(pixels, 0.0, 1.0) * 255.0).astype(np.uint8)
+    out = np.ascontiguousarray(out)
+    if not oiio.ImageBuf(out).write(str(dst), oiio.UINT8):
+        raise OSError(f"cannot write {dst}: {oiio.geterror()}")
+
+
+def _textures_to_png(folder: Path) -> None:
+    """Each EXR texture a layer references replaced by a PNG beside it."""
+    from pxr import Sdf
+
+    for layer_path in sorted(p for p in folder.rglob("*") if p.suffix in LAYER_SUFFIXES):
+        layer = Sdf.Layer.FindOrOpen(str(layer_path))
+        changed = False
+        for spec, shader in _texture_attributes(layer):
+            path = spec.default.path
+            colour = "inputs:scale" not in shader.attributes and "inputs:bias" not in shader.attributes
+            full = Path(os.path.normpath(layer_path.parent / path))
+            pattern = re.escape(full.name).replace(re.escape("<UDIM>"), r"\d{4}")
+            files = sorted(p for p in full.parent.glob("*.exr") if re.fullmatch(pattern, p.name))
+            if not files:
+                raise InputError(f"{layer_path}: texture {path} not found in the export")
+            for f in files:
+                png = f.with_suffix(".png")
+                if not png.exists():
+                    _exr_to_png(f, png, colour)
+            spec.default = Sdf.AssetPath(path[: -len(".exr")] + ".png")
+            space = shader.attributes.get("inputs:sourceColorSpace")
+            if colour and space is not None:
+                space.default = "sRGB"
+            changed = True
+        if changed:
+            layer.Save()
+
+
+def _package(root_layer: Path, dest: Path) -> None:
+    from pxr import Sdf, UsdUtils
+
+    work = dest.with_name(dest.name + f".part-{os.getpid()}.usdz")
+    try:
+        if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(root_layer)), str(work)):
+            raise OSError(f"cannot write {dest}")
+        os.rename(work, dest)
+    finally:
+        work.unlink(missing_ok=True)

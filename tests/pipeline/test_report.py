@@ -1,0 +1,52 @@
+"""report.html's generic parts on a hand-made store (no bake): warnings,
+the stage table and the run time against error series come from whatever
+the runs' manifests hold, for any stage name."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from pipeline import exr
+from pipeline.grid import Grid
+from pipeline.report import World, stage_rows, time_error_series, warnings, write_report
+from pipeline.store import Store, write_json
+
+
+def _run(store: Store, stage: str, key: str, metrics: dict, outputs: dict | None = None) -> None:
+    folder = store.folder(stage, key)
+    folder.mkdir(parents=True)
+    write_json(folder / "manifest.json", {"stage": stage, "key": key, "params": {}, "inputs": {}, "files": {},
+                                          "outputs": outputs or {}, "timings": {"run_s": 1.5}, "metrics": metrics})
+
+
+def test_warnings_table_and_series_from_any_stage(tmp_path):
+    store = Store(tmp_path / "build")
+    suitability = np.zeros((4, 5, 2), np.float32)
+    suitability[..., 0] = 0.5  # fern finds land, cactus none
+    _run(store, "flora", "k1", {"unplaced": ["cactus"], "lod_budget_ok": False, "fit_error": 0.25,
+                                "chain": [{"seconds": 0.1, "max_error": 0.3}, {"seconds": 0.4, "max_error": 0.1}]},
+         {"flora.maps": {"kind": "grid", "file": "maps.exr", "channels": ["suitability.cactus", "suitability.fern"],
+                         "channel_units": {}}})
+    exr.write_grid(store.folder("flora", "k1") / "maps.exr",
+                   Grid(suitability[..., ::-1].copy(), 10.0, ("suitability.cactus", "suitability.fern")))
+    _run(store, "brandnew", "k2", {"voxels": 12})
+    manifest = {"world": "w", "config": "configs/x.toml", "seed": 1, "outputs": ["brandnew"],
+                "overrides": {"flora.density": 2, "ghost.param": 1}, "params": {"flora": {}, "brandnew": {}},
+                "artifacts": [{"stage": "flora", "key": "k1"}, {"stage": "brandnew", "key": "k2"}],
+                "steps": [{"stage": "flora", "key": "k1", "status": "ran", "seconds": 1.6},
+                          {"stage": "brandnew", "key": "k2", "status": "cached", "seconds": 0.0}]}
+    world = World(store, manifest)
+    text = "\n".join(warnings(world))
+    assert "cactus found no suitable land" in text and "fern" not in text
+    assert "unplaced: cactus" in text and "lod_budget_ok is false" in text
+    assert "ghost.param" in text and "flora.density" not in text
+    rows = {r["stage"]: r for r in stage_rows(world)}
+    assert rows["brandnew"]["status"] == "cached" and rows["brandnew"]["stats"] == {"voxels": 12}
+    assert rows["flora"]["errors"] == {"fit_error": 0.25}
+    (series,) = time_error_series(world)
+    assert series["stage"] == "flora" and series["points"] == [(0.1, 0.3), (0.4, 0.1)]
+    out = tmp_path / "page"
+    out.mkdir()
+    page = write_report(store, out, manifest, None).read_text()
+    assert "<td>brandnew</td>" in page and "cactus found no suitable land" in page
