@@ -118,6 +118,12 @@ def _write_textures(out_dir: Path, layer: Path, name: str, spec, res: PlantResul
         c = res.cards
         looks["foliage"] = {"albedo": rel(colour(f"{name}_foliage_albedo", c.albedo, c.alpha)),
                             "normal": rel(normal(f"{name}_foliage_normal", c.normal)), "wrap": "clamp", "alpha_test": True}
+        if c.translucency is not None:  # data maps for renderers with a translucency / thickness input (asset.py)
+            textures.write_exr(tex_dir / f"{name}_foliage_thickness.exr", c.thickness[..., None], ("Y",), provenance)
+            looks["foliage"]["thickness"] = rel(tex_dir / f"{name}_foliage_thickness.exr")
+            textures.write_exr(tex_dir / f"{name}_foliage_translucency.exr", c.translucency[..., None], ("Y",),
+                               provenance)
+            looks["foliage"]["translucency"] = rel(tex_dir / f"{name}_foliage_translucency.exr")
         if c.leaf_texture is not None:  # the blade texture the cluster was rendered with (not read by the asset)
             colour(f"{name}_leaf_albedo", c.leaf_texture)
     if res.slices is not None:

@@ -241,6 +241,10 @@ class VegetationParams(Params):
     grass_jitter: float = Param(
         0.8, units="", description="tuft jitter as a share of the tuft spacing (tufts are at least (1 - jitter) * "
         "spacing apart)", ge=0.0, le=1.0)
+    tint_variation: float = Param(
+        0.15, units="", description="per-instance colour variation: relative amplitude of each instance's tint "
+        "(primvars:tint on the PointInstancers: random brightness and hue, drier sites olive, young plants lighter; "
+        "0: every tint is 1)", ge=0.0, le=0.5)
     # terrain splat weights (seed 004, both defects fixed)
     snow_min_m: float = Param(1350.0, units="m", description="snow starts at this altitude", ge=-11000.0, le=9000.0)
     snow_max_m: float = Param(1500.0, units="m", description="full snow above this altitude", ge=-11000.0, le=9000.0)
