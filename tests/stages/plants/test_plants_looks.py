@@ -28,7 +28,8 @@ def looks(preset_builds):
         cov = res.cards.coverage if res.cards is not None else None
         rgba = _rgba(res) if res.cards is not None else None
         out[name] = [{"opacity": measure.crown_opacity(parts, PRESETS[name], rgba)["mean"],
-                      "foliage": measure.foliage_area(parts, cov), "wood": measure.surface_area(parts.get("Wood"))}
+                      "foliage": measure.foliage_area(parts, cov, measure.cards_per_cluster(PRESETS[name], cov is not None)),
+                      "wood": measure.surface_area(parts.get("Wood"))}
                      for parts in res.lods]
     return out
 
@@ -77,6 +78,7 @@ def test_foliage_area_counts_card_coverage():
     leaves = _square(0.0, 2.0)
     assert measure.foliage_area({"Leaves": leaves}, 0.25) == pytest.approx(0.5)
     assert measure.foliage_area({"Leaves": leaves}, None) == pytest.approx(2.0)
+    assert measure.foliage_area({"Leaves": leaves}, 0.25, 2) == pytest.approx(0.25)  # a crossed pair counts once
 
 
 @pytest.mark.parametrize("name", ["conifer", "broadleaf", "shrub", "meadow_flower"])
