@@ -419,20 +419,33 @@ def _with_stack(parts: list[Scene], textures: dict, size: int) -> Scene:
 
 
 def render_world(world_usda: str | Path, width: int = 1600, height: int = 900, camera: Camera | None = None,
-                 samples: int = 2, ao_rays: int = 2, sun=(-0.45, 0.75, 0.5), progress=print) -> np.ndarray:
-    """The world seen from `camera` (default: default_camera, an oblique
-    view of the whole world): (height, width, 4) uint8 sRGB RGBA, alpha 255
-    where something is hit (the sky is the shaded background)."""
+                 samples: int = 2, ao_rays: int = 2, sun=(-0.45, 0.75, 0.5), azimuth_deg: float = 200.0,
+                 elevation_deg: float = 32.0, zoom: float = 1.0, stats: dict | None = None,
+                 progress=print) -> np.ndarray:
+    """The world seen from `camera` (default: default_camera at the azimuth
+    and elevation, moved `zoom` times closer to the world's centre):
+    (height, width, 4) uint8 sRGB RGBA, alpha 255 where something is hit
+    (elsewhere the shaded sky). `stats`, when given, receives the scene
+    summary and the seconds spent."""
+    import time
+
     from . import Prepared
 
+    t0 = time.perf_counter()
     scene, summary = build_world_scene(world_usda, progress=progress)
+    t1 = time.perf_counter()
     lo, hi = np.asarray(summary["bounds"][0]), np.asarray(summary["bounds"][1])
-    cam = camera or default_camera(lo, hi, aspect=width / height)
+    cam = camera or default_camera(lo, hi, azimuth_deg, elevation_deg, aspect=width / height)
+    if camera is None and zoom != 1.0:
+        c = 0.5 * (lo + hi)
+        cam = Camera(tuple(c + (np.asarray(cam.eye) - c) / zoom), cam.forward, cam.up, fov_y_deg=cam.fov_y_deg)
     progress(f"world view: {scene.n_triangles:,} triangles, instances {summary['instances']}")
     img: Image = Prepared(scene).render(cam, Settings(width, height, samples=samples, ao_rays=ao_rays,
                                                       ao_radius_m=25.0, seed=1))
     shaded = img.shaded(sun=sun, sky=0.5, background=(0.55, 0.68, 0.85))
     alpha = np.round(np.clip(img.alpha, 0.0, 1.0) * 255.0).astype(np.uint8)
+    if stats is not None:
+        stats.update(summary, scene_s=round(t1 - t0, 2), render_s=round(time.perf_counter() - t1, 2))
     return np.concatenate([srgb8(shaded), alpha[..., None]], -1)
 
 
