@@ -132,8 +132,10 @@ def _pref(lo, hi, edge):
     return {"min": lo, "max": hi, "edge": edge}
 
 
-# Defaults tuned for the default world (8 km, heights about 200 .. 1500 m,
-# steep: median slope near 40 degrees): spruce-like conifers from the valleys
+# Defaults tuned for the default world before landscape evolution (8 km,
+# heights about 200 .. 1500 m, median slope near 40 degrees; the eroded
+# default world, median cell slope 54 degrees, overrides the slope and
+# altitude limits and the splat slopes in configs/default.toml): spruce-like conifers from the valleys
 # up to the tree line, broadleaves low and moist, shrubs everywhere up to the
 # crests, grass in the open. Tree scales are relative to the plant presets
 # (conifer about 5.5 m, broadleaf about 6 m, shrub 1.3 m, grass tuft 0.4 m).
