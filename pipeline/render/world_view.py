@@ -237,7 +237,7 @@ def _subtree_scene(root, root_to_world_inv: np.ndarray | None, textures: dict, s
 
 @dataclass
 class _Billboard:
-    cell: tuple[int, int, int]  # atlas cells of the two views (first index), cells per side, and unused
+    cell: tuple[int, int, int]  # atlas cell of the first of the two views, cells per side, texels per cell
     radius: float  # half width of the prototype (m, its own space)
     y0: float
     y1: float
@@ -248,7 +248,7 @@ def _bake_billboards(protos: dict, cells_per_side: int, cell_px: int, tex_stacks
     into atlas cells 2k and 2k + 1."""
     from . import Prepared
 
-    atlas = np.zeros((cells_per_side * cell_px, cells_per_side * cell_px, 4), np.float32)
+    atlas = np.zeros((ATLAS_SIZE, ATLAS_SIZE, 4), np.float32)  # cells_per_side * cell_px <= ATLAS_SIZE
     boards = {}
     for k, (name, scene) in enumerate(protos.items()):
         p = scene.positions.astype(np.float64)
@@ -259,22 +259,24 @@ def _bake_billboards(protos: dict, cells_per_side: int, cell_px: int, tex_stacks
         for view, (eye, fwd) in enumerate((((0.0, 0.5 * (y0 + y1), 10 * r + 1), (0.0, 0.0, -1.0)),
                                            ((10 * r + 1, 0.5 * (y0 + y1), 0.0), (-1.0, 0.0, 0.0)))):
             cam = Camera(eye, fwd, (0.0, 1.0, 0.0), ortho_height_m=h, ortho_width_m=2 * r)
-            img = prepared.render(cam, Settings(cell_px, cell_px, samples=3, ao_rays=6, ao_radius_m=0.15 * h, seed=k))
+            img = prepared.render(cam, Settings(cell_px, cell_px, samples=2, ao_rays=4, ao_radius_m=0.15 * h, seed=k))
             a = img.alpha
             rgb = img.albedo / np.maximum(a, 1e-6)[..., None] * (0.5 + 0.5 * img.ao)[..., None]
             c = 2 * k + view
             r0, c0 = (c // cells_per_side) * cell_px, (c % cells_per_side) * cell_px
             atlas[r0:r0 + cell_px, c0:c0 + cell_px] = np.concatenate([np.clip(rgb, 0, 1), a[..., None]], -1)
-        boards[name] = _Billboard((2 * k, cells_per_side, 0), r, y0, y1)
+        boards[name] = _Billboard((2 * k, cells_per_side, cell_px), r, y0, y1)
     return atlas, boards
 
 
-def _cell_uv(c: int, n: int) -> tuple[float, float, float, float]:
-    """uv rectangle of atlas cell c (row-major from the top), inset half a texel."""
+def _cell_uv(c: int, n: int, cell_px: int) -> tuple[float, float, float, float]:
+    """uv rectangle of atlas cell c (row-major from the top, n per row, of
+    cell_px texels), inset half a texel."""
     row, col = divmod(c, n)
+    cell = cell_px / ATLAS_SIZE
     eps = 0.5 / ATLAS_SIZE
-    u0, u1 = col / n + eps, (col + 1) / n - eps
-    v1, v0 = 1.0 - row / n - eps, 1.0 - (row + 1) / n + eps
+    u0, u1 = col * cell + eps, (col + 1) * cell - eps
+    v1, v0 = 1.0 - row * cell - eps, 1.0 - (row + 1) * cell + eps
     return u0, u1, v0, v1
 
 
@@ -284,7 +286,7 @@ def _billboard_instances(board: _Billboard, xforms: np.ndarray, tints: np.ndarra
     n = board.cell[1]
     quads, uvs, nrms = [], [], []
     for view in range(2):
-        u0, u1, v0, v1 = _cell_uv(board.cell[0] + view, n)
+        u0, u1, v0, v1 = _cell_uv(board.cell[0] + view, n, board.cell[2])
         if view == 0:  # seen from +z: image x is +x
             q = [(-r, y0, 0), (r, y0, 0), (r, y1, 0), (-r, y1, 0)]
             side = [(-1, 0, 0), (1, 0, 0), (1, 0, 0), (-1, 0, 0)]
@@ -368,6 +370,8 @@ def build_world_scene(world_usda: str | Path, min_instance_height_m: float = 0.8
             sel = idx == k
             if proto_scene[name] is not None and sel.any():
                 groups.setdefault(name, []).append((xf[sel], tints[sel]))
+    progress(f"world view: meshes and instancers read ({sum(len(p[0]) for g in groups.values() for p in g):,} "
+             f"instances)")
     # which prototypes are tall enough to see
     keep = {}
     summary = {"instances": {}, "skipped_small": {}}
@@ -384,7 +388,7 @@ def build_world_scene(world_usda: str | Path, min_instance_height_m: float = 0.8
         summary["instances"][name] = int(big.sum())
         summary["skipped_small"][name] = int((~big).sum())
     cells = max(1, math.ceil(math.sqrt(2 * max(len(keep), 1))))
-    cell_px = ATLAS_SIZE // cells
+    cell_px = min(ATLAS_SIZE // cells, 256)  # a billboard is a few pixels tall in a view of the whole world
     progress(f"world view: billboards of {sorted(keep)} ({cell_px} px cells)")
     atlas, boards = _bake_billboards({n: proto_scene[n] for n in keep}, cells, cell_px, proto_tex)
     # the texture stack: the meshes' textures, then the atlas
@@ -405,6 +409,7 @@ def build_world_scene(world_usda: str | Path, min_instance_height_m: float = 0.8
     for name, (xf, tn) in keep.items():
         b = _billboard_instances(boards[name], xf, tn, len(textures))
         parts.append(Scene(b.positions, b.normals, b.uv, b.triangles, b.tint, b.texture, stack))
+    progress("world view: billboards placed")
     scene = Scene.concat(parts)
     summary.update(triangles=scene.n_triangles, bounds=[lo.tolist(), hi.tolist()])
     return scene, summary
