@@ -12,11 +12,12 @@ primvars:displayColor), PointInstancers' prototypes, instance transforms
 per-instance primvars:tint (a colour factor, interpolation vertex).
 
 Distant instances are drawn as what a game draws far away: each prototype is
-rendered once from two sides (its default variants, i.e. its most detailed
+rendered once from two sides and from above (its default variants, i.e. its most detailed
 level, with AO) into a cell of a billboard atlas, and every instance becomes
-two crossed alpha-tested quads of its prototype's size, turned and scaled by
-its transform and multiplied by its tint. So a world of a million plants is
-four million triangles, not billions. Prototypes whose instances would be
+two crossed alpha-tested quads and a horizontal one (its top view) of its
+prototype's size, turned and scaled by its transform and multiplied by its
+tint. So a world of a million plants is
+six million triangles, not billions. Prototypes whose instances would be
 shorter than `min_instance_height_m` (grass tufts, flowers: a fraction of a
 pixel in a view of a whole world) are left to the ground's colour.
 Prototypes are told apart by their prim name (an instancer per tile points to
@@ -244,8 +245,8 @@ class _Billboard:
 
 
 def _bake_billboards(protos: dict, cells_per_side: int, cell_px: int, tex_stacks: dict) -> tuple[np.ndarray, dict]:
-    """Render each prototype's scene from +z and from +x (orthographic, AO)
-    into atlas cells 2k and 2k + 1."""
+    """Render each prototype's scene from +z, from +x and from above
+    (orthographic, AO) into atlas cells 3k, 3k + 1 and 3k + 2."""
     from . import Prepared
 
     atlas = np.zeros((ATLAS_SIZE, ATLAS_SIZE, 4), np.float32)  # cells_per_side * cell_px <= ATLAS_SIZE
@@ -256,16 +257,18 @@ def _bake_billboards(protos: dict, cells_per_side: int, cell_px: int, tex_stacks
         y0, y1 = float(p[:, 1].min()), float(p[:, 1].max())
         h = max(y1 - y0, 1e-3)
         prepared = Prepared(scene)
-        for view, (eye, fwd) in enumerate((((0.0, 0.5 * (y0 + y1), 10 * r + 1), (0.0, 0.0, -1.0)),
-                                           ((10 * r + 1, 0.5 * (y0 + y1), 0.0), (-1.0, 0.0, 0.0)))):
-            cam = Camera(eye, fwd, (0.0, 1.0, 0.0), ortho_height_m=h, ortho_width_m=2 * r)
+        for view, (eye, fwd, up) in enumerate((((0.0, 0.5 * (y0 + y1), 10 * r + 1), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0)),
+                                               ((10 * r + 1, 0.5 * (y0 + y1), 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+                                               ((0.0, y1 + 10 * r + 1, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0)))):
+            cam = (Camera(eye, fwd, up, ortho_height_m=h, ortho_width_m=2 * r) if view < 2
+                   else Camera(eye, fwd, up, ortho_height_m=2 * r, ortho_width_m=2 * r))
             img = prepared.render(cam, Settings(cell_px, cell_px, samples=2, ao_rays=4, ao_radius_m=0.15 * h, seed=k))
             a = img.alpha
             rgb = img.albedo / np.maximum(a, 1e-6)[..., None] * (0.5 + 0.5 * img.ao)[..., None]
-            c = 2 * k + view
+            c = 3 * k + view
             r0, c0 = (c // cells_per_side) * cell_px, (c % cells_per_side) * cell_px
             atlas[r0:r0 + cell_px, c0:c0 + cell_px] = np.concatenate([np.clip(rgb, 0, 1), a[..., None]], -1)
-        boards[name] = _Billboard((2 * k, cells_per_side, cell_px), r, y0, y1)
+        boards[name] = _Billboard((3 * k, cells_per_side, cell_px), r, y0, y1)
     return atlas, boards
 
 
@@ -281,34 +284,41 @@ def _cell_uv(c: int, n: int, cell_px: int) -> tuple[float, float, float, float]:
 
 
 def _billboard_instances(board: _Billboard, xforms: np.ndarray, tints: np.ndarray, tex_id: int) -> Scene:
-    """Two crossed quads per instance (row-vector transforms (n, 4, 4))."""
+    """Two crossed vertical quads and a horizontal one through the crown per
+    instance (row-vector transforms (n, 4, 4)): the side views hold up
+    from low cameras, the top view from high ones."""
     r, y0, y1 = board.radius, board.y0, board.y1
     n = board.cell[1]
     quads, uvs, nrms = [], [], []
-    for view in range(2):
+    for view in range(3):
         u0, u1, v0, v1 = _cell_uv(board.cell[0] + view, n, board.cell[2])
         if view == 0:  # seen from +z: image x is +x
             q = [(-r, y0, 0), (r, y0, 0), (r, y1, 0), (-r, y1, 0)]
             side = [(-1, 0, 0), (1, 0, 0), (1, 0, 0), (-1, 0, 0)]
-        else:  # seen from +x: image x is -z
+        elif view == 1:  # seen from +x: image x is -z
             q = [(0, y0, r), (0, y0, -r), (0, y1, -r), (0, y1, r)]
             side = [(0, 0, 1), (0, 0, -1), (0, 0, -1), (0, 0, 1)]
+        else:  # seen from above: image x is +x, image up is -z; the quad at 60 % of the height
+            yh = y0 + 0.6 * (y1 - y0)
+            q = [(-r, yh, r), (r, yh, r), (r, yh, -r), (-r, yh, -r)]
+            side = [(0, 0, 0)] * 4
         quads += q
         uvs += [(u0, v0), (u1, v0), (u1, v1), (u0, v1)]
         # normals lean out and up, so the crossed quads shade like a rounded crown
-        nrms += [tuple(0.7 * np.asarray(s) + np.array([0.0, 0.25 if j < 2 else 0.8, 0.0])) for j, s in enumerate(side)]
-    Q = np.asarray(quads, np.float64)  # (8, 3)
+        nrms += [tuple(0.7 * np.asarray(s) + np.array([0.0, 1.0 if view == 2 else 0.25 if j < 2 else 0.8, 0.0]))
+                 for j, s in enumerate(side)]
+    Q = np.asarray(quads, np.float64)  # (12, 3)
     Nq = np.asarray(nrms, np.float64)
     m = len(xforms)
     P = np.einsum("vk,nkj->nvj", Q, xforms[:, :3, :3]) + xforms[:, None, 3, :3]
     inv_t = np.linalg.inv(xforms[:, :3, :3]).transpose(0, 2, 1)
     N = np.einsum("vk,nkj->nvj", Nq, inv_t)
     N /= np.maximum(np.linalg.norm(N, axis=2, keepdims=True), 1e-20)
-    base = (np.arange(m) * 8)[:, None]
-    local = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    base = (np.arange(m) * 12)[:, None]
+    local = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7], [8, 9, 10], [8, 10, 11]])
     tris = (base[:, None, :] + local[None]).reshape(-1, 3)
     uv = np.tile(np.asarray(uvs), (m, 1))
-    tint = np.repeat(np.asarray(tints, np.float64), 4, axis=0)
+    tint = np.repeat(np.asarray(tints, np.float64), 6, axis=0)
     return Scene(P.reshape(-1, 3), N.reshape(-1, 3), uv, tris, tint, tex_id, np.ones((tex_id + 1, 1, 1, 4), np.float32))
 
 
@@ -321,7 +331,7 @@ def default_camera(lo: np.ndarray, hi: np.ndarray, azimuth_deg: float = 200.0, e
     back = np.array([math.sin(a) * math.cos(e), math.sin(e), -math.cos(a) * math.cos(e)])
     radius = 0.5 * float(np.linalg.norm((hi - lo)[[0, 2]]))
     half = math.radians(0.5 * fov_y_deg)
-    dist = radius / math.sin(min(half, math.atan(math.tan(half) * aspect))) * 0.92
+    dist = radius / math.sin(min(half, math.atan(math.tan(half) * aspect))) * 0.62
     eye = c + back * dist
     return Camera(tuple(eye), tuple(-back), (0.0, 1.0, 0.0), fov_y_deg=fov_y_deg)
 
@@ -387,7 +397,7 @@ def build_world_scene(world_usda: str | Path, min_instance_height_m: float = 0.8
             keep[name] = (xf[big], tn[big])
         summary["instances"][name] = int(big.sum())
         summary["skipped_small"][name] = int((~big).sum())
-    cells = max(1, math.ceil(math.sqrt(2 * max(len(keep), 1))))
+    cells = max(1, math.ceil(math.sqrt(3 * max(len(keep), 1))))
     cell_px = min(ATLAS_SIZE // cells, 256)  # a billboard is a few pixels tall in a view of the whole world
     progress(f"world view: billboards of {sorted(keep)} ({cell_px} px cells)")
     atlas, boards = _bake_billboards({n: proto_scene[n] for n in keep}, cells, cell_px, proto_tex)
@@ -423,6 +433,9 @@ def _with_stack(parts: list[Scene], textures: dict, size: int) -> Scene:
     return Scene.concat([Scene(s.positions, s.normals, s.uv, s.triangles, s.tint, s.texture, stack) for s in parts])
 
 
+_CACHE: dict = {}  # (path, mtime) -> (Scene, summary, Prepared): several views of one world build it once
+
+
 def render_world(world_usda: str | Path, width: int = 1600, height: int = 900, camera: Camera | None = None,
                  samples: int = 2, ao_rays: int = 2, sun=(-0.45, 0.75, 0.5), azimuth_deg: float = 200.0,
                  elevation_deg: float = 32.0, zoom: float = 1.0, stats: dict | None = None,
@@ -431,13 +444,19 @@ def render_world(world_usda: str | Path, width: int = 1600, height: int = 900, c
     and elevation, moved `zoom` times closer to the world's centre):
     (height, width, 4) uint8 sRGB RGBA, alpha 255 where something is hit
     (elsewhere the shaded sky). `stats`, when given, receives the scene
-    summary and the seconds spent."""
+    summary and the seconds spent. The last world's scene and BVH stay
+    cached, so more views of it cost only their rendering."""
     import time
 
     from . import Prepared
 
     t0 = time.perf_counter()
-    scene, summary = build_world_scene(world_usda, progress=progress)
+    key = (str(Path(world_usda).resolve()), Path(world_usda).stat().st_mtime_ns)
+    if key not in _CACHE:
+        _CACHE.clear()
+        scene, summary = build_world_scene(world_usda, progress=progress)
+        _CACHE[key] = (scene, summary, Prepared(scene))
+    scene, summary, prepared = _CACHE[key]
     t1 = time.perf_counter()
     lo, hi = np.asarray(summary["bounds"][0]), np.asarray(summary["bounds"][1])
     cam = camera or default_camera(lo, hi, azimuth_deg, elevation_deg, aspect=width / height)
@@ -445,7 +464,7 @@ def render_world(world_usda: str | Path, width: int = 1600, height: int = 900, c
         c = 0.5 * (lo + hi)
         cam = Camera(tuple(c + (np.asarray(cam.eye) - c) / zoom), cam.forward, cam.up, fov_y_deg=cam.fov_y_deg)
     progress(f"world view: {scene.n_triangles:,} triangles, instances {summary['instances']}")
-    img: Image = Prepared(scene).render(cam, Settings(width, height, samples=samples, ao_rays=ao_rays,
+    img: Image = prepared.render(cam, Settings(width, height, samples=samples, ao_rays=ao_rays,
                                                       ao_radius_m=25.0, seed=1))
     shaded = img.shaded(sun=sun, sky=0.5, background=(0.55, 0.68, 0.85))
     alpha = np.round(np.clip(img.alpha, 0.0, 1.0) * 255.0).astype(np.uint8)

@@ -80,7 +80,7 @@ def tiny_world(tmp_path_factory):
 def test_world_scene_holds_ground_and_billboards(tiny_world):
     scene, summary = world_view.build_world_scene(tiny_world, min_instance_height_m=1.0, progress=lambda m: None)
     assert summary["instances"] == {"tree": 2} and summary["skipped_small"] == {"tree": 1}
-    assert scene.n_triangles == 2 + 2 * 4  # the ground quad, two crossed quads per drawn instance
+    assert scene.n_triangles == 2 + 2 * 6  # the ground quad, three quads per drawn instance
     assert summary["bounds"][0][0] == -20 and summary["bounds"][1][0] == 20
 
 
