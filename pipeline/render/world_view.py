@@ -331,7 +331,7 @@ def default_camera(lo: np.ndarray, hi: np.ndarray, azimuth_deg: float = 200.0, e
     back = np.array([math.sin(a) * math.cos(e), math.sin(e), -math.cos(a) * math.cos(e)])
     radius = 0.5 * float(np.linalg.norm((hi - lo)[[0, 2]]))
     half = math.radians(0.5 * fov_y_deg)
-    dist = radius / math.sin(min(half, math.atan(math.tan(half) * aspect))) * 0.62
+    dist = radius / math.sin(min(half, math.atan(math.tan(half) * aspect))) * 0.72
     eye = c + back * dist
     return Camera(tuple(eye), tuple(-back), (0.0, 1.0, 0.0), fov_y_deg=fov_y_deg)
 
