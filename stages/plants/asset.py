@@ -11,6 +11,11 @@
       with opacityThreshold 0.5 on cards, tangent-space normal EXR raw);
       /Looks/GrassSlices: the slice tuft's atlas (cards.bake_grass_slices);
       /Looks/Foliage reads primvars:displayColor (untextured species);
+      the foliage looks (FoliageCards, Blades, GrassSlices) also hold a
+      Tint reader of the instancers' per-instance primvars:tint, and the
+      cards a TranslucencyTexture and a ThicknessTexture (data EXRs), with
+      customData worldbake:tint / worldbake:translucency / worldbake:thickness
+      saying how to wire what UsdPreviewSurface has no input for;
     every mesh: subdivisionScheme none, normals (primvars:normals), primvars:st,
       extent, and the wind primvars (vertex interpolation):
         primvars:wind:branchWeight  bend weight, 0 at the root of the plant, 1 at the outermost tips
@@ -59,6 +64,21 @@ def _material(stage, path: str, colour, roughness: float, read_display_color: bo
     return mat
 
 
+# How the foliage materials carry what UsdPreviewSurface has no input for
+# (written into the material's customData, so a technical artist wiring a
+# renderer's own surface finds it):
+TINT_SCHEME = ("diffuseColor = AlbedoTexture.outputs:rgb * Tint.outputs:result: Tint reads primvars:tint, a linear "
+               "colour factor per instance authored on the PointInstancers (interpolation vertex) and 1 elsewhere; "
+               "UsdPreviewSurface cannot multiply, so its diffuseColor shows the untinted albedo")
+TRANSLUCENCY_SCHEME = {
+    "translucency": "TranslucencyTexture.outputs:r: share of light the foliage passes at each texel (0..1, linear "
+                    "EXR data); a renderer's diffuse transmission / translucency weight (e.g. Karma or OmniPBR "
+                    "translucency, MaterialX subsurface), tinted by the albedo",
+    "thickness": "ThicknessTexture.outputs:r: metres of foliage along the card normal (linear EXR data), for a "
+                 "thickness / subsurface-radius input",
+}
+
+
 def _textured_material(stage, path: str, look: dict, roughness: float):
     """UsdPreviewSurface reading its textures through UsdUVTexture: diffuse
     colour from an 8-bit sRGB PNG (sourceColorSpace sRGB), opacity from that
@@ -66,7 +86,8 @@ def _textured_material(stage, path: str, look: dict, roughness: float):
     normal from a linear EXR tangent-space normal map (sourceColorSpace raw,
     stored as 0.5 n + 0.5, so scale 2 and bias -1). `look`: albedo, normal
     (paths relative to the layer), wrap ("repeat" for bark, "clamp" for
-    cards), alpha_test (bool)."""
+    cards), alpha_test (bool), tint (bool: read the per-instance tint),
+    translucency, thickness (optional data EXRs, see TRANSLUCENCY_SCHEME)."""
     from pxr import Gf, Sdf, UsdShade
 
     mat = UsdShade.Material.Define(stage, path)
@@ -97,6 +118,20 @@ def _textured_material(stage, path: str, look: dict, roughness: float):
         surf.CreateInput("opacity", Sdf.ValueTypeNames.Float).ConnectToSource(
             albedo.CreateOutput("a", Sdf.ValueTypeNames.Float))
         surf.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(0.5)
+    if look.get("tint"):
+        # the per-instance tint the PointInstancers carry (primvars:tint, one colour per instance); UsdPreviewSurface
+        # has no multiply node, so the reader is wired by the scheme in customData worldbake:tint
+        tint = UsdShade.Shader.Define(stage, f"{path}/Tint")
+        tint.CreateIdAttr("UsdPrimvarReader_float3")
+        tint.CreateInput("varname", Sdf.ValueTypeNames.String).Set("tint")
+        tint.CreateInput("fallback", Sdf.ValueTypeNames.Float3).Set(Gf.Vec3f(1.0, 1.0, 1.0))
+        tint.CreateOutput("result", Sdf.ValueTypeNames.Float3)
+        mat.GetPrim().SetCustomDataByKey("worldbake:tint", TINT_SCHEME)
+    for key, shader_name in (("translucency", "TranslucencyTexture"), ("thickness", "ThicknessTexture")):
+        if look.get(key):
+            data = texture(shader_name, look[key], "raw")
+            data.CreateOutput("r", Sdf.ValueTypeNames.Float)
+            mat.GetPrim().SetCustomDataByKey(f"worldbake:{key}", TRANSLUCENCY_SCHEME[key])
     if look.get("normal"):
         normal = texture("NormalTexture", look["normal"], "raw")
         normal.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(2.0, 2.0, 2.0, 1.0))
@@ -190,11 +225,11 @@ def write_species(path: Path, name: str, spec, lods: list[dict[str, Part]], lod_
         bark = (_textured_material(stage, f"/{name}/Looks/Bark", looks["bark"], spec.roughness) if "bark" in looks
                 else _material(stage, f"/{name}/Looks/Bark", spec.bark_color, spec.roughness, False))
     plain = _material(stage, f"/{name}/Looks/Foliage", spec.leaf_color, spec.roughness, True)
-    foliage = (_textured_material(stage, f"/{name}/Looks/FoliageCards", looks["foliage"], spec.roughness)
-               if "foliage" in looks else plain)
-    blades = (_textured_material(stage, f"/{name}/Looks/Blades", looks["blades"], spec.roughness)
+    foliage = (_textured_material(stage, f"/{name}/Looks/FoliageCards", dict(looks["foliage"], tint=True),
+                                  spec.roughness) if "foliage" in looks else plain)
+    blades = (_textured_material(stage, f"/{name}/Looks/Blades", dict(looks["blades"], tint=True), spec.roughness)
               if "blades" in looks else plain)
-    slices = (_textured_material(stage, f"/{name}/Looks/GrassSlices", looks["slices"], spec.roughness)
+    slices = (_textured_material(stage, f"/{name}/Looks/GrassSlices", dict(looks["slices"], tint=True), spec.roughness)
               if "slices" in looks else plain)
     material_of = {"Leaves": foliage, "Blades": blades, "Cards": slices}
     vset = root.GetVariantSets().AddVariantSet("lod")

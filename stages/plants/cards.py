@@ -11,7 +11,15 @@ metres. The card is the cluster's bounding rectangle in x-y; its square texture
     albedo RGB  linear, straight alpha, AO of the cluster baked in (the
                 shadow leaves cast on each other inside a shoot);
     alpha       the covered share of 4 x 4 samples per texel;
-    normal      tangent space (x = u, y = v, z = card normal), encoded 0.5 n + 0.5.
+    normal      tangent space (x = u, y = v, z = card normal), encoded 0.5 n + 0.5;
+    thickness   metres of foliage along the card normal at each texel: from
+                the first leaf seen from the front to the last one (a second
+                render from the back), plus one leaf's own thickness; 0 where
+                empty (EXR data, for a renderer's subsurface / thickness input);
+    translucency the share of light the foliage passes at each texel (EXR
+                data, 0..1): a single leaf's transmittance (LEAF_TRANSMITTANCE,
+                by leaf shape) attenuated by exp(-thickness / TRANSLUCENT_DEPTH
+                of the cluster's depth), 0 where empty.
 A crossed card (a second quad through the cluster's axis, in the y-z plane)
 makes the cluster read from the side too.
 """
@@ -27,6 +35,14 @@ from pipeline.render import Camera, Scene, Settings, render
 from . import leaves, textures
 
 
+# Transmittance of one leaf (the share of light it lets through, diffusely):
+# broad leaves pass about a third of the visible light, needles far less, as
+# they are thick; grass blades and petals are thin.
+LEAF_TRANSMITTANCE = {"ellipse": 0.35, "card": 0.35, "needles": 0.12, "blade": 0.4}
+LEAF_THICKNESS_M = {"ellipse": 3e-4, "card": 3e-4, "needles": 1e-3, "blade": 3e-4}
+TRANSLUCENT_DEPTH = 0.25  # light through the card falls by 1/e over this share of the cluster's depth
+
+
 @dataclass
 class CardBake:
     albedo: np.ndarray  # (n, n, 3) linear, colour dilated into transparent texels
@@ -36,6 +52,8 @@ class CardBake:
     template: leaves.Template  # the card(s) in the leaf frame, uv over the texture
     cluster_triangles: int
     leaf_texture: np.ndarray | None  # the leaf blade texture the cluster was rendered with
+    thickness: np.ndarray | None = None  # (n, n) metres of foliage along the card normal, 0 where empty
+    translucency: np.ndarray | None = None  # (n, n) share of light passed, 0..1, 0 where empty
 
 
 def _frame(h: np.ndarray, toward: np.ndarray):
@@ -152,6 +170,8 @@ def bake(spec, seed: int, size: int = 256) -> CardBake:
     img = render(scene, cam, Settings(size, size, samples=4, ao_rays=4, ao_radius_m=0.15 * float(span.max()),
                                       seed=seed & 0xFFFFFFFF))
     alpha = img.alpha
+    thickness, translucency = _thickness(scene, spec.leaf.shape, img, centre, span, float(p[:, 2].min()) - 1.0, zmax,
+                                         size, seed)
     straight = img.albedo / np.maximum(alpha, 1e-6)[..., None]
     straight *= (0.55 + 0.45 * img.ao)[..., None]  # the cluster's self-shadowing, baked in
     albedo = textures.dilate_colour(np.clip(straight, 0, 1), alpha)
@@ -174,7 +194,24 @@ def bake(spec, seed: int, size: int = 256) -> CardBake:
     tmpl = leaves.finish_template(pos, np.concatenate(uvs), np.clip((pos[:, 1] - max(y0, 0.0)) / max(y1 - max(y0, 0.0), 1e-9), 0, 1),
                          tris)
     return CardBake(albedo.astype(np.float32), alpha.astype(np.float32), n.astype(np.float32), coverage, tmpl,
-                    scene.n_triangles, leaf_tex)
+                    scene.n_triangles, leaf_tex, thickness, translucency)
+
+
+def _thickness(scene: Scene, shape: str, front, centre, span, zmin: float, zmax: float, size: int, seed: int):
+    """Thickness (m) and translucency (0..1) per texel: the cluster seen
+    from the back too; thickness is the distance from the first surface
+    seen from the front to the first seen from the back (the whole depth of
+    foliage along the card normal) plus one leaf's thickness."""
+    cam = Camera((float(centre[0]), float(centre[1]), zmin), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0),
+                 ortho_height_m=float(span[1]), ortho_width_m=float(span[0]))
+    back = render(scene, cam, Settings(size, size, samples=4, ao_rays=0, seed=seed & 0xFFFFFFFF))
+    back_depth = back.depth[:, ::-1]  # seen from behind, the image's x runs the other way
+    hit = np.isfinite(front.depth) & np.isfinite(back_depth) & (front.alpha > 0)
+    depth = (zmax - zmin) - np.where(hit, front.depth, 0.0) - np.where(hit, back_depth, 0.0)
+    thickness = np.where(hit, np.maximum(depth, 0.0) + LEAF_THICKNESS_M.get(shape, 3e-4), 0.0)
+    scale = TRANSLUCENT_DEPTH * max(float(thickness.max()), 1e-6)
+    translucency = np.where(hit, LEAF_TRANSMITTANCE.get(shape, 0.3) * np.exp(-thickness / scale), 0.0)
+    return thickness.astype(np.float32), translucency.astype(np.float32)
 
 
 @dataclass

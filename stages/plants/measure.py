@@ -2,8 +2,9 @@
 area index over the crown's footprint, and crown opacity from the side.
 
     foliage area  one-sided area of the foliage that is there: card area x the
-                  card texture's coverage (alpha >= 0.5), leaf and blade meshes
-                  at their area;
+                  card texture's coverage (alpha >= 0.5) / cards per cluster (a
+                  crossed pair shows one cluster twice: counted once), leaf and
+                  blade meshes at their area;
     wood area     the woody solid's surface;
     LAI           foliage area / area of the 2-D convex hull of the foliage's
                   ground projection (x-z);
@@ -32,10 +33,10 @@ def surface_area(part: Part | None) -> float:
     return float(0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum())
 
 
-def foliage_area(parts: dict[str, Part], card_coverage: float | None) -> float:
+def foliage_area(parts: dict[str, Part], card_coverage: float | None, cards_per_cluster: int = 1) -> float:
     leaves = surface_area(parts.get("Leaves"))
     if card_coverage is not None:
-        leaves *= card_coverage
+        leaves *= card_coverage / cards_per_cluster
     return leaves + surface_area(parts.get("Blades")) + surface_area(parts.get("Cards"))
 
 
@@ -48,12 +49,17 @@ def _hull_area_xz(points: np.ndarray) -> float:
         return 0.0
 
 
-def leaf_area_index(parts: dict[str, Part], card_coverage: float | None) -> float:
+def leaf_area_index(parts: dict[str, Part], card_coverage: float | None, cards_per_cluster: int = 1) -> float:
     pts = [p.verts[:, 0:3] for k, p in parts.items() if k != "Wood" and p.n_tris]
     if not pts:
         return 0.0
     foot = _hull_area_xz(np.concatenate(pts).astype(np.float64))
-    return foliage_area(parts, card_coverage) / foot if foot > 0 else 0.0
+    return foliage_area(parts, card_coverage, cards_per_cluster) / foot if foot > 0 else 0.0
+
+
+def cards_per_cluster(spec, has_cards: bool) -> int:
+    """2 for a species whose clusters are crossed card pairs, else 1."""
+    return 2 if has_cards and spec.foliage is not None and spec.foliage.crossed else 1
 
 
 def plant_scene(parts: dict[str, Part], spec, card_rgba: np.ndarray | None, bark_rgb: np.ndarray | None,

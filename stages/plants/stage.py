@@ -118,6 +118,12 @@ def _write_textures(out_dir: Path, layer: Path, name: str, spec, res: PlantResul
         c = res.cards
         looks["foliage"] = {"albedo": rel(colour(f"{name}_foliage_albedo", c.albedo, c.alpha)),
                             "normal": rel(normal(f"{name}_foliage_normal", c.normal)), "wrap": "clamp", "alpha_test": True}
+        if c.translucency is not None:  # data maps for renderers with a translucency / thickness input (asset.py)
+            textures.write_exr(tex_dir / f"{name}_foliage_thickness.exr", c.thickness[..., None], ("Y",), provenance)
+            looks["foliage"]["thickness"] = rel(tex_dir / f"{name}_foliage_thickness.exr")
+            textures.write_exr(tex_dir / f"{name}_foliage_translucency.exr", c.translucency[..., None], ("Y",),
+                               provenance)
+            looks["foliage"]["translucency"] = rel(tex_dir / f"{name}_foliage_translucency.exr")
         if c.leaf_texture is not None:  # the blade texture the cluster was rendered with (not read by the asset)
             colour(f"{name}_leaf_albedo", c.leaf_texture)
     if res.slices is not None:
@@ -133,18 +139,19 @@ def _write_textures(out_dir: Path, layer: Path, name: str, spec, res: PlantResul
 def _measure_looks(spec, res: PlantResult) -> dict:
     """Foliage / wood area, LAI and crown opacity at every LOD (measure.py)."""
     cov = res.cards.coverage if res.cards is not None else None
+    cpc = measure.cards_per_cluster(spec, res.cards is not None)
     rgba = np.concatenate([res.cards.albedo, res.cards.alpha[..., None]], -1) if res.cards is not None else None
     slices = (np.concatenate([res.slices.albedo, res.slices.alpha[..., None]], -1) if res.slices is not None else None)
     levels = []
     for k, parts in enumerate(res.lods):
         co = measure.crown_opacity(parts, spec, rgba, slices_rgba=slices)
         levels.append({"level": k, "crown_opacity": co["mean"], "crown_opacity_per_azimuth": co["per_azimuth"],
-                       "foliage_area_m2": measure.foliage_area(parts, cov),
+                       "foliage_area_m2": measure.foliage_area(parts, cov, cpc),
                        "wood_area_m2": measure.surface_area(parts.get("Wood"))})
     l0 = levels[0]
     out = {"foliage_area_m2": l0["foliage_area_m2"], "wood_area_m2": l0["wood_area_m2"],
            "foliage_to_wood": l0["foliage_area_m2"] / l0["wood_area_m2"] if l0["wood_area_m2"] > 0 else None,
-           "leaf_area_index": measure.leaf_area_index(res.lods[0], cov), "crown_opacity": l0["crown_opacity"],
+           "leaf_area_index": measure.leaf_area_index(res.lods[0], cov, cpc), "crown_opacity": l0["crown_opacity"],
            "crown_opacity_lod_max_drop": max(l0["crown_opacity"] - e["crown_opacity"] for e in levels),
            "card_coverage": cov, "levels": levels}
     for name in ("foliage_area_m2", "wood_area_m2", "foliage_to_wood", "leaf_area_index", "crown_opacity",

@@ -132,8 +132,10 @@ def _pref(lo, hi, edge):
     return {"min": lo, "max": hi, "edge": edge}
 
 
-# Defaults tuned for the default world (8 km, heights about 200 .. 1500 m,
-# steep: median slope near 40 degrees): spruce-like conifers from the valleys
+# Defaults tuned for the default world before landscape evolution (8 km,
+# heights about 200 .. 1500 m, median slope near 40 degrees; the eroded
+# default world, median cell slope 54 degrees, overrides the slope and
+# altitude limits and the splat slopes in configs/default.toml): spruce-like conifers from the valleys
 # up to the tree line, broadleaves low and moist, shrubs everywhere up to the
 # crests, grass in the open. Tree scales are relative to the plant presets
 # (conifer about 5.5 m, broadleaf about 6 m, shrub 1.3 m, grass tuft 0.4 m).
@@ -241,6 +243,10 @@ class VegetationParams(Params):
     grass_jitter: float = Param(
         0.8, units="", description="tuft jitter as a share of the tuft spacing (tufts are at least (1 - jitter) * "
         "spacing apart)", ge=0.0, le=1.0)
+    tint_variation: float = Param(
+        0.15, units="", description="per-instance colour variation: relative amplitude of each instance's tint "
+        "(primvars:tint on the PointInstancers: random brightness and hue, drier sites olive, young plants lighter; "
+        "0: every tint is 1)", ge=0.0, le=0.5)
     # terrain splat weights (seed 004, both defects fixed)
     snow_min_m: float = Param(1350.0, units="m", description="snow starts at this altitude", ge=-11000.0, le=9000.0)
     snow_max_m: float = Param(1500.0, units="m", description="full snow above this altitude", ge=-11000.0, le=9000.0)

@@ -35,7 +35,7 @@ from stages.common import SPLAT_CHANNELS, TERRAIN_SOURCES, prototype_prim
 from pipeline.preview import hillshade
 
 from . import attributes as attrs
-from . import ecosystem, grass, placement, usd_layer
+from . import ecosystem, grass, placement, tint, usd_layer
 from .params import NPREF_ORDER, VegetationParams
 
 SPECIES_MAPS = "species.exr"
@@ -274,6 +274,11 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
     if tufts is not None:
         inst = grass.tuft_instances(tufts, params, gheight, dom, mesh, seed)
         sets[gname], dropped[gname] = placement.keep_allowed(inst, gdens > 0, dom)
+    tints = {}
+    for name, inst in sets.items():  # per-instance colour variation (tint.py)
+        e = params.species[name]
+        tints[name] = tint.instance_tints(seed, name, inst.ids, moist[dom.world_cell(inst.positions)], inst.age,
+                                          e.maturity_years if e.kind == "plant" else 1.0, params.tint_variation)
     lap("instances_s", t0)
 
     ctx.progress(0.8, "USD layer")
@@ -283,7 +288,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
     written = {n: s for n, s in sets.items() if len(s)}
     ustats = usd_layer.write(usd_path, ctx.provenance, written, {n: params.species[n].height_m for n in written},
                              {n: params.species[n].kind for n in written}, origin[0], origin[1], size,
-                             params.tile_max_instances, params.tile_min_size_m)
+                             params.tile_max_instances, params.tile_min_size_m, {n: tints[n] for n in written})
     lap("usd_s", t0)
     t0 = time.perf_counter()
     from pipeline import usdio
@@ -334,6 +339,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
         "usd": ustats,
         "instances": {n: int(len(s)) for n, s in sets.items()},
         "dropped_at_cell_edges": dropped,
+        "tint": {n: {"mean": [round(float(v), 4) for v in t.mean(axis=0)],
+                     "std": [round(float(v), 4) for v in t.std(axis=0)]} for n, t in tints.items() if len(t)},
         "timings": T,
     }
     stats["timings"]["total_s"] = round(time.perf_counter() - t_all, 4)

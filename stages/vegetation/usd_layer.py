@@ -11,8 +11,8 @@
       group, so a viewer can open the world with the tiles unloaded and load
       the ones it wants), which holds
       <species> (PointInstancer, kind group): positions, orientations (half
-                 quaternions), scales, protoIndices, ids, primvars age and
-                 random (per instance), extent
+                 quaternions), scales, protoIndices, ids, primvars age,
+                 random and tint (per instance: interpolation vertex), extent
         Prototypes (Scope, kind group)
           <species> (Xform, kind component, instanceable) inherits
                     /World/Vegetation/Prototypes/<species>: every tile's
@@ -99,8 +99,11 @@ def _extent(inst: Instances, ii: np.ndarray, bound: float) -> np.ndarray:
 
 
 def write(path: Path, provenance: dict, sets: dict[str, Instances], heights: dict[str, float], kinds: dict[str, str],
-          x0: float, z0: float, size: float, max_instances: int, min_size: float) -> dict:
-    """Write the layer; `sets` holds only species with instances."""
+          x0: float, z0: float, size: float, max_instances: int, min_size: float,
+          tints: dict[str, np.ndarray] | None = None) -> dict:
+    """Write the layer; `sets` holds only species with instances; tints:
+    per species (n, 3) per-instance colour factors (tint.py), written as
+    primvars:tint (color3f[], interpolation vertex: one per instance)."""
     from pxr import Gf, Kind, Sdf, Usd, UsdGeom, Vt
 
     from pipeline import usdio
@@ -175,6 +178,9 @@ def write(path: Path, provenance: dict, sets: dict[str, Instances], heights: dic
                     Vt.FloatArray.FromNumpy(np.ascontiguousarray(inst.age[ii])))
                 pv.CreatePrimvar("random", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
                     Vt.FloatArray.FromNumpy(np.ascontiguousarray(inst.random[ii])))
+                if tints is not None and name in tints:
+                    pv.CreatePrimvar("tint", Sdf.ValueTypeNames.Color3fArray, UsdGeom.Tokens.vertex).Set(
+                        Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(tints[name][ii], np.float32)))
                 e = _extent(inst, ii, bounds[name])
                 pi.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, e[0])), Gf.Vec3f(*map(float, e[1]))]))
                 ext.append(e)

@@ -28,7 +28,8 @@ def looks(preset_builds):
         cov = res.cards.coverage if res.cards is not None else None
         rgba = _rgba(res) if res.cards is not None else None
         out[name] = [{"opacity": measure.crown_opacity(parts, PRESETS[name], rgba)["mean"],
-                      "foliage": measure.foliage_area(parts, cov), "wood": measure.surface_area(parts.get("Wood"))}
+                      "foliage": measure.foliage_area(parts, cov, measure.cards_per_cluster(PRESETS[name], cov is not None)),
+                      "wood": measure.surface_area(parts.get("Wood"))}
                      for parts in res.lods]
     return out
 
@@ -77,6 +78,7 @@ def test_foliage_area_counts_card_coverage():
     leaves = _square(0.0, 2.0)
     assert measure.foliage_area({"Leaves": leaves}, 0.25) == pytest.approx(0.5)
     assert measure.foliage_area({"Leaves": leaves}, None) == pytest.approx(2.0)
+    assert measure.foliage_area({"Leaves": leaves}, 0.25, 2) == pytest.approx(0.25)  # a crossed pair counts once
 
 
 @pytest.mark.parametrize("name", ["conifer", "broadleaf", "shrub", "meadow_flower"])
@@ -91,6 +93,13 @@ def test_card_bake_is_a_textured_cluster(name):
     assert np.array_equal(b.albedo, again.albedo) and np.array_equal(b.alpha, again.alpha)
     uv = b.template.rows[:, 6:8]
     assert uv.min() == 0.0 and uv.max() == 1.0
+    # thickness and translucency: only where foliage is, thicker foliage passes less light
+    covered = b.alpha >= 0.5
+    assert (b.thickness[b.alpha == 0] == 0).all() and (b.thickness[covered] > 0).mean() > 0.95
+    assert (b.translucency >= 0).all() and b.translucency.max() <= cards.LEAF_TRANSMITTANCE[PRESETS[name].leaf.shape]
+    t, tr = b.thickness[covered], b.translucency[covered]
+    thick = t > np.median(t)
+    assert tr[thick].mean() < tr[~thick].mean()
 
 
 def test_bark_tiles_without_a_seam():
@@ -134,6 +143,13 @@ def test_asset_materials_read_existing_textures(small_run):
         surf = UsdShade.Shader(layer.GetPrimAtPath(f"/{name}/Looks/FoliageCards/Surface"))
         assert mat and surf.GetInput("opacityThreshold").Get() == 0.5
         assert surf.GetInput("opacity").HasConnectedSource() and surf.GetInput("normal").HasConnectedSource()
+        tint = UsdShade.Shader(layer.GetPrimAtPath(f"/{name}/Looks/FoliageCards/Tint"))
+        assert tint.GetIdAttr().Get() == "UsdPrimvarReader_float3" and tint.GetInput("varname").Get() == "tint"
+        assert "primvars:tint" in mat.GetPrim().GetCustomDataByKey("worldbake:tint")
+        for key in ("Translucency", "Thickness"):
+            tex = UsdShade.Shader(layer.GetPrimAtPath(f"/{name}/Looks/FoliageCards/{key}Texture"))
+            assert tex.GetInput("file").Get().path.endswith(f"_foliage_{key.lower()}.exr")
+            assert mat.GetPrim().GetCustomDataByKey(f"worldbake:{key.lower()}")
     grass = Usd.Stage.Open(str(top.parent / "grass.usdc"))
     vset = grass.GetDefaultPrim().GetVariantSets().GetVariantSet("lod")
     vset.SetVariantSelection(vset.GetVariantNames()[-1])

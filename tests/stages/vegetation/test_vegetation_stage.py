@@ -195,6 +195,9 @@ def test_usd_layer_is_valid_and_tiled(baked):
             assert len(pi.GetOrientationsAttr().Get()) == len(pi.GetScalesAttr().Get()) == n
             pv = UsdGeom.PrimvarsAPI(pi)
             assert len(pv.GetPrimvar("age").Get()) == len(pv.GetPrimvar("random").Get()) == n
+            tint = pv.GetPrimvar("tint")
+            assert tint.GetInterpolation() == UsdGeom.Tokens.vertex  # one value per instance
+            assert tint.GetTypeName() == "color3f[]" and len(tint.Get()) == n
     counts = out["vegetation.stats"]["instances"]
     for name, pis in found.items():
         assert sum(len(pi.GetPositionsAttr().Get()) for pi in pis) == counts[name]
@@ -334,3 +337,26 @@ def test_nothing_grows_and_no_data(tmp_path):
         assert np.isfinite(out[name].data).all()
     w = out["vegetation.splat"].data.astype(np.float64)
     assert np.abs(w.sum(-1) - 1).max() <= 1e-6
+
+
+def test_instance_tints_vary_by_instance_site_and_age(baked):
+    """The per-instance tint: near 1 on average, varied between instances,
+    the same for an instance id in every call, olive on dry ground, lighter
+    for young plants, and all 1 when the variation is 0."""
+    from stages.vegetation import tint
+
+    out, ctx, params = baked
+    stats = out["vegetation.stats"]["tint"]
+    for name, t in stats.items():
+        assert all(0.8 < m < 1.2 for m in t["mean"]), (name, t)
+        assert all(s > 0.03 for s in t["std"]), (name, t)
+    ids = np.arange(2000, dtype=np.int64) + (np.int64(7) << 32)
+    half = np.full(len(ids), 0.5)
+    a = tint.instance_tints(SEED, "conifer", ids, half, np.full(len(ids), 100.0), 40.0, 0.15)
+    assert np.array_equal(a, tint.instance_tints(SEED, "conifer", ids, half, np.full(len(ids), 100.0), 40.0, 0.15))
+    assert not np.array_equal(a, tint.instance_tints(SEED, "shrub", ids, half, np.full(len(ids), 100.0), 40.0, 0.15))
+    dry = tint.instance_tints(SEED, "conifer", ids, np.zeros(len(ids)), np.full(len(ids), 100.0), 40.0, 0.15)
+    assert (dry[:, 0] / dry[:, 2]).mean() > 1.2 * (a[:, 0] / a[:, 2]).mean()  # drier: redder than bluer
+    young = tint.instance_tints(SEED, "conifer", ids, half, np.zeros(len(ids)), 40.0, 0.15)
+    assert young[:, 1].mean() > a[:, 1].mean()
+    assert np.all(tint.instance_tints(SEED, "conifer", ids, half, half, 40.0, 0.0) == 1.0)
