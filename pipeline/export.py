@@ -153,7 +153,31 @@ def _texture_attributes(layer):
     return found
 
 
-def _exr_to_png(src: Path, dst: Path, colour: bool) -> None:
+def _normal_map_shaders(layer) -> set:
+    """Prim paths of the shaders whose output feeds a surface's `inputs:normal`."""
+    from pxr import Sdf
+
+    found = set()
+
+    def visit(path):
+        if not path.IsPropertyPath() or path.name != "inputs:normal":
+            return
+        spec = layer.GetAttributeAtPath(path)
+        if spec is not None:
+            found.update(source.GetPrimPath() for source in spec.connectionPathList.GetAddedOrExplicitItems())
+    layer.Traverse(Sdf.Path.absoluteRootPath, visit)
+    return found
+
+
+def _scale_and_bias(layer, shader) -> None:
+    from pxr import Gf, Sdf
+
+    for name, value in (("inputs:scale", Gf.Vec4f(2, 2, 2, 1)), ("inputs:bias", Gf.Vec4f(-1, -1, -1, 0))):
+        attr = Sdf.AttributeSpec(shader, name, Sdf.ValueTypeNames.Float4)
+        attr.default = value
+
+
+def _exr_to_png(src: Path, dst: Path, colour: bool, signed: bool = False) -> None:
     import OpenImageIO as oiio
 
     buf = oiio.ImageBuf(str(src))
@@ -165,7 +189,8 @@ def _exr_to_png(src: Path, dst: Path, colour: bool) -> None:
         if pixels.shape[-1] == 4:
             out = np.concatenate([out, np.round(np.clip(pixels[..., 3:4], 0, 1) * 255).astype(np.uint8)], axis=-1)
     else:
-        out = np.round(np.clip(pixels, 0.0, 1.0) * 255.0).astype(np.uint8)
+        data = pixels * 0.5 + 0.5 if signed else pixels
+        out = np.round(np.clip(data, 0.0, 1.0) * 255.0).astype(np.uint8)
     out = np.ascontiguousarray(out)
     if not oiio.ImageBuf(out).write(str(dst), oiio.UINT8):
         raise OSError(f"cannot write {dst}: {oiio.geterror()}")
@@ -178,9 +203,13 @@ def _textures_to_png(folder: Path) -> None:
     for layer_path in sorted(p for p in folder.rglob("*") if p.suffix in LAYER_SUFFIXES):
         layer = Sdf.Layer.FindOrOpen(str(layer_path))
         changed = False
+        normal_inputs = _normal_map_shaders(layer)
         for spec, shader in _texture_attributes(layer):
             path = spec.default.path
-            colour = "inputs:scale" not in shader.attributes and "inputs:bias" not in shader.attributes
+            scaled = "inputs:scale" in shader.attributes or "inputs:bias" in shader.attributes
+            # a normal map stored -1..1 (float EXR) becomes 0..1 in 8 bits, read back with scale 2 and bias -1
+            signed_normal = not scaled and shader.path in normal_inputs
+            colour = not scaled and not signed_normal
             full = Path(os.path.normpath(layer_path.parent / path))
             pattern = re.escape(full.name).replace(re.escape("<UDIM>"), r"\d{4}")
             files = sorted(p for p in full.parent.glob("*.exr") if re.fullmatch(pattern, p.name))
@@ -189,8 +218,10 @@ def _textures_to_png(folder: Path) -> None:
             for f in files:
                 png = f.with_suffix(".png")
                 if not png.exists():
-                    _exr_to_png(f, png, colour)
+                    _exr_to_png(f, png, colour, signed=signed_normal)
             spec.default = Sdf.AssetPath(path[: -len(".exr")] + ".png")
+            if signed_normal:
+                _scale_and_bias(layer, shader)
             space = shader.attributes.get("inputs:sourceColorSpace")
             if colour and space is not None:
                 space.default = "sRGB"

@@ -58,9 +58,14 @@ def _run_on_parametrized_device(request):
 
 def pytest_collection_modifyitems(items):
     """Group the tests for `pytest -n auto --dist loadgroup` (make test): one group per file, so a
-    module's fixtures are built on one worker, and the plants tests together, since they share
-    session-scoped builds of every preset (tests/stages/plants/conftest.py)."""
+    module's fixtures are built on one worker; the plants tests together, since they share
+    session-scoped builds of every preset (tests/stages/plants/conftest.py); the CLI tests apart."""
     for item in items:
         path = item.path.as_posix()
-        group = "tests/stages/plants" if "/tests/stages/plants/" in path else path
+        if path.endswith("/tests/pipeline/test_cli.py"):
+            group = item.nodeid  # each test bakes its own project: the longest tests, spread over the workers
+        elif "/tests/stages/plants/" in path:
+            group = "tests/stages/plants"
+        else:
+            group = path
         item.add_marker(pytest.mark.xdist_group(group))

@@ -233,7 +233,10 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
                          {**ctx.provenance, "species": name, "tiles": {"rows": sheet.rows, "cols": sheet.cols,
                                                                          "tile_px": sheet.tile_px}})
         images.write_png(tex_dir / f"{stem}.png", sheet.rgba[..., :3], sheet.rgba[..., 3])
-        sheet_files[sheet.name] = {"albedo": f"{stem}.png", "exr": f"{stem}.exr"}
+        # the material's normal input reads R, G, B: the normal alone, not the layered file's first channels
+        images.write_exr(tex_dir / f"{stem}_normal.exr", [sheet.normal], ("R", "G", "B"),
+                         {**ctx.provenance, "species": name})
+        sheet_files[sheet.name] = {"albedo": f"{stem}.png", "exr": f"{stem}.exr", "normal": f"{stem}_normal.exr"}
     card_files = {}
     for axis, (rgb, alpha) in cards.items():
         card_files[axis] = f"{name}_card_{axis}.png"

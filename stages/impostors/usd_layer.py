@@ -179,7 +179,7 @@ def write(path: Path, provenance: dict, baked: list[dict], plants_layer: Path | 
             files = b["sheet_files"][sheet.name]
             prim_name = {"slices": "Slices", "tuft": "Tuft", "tuft_top": "TuftTop"}[sheet.name]
             mat = _material(stage, f"{base}/Impostor/Looks/{prim_name}", f"./textures/{files['albedo']}",
-                            f"./textures/{files['exr']}")
+                            f"./textures/{files['normal']}")
             _billboards(stage, f"{base}/Impostor/{prim_name}", sheet, mat)
         lo, hi = b["lo"], b["hi"]
         UsdGeom.ModelAPI(imp).SetExtentsHint([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))])
