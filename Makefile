@@ -22,10 +22,9 @@ bake: setup
 plan: setup
 	$(VENV)/bin/worldbake plan $(CONFIG)
 
-# One worker per core; a test file (all of tests/stages/plants) stays on one worker, so module and
-# session fixtures are built once (tests/conftest.py groups them).
+# One worker per core (pytest-xdist): the suite is mostly Python and many small bakes.
 test: setup
-	$(PY) -m pytest -q -n auto --dist loadgroup
+	$(PY) -m pytest -q -n auto
 
 # Every benchmark in bench/, one after the other (minutes; not part of `make test`).
 bench: setup

@@ -8,10 +8,22 @@ with the same strictness. Unmarked tests run on the device a bake would use.
 """
 from __future__ import annotations
 
+import atexit
 import functools
 import os
+import shutil
+import tempfile
 
 import pytest
+
+# pysheds (the hydrology tests' peer) JIT-compiles with numba's on-disk cache; a
+# numba generator it uses can fail to compile in a process that finds it in a cache
+# another process wrote ("KeyError: int64 generator(func=<function count ...>)"): one
+# CI run from a fresh clone hit it. Each test process gets a cache of its own.
+_NUMBA_CACHE_PREFIX = "worldbake-numba-"
+if _NUMBA_CACHE_PREFIX in os.environ.get("NUMBA_CACHE_DIR", _NUMBA_CACHE_PREFIX):  # unset, or inherited from pytest's controller
+    os.environ["NUMBA_CACHE_DIR"] = tempfile.mkdtemp(prefix=_NUMBA_CACHE_PREFIX)
+    atexit.register(shutil.rmtree, os.environ["NUMBA_CACHE_DIR"], True)
 
 # The suite's many small bakes write no report.html (its world picture costs seconds
 # a bake); tests/pipeline/test_handoff.py bakes with it and checks it.
@@ -55,17 +67,3 @@ def _run_on_parametrized_device(request):
     with use_device(candidate.device):
         yield
 
-
-def pytest_collection_modifyitems(items):
-    """Group the tests for `pytest -n auto --dist loadgroup` (make test): one group per file, so a
-    module's fixtures are built on one worker; the plants tests together, since they share
-    session-scoped builds of every preset (tests/stages/plants/conftest.py); the CLI tests apart."""
-    for item in items:
-        path = item.path.as_posix()
-        if path.endswith("/tests/pipeline/test_cli.py"):
-            group = item.nodeid  # each test bakes its own project: the longest tests, spread over the workers
-        elif "/tests/stages/plants/" in path:
-            group = "tests/stages/plants"
-        else:
-            group = path
-        item.add_marker(pytest.mark.xdist_group(group))
