@@ -69,28 +69,12 @@ def card_views(prepared: Prepared, lo: np.ndarray, hi: np.ndarray, size: int, sa
 
 
 def _material(stage, path: str, albedo: str, normal: str | None):
-    from pxr import Sdf, UsdShade
+    from pxr import Sdf
 
-    mat = UsdShade.Material.Define(stage, path)
-    surf = UsdShade.Shader.Define(stage, f"{path}/Surface")
-    surf.CreateIdAttr("UsdPreviewSurface")
-    surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.8)
-    surf.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(0.0)
-    mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
-    st = UsdShade.Shader.Define(stage, f"{path}/TexCoord")
-    st.CreateIdAttr("UsdPrimvarReader_float2")
-    st.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
-    st_out = st.CreateOutput("result", Sdf.ValueTypeNames.Float2)
+    mat, surf, texture_at = usdio.textured_preview_surface(stage, path, roughness=0.8)
 
     def texture(name, file, space):
-        tex = UsdShade.Shader.Define(stage, f"{path}/{name}")
-        tex.CreateIdAttr("UsdUVTexture")
-        tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(Sdf.AssetPath(file))
-        tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set(space)
-        tex.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set("clamp")
-        tex.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set("clamp")
-        tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(st_out)
-        return tex
+        return texture_at(name, file, space, "clamp")
 
     colour = texture("AlbedoTexture", albedo, "sRGB")
     surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(

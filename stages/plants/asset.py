@@ -90,26 +90,10 @@ def _textured_material(stage, path: str, look: dict, roughness: float):
     translucency, thickness (optional data EXRs, see TRANSLUCENCY_SCHEME)."""
     from pxr import Gf, Sdf, UsdShade
 
-    mat = UsdShade.Material.Define(stage, path)
-    surf = UsdShade.Shader.Define(stage, f"{path}/Surface")
-    surf.CreateIdAttr("UsdPreviewSurface")
-    surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(float(roughness))
-    surf.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(0.0)
-    mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
-    st = UsdShade.Shader.Define(stage, f"{path}/TexCoord")
-    st.CreateIdAttr("UsdPrimvarReader_float2")
-    st.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
-    st_out = st.CreateOutput("result", Sdf.ValueTypeNames.Float2)
+    mat, surf, texture_at = usdio.textured_preview_surface(stage, path, roughness)
 
     def texture(name: str, file: str, colour_space: str):
-        tex = UsdShade.Shader.Define(stage, f"{path}/{name}")
-        tex.CreateIdAttr("UsdUVTexture")
-        tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(Sdf.AssetPath(file))
-        tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set(colour_space)
-        tex.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set(look["wrap"])
-        tex.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set(look["wrap"])
-        tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(st_out)
-        return tex
+        return texture_at(name, file, colour_space, look["wrap"])
 
     albedo = texture("AlbedoTexture", look["albedo"], "sRGB")
     surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
