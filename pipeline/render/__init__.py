@@ -22,9 +22,9 @@ import numpy as np
 
 from . import bvh as _bvh
 from . import reference
-from .scene import Camera, Image, Scene, Settings, srgb8
+from .scene import Camera, Image, Scene, Settings, linear_from_srgb, srgb8
 
-__all__ = ["Camera", "Image", "Scene", "Settings", "render", "reference", "srgb8", "KERNELS"]
+__all__ = ["Camera", "Image", "Scene", "Settings", "render", "reference", "linear_from_srgb", "srgb8", "KERNELS"]
 
 KERNELS = Path(__file__).with_name("kernels.cl")
 LOCAL = (8, 8)

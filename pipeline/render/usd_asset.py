@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .scene import Scene
+from .scene import Scene, linear_from_srgb
 
 LOOK_SLOTS = {"FoliageCards": 0, "Bark": 1, "Blades": 2, "GrassSlices": 3}
 
@@ -34,7 +34,7 @@ def read_png_linear(path: Path) -> np.ndarray:
     buf = oiio.ImageBuf(str(path))
     px = buf.get_pixels(oiio.FLOAT)
     rgb = px[..., :3]
-    lin = np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
+    lin = linear_from_srgb(rgb)
     alpha = px[..., 3] if px.shape[2] > 3 else np.ones(px.shape[:2])
     return np.concatenate([lin, alpha[..., None]], -1).astype(np.float32)
 

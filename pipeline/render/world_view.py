@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .scene import Camera, Image, Scene, Settings, srgb8
+from .scene import Camera, Image, Scene, Settings, linear_from_srgb, srgb8
 
 ATLAS_SIZE = 1024  # texels per side of every texture the world picture uses (the ground's and the billboard atlas)
 
@@ -96,7 +96,7 @@ def _read_image(path: str, colour_space: str) -> np.ndarray:
     rgb = px[..., :3] if px.shape[2] >= 3 else np.repeat(px[..., :1], 3, -1)
     srgb = colour_space == "sRGB" or (colour_space == "auto" and not path.lower().endswith(".exr"))
     if srgb:
-        rgb = np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
+        rgb = linear_from_srgb(rgb)
     alpha = px[..., 3] if px.shape[2] >= 4 else np.ones(px.shape[:2], np.float32)
     return np.concatenate([rgb, alpha[..., None]], -1).astype(np.float32)
 

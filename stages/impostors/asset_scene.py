@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import InputError
-from pipeline.render import Scene
+from pipeline.render import Scene, linear_from_srgb
 
 TEXTURE_PX = 256  # every texture of the stack is resampled to this size (the renderer's stack has one size)
 
@@ -30,11 +30,6 @@ class PlantScene:
     textures: list[str]  # the texture files read, in stack order
 
 
-def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    c = np.asarray(c, np.float64)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
 def _read_texture(path: Path, colour_space: str) -> np.ndarray:
     """(TEXTURE_PX, TEXTURE_PX, 4) linear RGB + alpha, nearest-resampled."""
     import OpenImageIO as oiio
@@ -48,7 +43,7 @@ def _read_texture(path: Path, colour_space: str) -> np.ndarray:
     rgb = px[..., :3] if px.shape[2] >= 3 else np.repeat(px[..., :1], 3, -1)
     alpha = px[..., 3] if px.shape[2] >= 4 else np.ones(px.shape[:2])
     if colour_space == "sRGB" or (colour_space != "raw" and path.suffix.lower() == ".png"):
-        rgb = srgb_to_linear(rgb)
+        rgb = linear_from_srgb(np.asarray(rgb, np.float64))
     h, w = alpha.shape
     ys = (np.arange(TEXTURE_PX) * h // TEXTURE_PX).astype(int)
     xs = (np.arange(TEXTURE_PX) * w // TEXTURE_PX).astype(int)
