@@ -67,6 +67,72 @@ def normalized(path: Path) -> bytes:
     return normalized_python(text) if path.suffix == ".py" else normalized_cl(text)
 
 
+class _FactsCache:
+    """Per file, by its path and bytes: the sha256 of its normalised text and
+    the dotted names it imports. Parsing is most of the cost of keying a bake
+    (about 100 modules, several seconds), so the facts persist between runs
+    in WORLDBAKE_CACHE_DIR (default ~/.cache/worldbake), keyed by content: a
+    changed file is a new key, a stale entry is never read. Which files the
+    names resolve to is decided on every run."""
+
+    def __init__(self):
+        self.entries: dict[str, list] | None = None
+        self.dirty = False
+
+    @property
+    def path(self) -> Path:
+        import os
+
+        folder = os.environ.get("WORLDBAKE_CACHE_DIR") or Path.home() / ".cache" / "worldbake"
+        return Path(folder) / f"source-facts-{FACTS_FORMAT}.json"
+
+    def _load(self) -> dict[str, list]:
+        if self.entries is None:
+            import json
+
+            try:
+                self.entries = dict(json.loads(self.path.read_text()))
+            except (OSError, ValueError, TypeError):
+                self.entries = {}
+        return self.entries
+
+    def facts(self, root: Path, path: Path) -> tuple[str, list[str]]:
+        raw = path.read_bytes()
+        key = f"{path.relative_to(root).as_posix()}:{hashlib.sha256(raw).hexdigest()}"
+        entries = self._load()
+        if key not in entries:
+            text = raw.decode("utf-8", errors="surrogateescape")
+            if path.suffix == ".py":
+                entries[key] = [hashlib.sha256(normalized_python(text)).hexdigest(), _import_names(root, path, text)]
+            else:
+                entries[key] = [hashlib.sha256(normalized_cl(text)).hexdigest(), []]
+            self.dirty = True
+        digest, names = entries[key]
+        return digest, names
+
+    def save(self) -> None:
+        """Write the facts (atomically: parallel bakes and test workers share the file)."""
+        import json
+        import os
+        import tempfile
+
+        if not self.dirty:
+            return
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=self.path.parent, suffix=".tmp")
+            with os.fdopen(fd, "w") as f:
+                json.dump(self.entries, f)
+            os.replace(tmp, self.path)
+            self.dirty = False
+        except OSError:
+            pass  # a read-only home only costs the parsing again
+
+
+FACTS_FORMAT = 1  # bump when normalized_python, normalized_cl or _import_names change what they return
+_FACTS = _FactsCache()
+
+
 # --------------------------------------------------------------------------- finding
 
 
@@ -88,10 +154,22 @@ def _package_of(root: Path, path: Path) -> list[str]:
 
 def imported_modules(root: Path, path: Path) -> set[Path]:
     """Project module files a .py file imports, with the packages on the way."""
+    found = set()
+    for name in _FACTS.facts(root, path)[1]:
+        parts = name.split(".")
+        for i in range(1, len(parts) + 1):  # importing a.b.c runs a/__init__ and a/b/__init__
+            f = _module_file(root, ".".join(parts[:i]))
+            if f is not None:
+                found.add(f)
+    return found
+
+
+def _import_names(root: Path, path: Path, text: str) -> list[str]:
+    """The dotted names a .py file imports (relative imports made absolute)."""
     try:
-        tree = ast.parse(path.read_text(encoding="utf-8", errors="surrogateescape"))
+        tree = ast.parse(text)
     except SyntaxError:
-        return set()
+        return []
     package = _package_of(root, path)
     names: list[str] = []
     for node in ast.walk(tree):
@@ -105,14 +183,7 @@ def imported_modules(root: Path, path: Path) -> set[Path]:
                 prefix = node.module or ""
             names.append(prefix)
             names.extend(f"{prefix}.{a.name}" for a in node.names)  # `from pkg import module`
-    found = set()
-    for name in names:
-        parts = name.split(".")
-        for i in range(1, len(parts) + 1):  # importing a.b.c runs a/__init__ and a/b/__init__
-            f = _module_file(root, ".".join(parts[:i]))
-            if f is not None:
-                found.add(f)
-    return found
+    return sorted(set(names))
 
 
 def included_headers(path: Path, include_dir: Path = CL_INCLUDE_DIR) -> set[Path]:
@@ -154,14 +225,15 @@ def stage_source_files(source_dir: Path) -> list[Path]:
 
 @functools.lru_cache(maxsize=None)
 def stage_source_hash(source_dir: Path) -> str:
-    """sha256 over the project-relative paths and normalised text of
-    stage_source_files(source_dir)."""
+    """sha256 over the project-relative paths and the hashes of the
+    normalised text of stage_source_files(source_dir)."""
     source_dir = Path(source_dir).resolve()
     root = source_dir.parent.parent
     h = hashlib.sha256()
     for path in stage_source_files(source_dir):
         h.update(path.relative_to(root).as_posix().encode() + b"\0")
-        h.update(normalized(path) + b"\0")
+        h.update(_FACTS.facts(root, path)[0].encode() + b"\0")
+    _FACTS.save()
     return h.hexdigest()
 
 

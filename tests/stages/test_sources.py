@@ -185,3 +185,20 @@ def test_the_engine_names_no_stage():
         for node in ast.walk(tree):
             if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in skip:
                 assert node.value not in names, f"{path.relative_to(ROOT)}:{node.lineno} names {node.value!r}"
+
+
+def test_the_persisted_source_facts_give_the_same_keys_and_survive_corruption(tmp_path, monkeypatch):
+    import pipeline.sources as sources
+
+    monkeypatch.setenv("WORLDBAKE_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(sources, "_FACTS", sources._FactsCache())
+    fresh = _hashes(ROOT)  # parses every file and writes the cache
+    cache = tmp_path / f"source-facts-{sources.FACTS_FORMAT}.json"
+    entries = json.loads(cache.read_text())
+    assert len(entries) > 20
+    monkeypatch.setattr(sources, "_FACTS", sources._FactsCache())
+    assert _hashes(ROOT) == fresh  # read back from the file
+    cache.write_text("{not json")
+    monkeypatch.setattr(sources, "_FACTS", sources._FactsCache())
+    assert _hashes(ROOT) == fresh  # a corrupt cache is parsed again, not trusted
+    stage_source_hash.cache_clear()
