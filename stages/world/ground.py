@@ -142,17 +142,34 @@ def udim_layout(size_m: float, texel_m: float, tile_texels: int) -> tuple[int, i
     return tiles, tile_texels
 
 
-def tile_albedo(splat: np.ndarray, cell_m: float, origin_m: tuple[float, float], tiles: int, tile_texels: int,
-                u: int, v: int, tables: np.ndarray, texel_m: float) -> np.ndarray:
-    """The albedo of UDIM tile (u, v) (u east, v north from the south-west
-    corner), image row 0 at the tile's north edge, as USD reads textures.
-    Weights from texel_weights (bilinear between cell centres)."""
-    rows, cols = splat.shape[:2]
-    width, depth = cols * cell_m, rows * cell_m
+def tile_positions(cell_m: float, shape: tuple[int, int], tiles: int, tile_texels: int, u: int,
+                   v: int) -> tuple[np.ndarray, np.ndarray]:
+    """Metres from the grid's corner of the texel centres of UDIM tile (u, v)
+    (u east, v north from the south-west corner): x per texel column, z per
+    texel row (row 0 at the tile's north edge, as USD reads textures; z
+    grows south)."""
+    rows, cols = shape
     s = (u + (np.arange(tile_texels) + 0.5) / tile_texels) / tiles  # 0..1 east
     t = (v + 1 - (np.arange(tile_texels) + 0.5) / tile_texels) / tiles  # 0..1 north, row 0 at the top
-    x = s * width
-    z = (1.0 - t) * depth  # z grows south
+    return s * (cols * cell_m), (1.0 - t) * (rows * cell_m)
+
+
+def axis_taps(pos_m: np.ndarray, origin_m: float, cell_m: float, n: int, texel_m: float,
+              period: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per texel along one axis: (lower cell, upper cell, detail texel) as
+    int32 and the upper cell's share, as texel_weights and albedo compute
+    them; the kernel takes these (the tile is separable)."""
+    i0, i1, f = _bilinear_taps(pos_m / cell_m - 0.5, n)
+    detail = np.floor((origin_m + pos_m) / texel_m).astype(np.int64) % period
+    return np.stack([i0, i1, detail], axis=1).astype(np.int32), f
+
+
+def tile_albedo(splat: np.ndarray, cell_m: float, origin_m: tuple[float, float], tiles: int, tile_texels: int,
+                u: int, v: int, tables: np.ndarray, texel_m: float) -> np.ndarray:
+    """The albedo of UDIM tile (u, v) (tile_positions), weights from
+    texel_weights (bilinear between cell centres). The reference of the
+    ground.cl kernel (ground_device.GroundAlbedo)."""
+    x, z = tile_positions(cell_m, splat.shape[:2], tiles, tile_texels, u, v)
     w = texel_weights(splat, z / cell_m - 0.5, x / cell_m - 0.5, types_first=True)
     return albedo(w, origin_m[0] + x, origin_m[1] + z, tables, texel_m)
 
