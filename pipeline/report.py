@@ -358,9 +358,8 @@ def world_picture(world_usda: Path, out_png: Path, size: tuple[int, int] = VIEW_
         fn = np.cross(e1, e2)
         fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-12)
         fn[fn[:, 1] < 0] *= -1.0
-        vn = np.zeros_like(pts)
-        for j in range(3):
-            np.add.at(vn, tris[:, j], fn)
+        corners = tris.ravel()  # each face's normal summed at its three corners
+        vn = np.stack([np.bincount(corners, np.repeat(fn[:, k], 3), len(pts)) for k in range(3)], axis=1)
         vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
         scenes.append(Scene(pts, vn, np.zeros((len(pts), 2)), tris, tint, -1))
     if not scenes:
@@ -395,7 +394,6 @@ def _triangulate(counts: np.ndarray, idx: np.ndarray) -> np.ndarray:
 def _ground_colours(prim, pts: np.ndarray, tris: np.ndarray) -> np.ndarray | None:
     """Linear albedo per triangle from the bound material's diffuse texture
     at the triangle's centre st (UDIM tiles resolved per tile)."""
-    import OpenImageIO as oiio
     from pxr import UsdGeom, UsdShade
 
     material = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()[0]
@@ -428,16 +426,35 @@ def _ground_colours(prim, pts: np.ndarray, tris: np.ndarray) -> np.ndarray | Non
         n = int(round(math.sqrt(len(tiles))))
         tu = np.clip(np.floor(uv[:, 0] * n), 0, n - 1).astype(int)
         tv = np.clip(np.floor(uv[:, 1] * n), 0, n - 1).astype(int)
+        texels = math.sqrt(len(tris) / 2.0) / n  # about one texel per mesh cell of the tile
         for tile, f in tiles.items():
             u0, v0 = (tile - 1001) % 10, (tile - 1001) // 10
             sel = (tu == u0) & (tv == v0)
             if sel.any():
-                out[sel] = _sample(np.asarray(oiio.ImageBuf(str(f)).get_pixels(oiio.FLOAT)),
-                                   uv[sel] * n - [u0, v0])
+                out[sel] = _sample(_read_level(f, texels), uv[sel] * n - [u0, v0])
         return out
     if not path.is_file():
         return None
-    return _sample(np.asarray(oiio.ImageBuf(str(path)).get_pixels(oiio.FLOAT)), uv)
+    return _sample(_read_level(path, math.sqrt(len(tris) / 2.0)), uv)
+
+
+def _read_level(path: Path, texels: float) -> np.ndarray:
+    """The texture's pixels at its smallest MIP level still `texels` wide
+    (a picture of the whole world needs one texel per mesh cell, not the 1 m
+    tiles' full resolution)."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise OSError(f"cannot read {path}: {oiio.geterror()}")
+    try:
+        level = 0
+        while inp.seek_subimage(0, level + 1) and inp.spec().width >= texels:
+            level += 1
+        inp.seek_subimage(0, level)
+        return np.asarray(inp.read_image(oiio.FLOAT))
+    finally:
+        inp.close()
 
 
 def _descendants(prim):
@@ -542,15 +559,15 @@ def svg_plot(s: dict, width: int = 320, height: int = 200) -> str:
 
 
 def lod_counts(world_usda: Path) -> tuple[list[dict], list[dict]]:
-    """Instances per prototype (over every PointInstancer) and triangles per
-    LOD of every prim with a `lod` variant set."""
+    """Instances per prototype (over every PointInstancer) and, for every
+    prim of the composed world with a `lod` variant set (abstract prototype
+    classes included), the triangles a renderer draws in each variant:
+    active, visible meshes of purpose default or render."""
     from pxr import Usd, UsdGeom
 
     stage = Usd.Stage.Open(str(world_usda))
     per_proto: dict[str, int] = {}
-    lods = []
     it = iter(Usd.PrimRange(stage.GetPseudoRoot()))
-    seen_assets = set()
     for prim in it:
         if prim.IsA(UsdGeom.PointInstancer):
             inst = UsdGeom.PointInstancer(prim)
@@ -560,34 +577,40 @@ def lod_counts(world_usda: Path) -> tuple[list[dict], list[dict]]:
             for p, n in zip(protos, counts):
                 per_proto[p.name] = per_proto.get(p.name, 0) + int(n)
             it.PruneChildren()
-    # the assets: every layer stack's prims with a lod variant set (plants.usda is referenced by prototypes)
-    for layer in stage.GetUsedLayers():
-        for root in layer.rootPrims:
-            _collect_lods(layer, root, lods, seen_assets)
+    # payloads unloaded (tiles hold only instances of the prototypes); an instance shares its prototype's rows
+    unloaded = Usd.Stage.Open(str(world_usda), Usd.Stage.LoadNone)
+    with_lods = [p.GetPath() for p in Usd.PrimRange.AllPrims(unloaded.GetPseudoRoot())
+                 if not p.IsInstance() and "lod" in p.GetVariantSets().GetNames()]
+    lods = []
+    if with_lods:
+        # masked to those prims, the variant switches (in the session layer) recompose only them
+        masked = Usd.Stage.OpenMasked(str(world_usda), Usd.StagePopulationMask(with_lods), Usd.Stage.LoadNone)
+        masked.SetEditTarget(masked.GetSessionLayer())
+        for path in with_lods:
+            vset = masked.GetPrimAtPath(path).GetVariantSets().GetVariantSet("lod")
+            row = {"asset": path.name, "lods": {}}
+            for name in vset.GetVariantNames():
+                vset.SetVariantSelection(name)
+                row["lods"][name] = _drawn_triangles(masked.GetPrimAtPath(path))
+            lods.append(row)
     instances = [{"prototype": k, "instances": v} for k, v in sorted(per_proto.items())]
     return instances, lods
 
 
-def _collect_lods(layer, spec, lods: list, seen: set) -> None:
+def _drawn_triangles(prim) -> int:
     from pxr import Usd, UsdGeom
 
-    if "lod" in spec.variantSets and (layer.identifier, str(spec.path)) not in seen:
-        seen.add((layer.identifier, str(spec.path)))
-        stage = Usd.Stage.Open(layer)
-        prim = stage.GetPrimAtPath(spec.path)
-        vset = prim.GetVariantSets().GetVariantSet("lod")
-        row = {"asset": spec.path.name, "lods": {}}
-        for name in vset.GetVariantNames():
-            vset.SetVariantSelection(name)
-            tris = 0
-            for p in Usd.PrimRange(stage.GetPrimAtPath(spec.path)):
-                if p.IsA(UsdGeom.Mesh):
-                    c = np.asarray(UsdGeom.Mesh(p).GetFaceVertexCountsAttr().Get() or [], np.int64)
-                    tris += int((c - 2).clip(0).sum())
-            row["lods"][name] = tris
-        lods.append(row)
-    for child in spec.nameChildren:
-        _collect_lods(layer, child, lods, seen)
+    tris = 0
+    for p in Usd.PrimRange(prim, Usd.PrimIsActive & Usd.PrimIsDefined):  # prototypes are abstract classes
+        if not p.IsA(UsdGeom.Mesh):
+            continue
+        imageable = UsdGeom.Imageable(p)
+        if imageable.ComputeVisibility() == UsdGeom.Tokens.invisible or \
+                imageable.ComputePurpose() not in (UsdGeom.Tokens.default_, UsdGeom.Tokens.render):
+            continue
+        c = np.asarray(UsdGeom.Mesh(p).GetFaceVertexCountsAttr().Get() or [], np.int64)
+        tris += int((c - 2).clip(0).sum())
+    return tris
 
 
 def warnings(world: World) -> list[str]:
