@@ -50,3 +50,41 @@ def test_warnings_table_and_series_from_any_stage(tmp_path):
     out.mkdir()
     page = write_report(store, out, manifest, None).read_text()
     assert "<td>brandnew</td>" in page and "cactus found no suitable land" in page
+
+
+def test_lod_counts_count_what_a_renderer_draws_on_the_composed_prototype(tmp_path):
+    from pxr import Sdf, Usd, UsdGeom
+
+    from pipeline.report import lod_counts
+
+    path = tmp_path / "w.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    proto = stage.CreateClassPrim("/Protos/tree")  # abstract, like the world's prototype classes
+
+    def quads(prim_path, n, purpose=None):
+        mesh = UsdGeom.Mesh.Define(stage, prim_path)
+        mesh.CreateFaceVertexCountsAttr([4] * n)
+        if purpose:
+            mesh.CreatePurposeAttr(purpose)
+        return mesh
+
+    vset = proto.GetVariantSets().AddVariantSet("lod")
+    for name, n in (("LOD0", 10), ("LOD1", 3)):
+        vset.AddVariant(name)
+        vset.SetVariantSelection(name)
+        with vset.GetVariantEditContext():
+            quads(f"/Protos/tree/Geom_{name}", n, UsdGeom.Tokens.render)
+    vset.SetVariantSelection("LOD0")
+    quads("/Protos/tree/Proxy", 7, UsdGeom.Tokens.proxy)  # not drawn by a final render
+    quads("/Protos/tree/Off", 5).GetPrim().SetActive(False)
+    quads("/Protos/tree/Hidden", 5).CreateVisibilityAttr(UsdGeom.Tokens.invisible)
+    inst = UsdGeom.PointInstancer.Define(stage, "/World/Trees")
+    inst.CreatePrototypesRel().SetTargets([Sdf.Path("/World/Trees/Prototypes/tree")])
+    ref = stage.DefinePrim("/World/Trees/Prototypes/tree")
+    ref.GetInherits().AddInherit("/Protos/tree")
+    ref.SetInstanceable(True)
+    inst.CreateProtoIndicesAttr([0, 0, 0])
+    stage.GetRootLayer().Save()
+    instances, lods = lod_counts(path)
+    assert instances == [{"prototype": "tree", "instances": 3}]
+    assert lods == [{"asset": "tree", "lods": {"LOD0": 20, "LOD1": 6}}]  # the instance repeats no row
