@@ -37,6 +37,20 @@ def lattice_coordinates(n_cells: int, n_vertices: int) -> np.ndarray:
     return np.linspace(0.0, n_cells - 1, n_vertices)
 
 
+def lattice_shape(rows: int, cols: int, max_vertices_per_side: int) -> tuple[int, int]:
+    """Vertices along the rows and the columns: the longer side gets at most
+    max_vertices_per_side, the shorter side as many as keep the same spacing
+    in metres (a rectangular world's triangles stay near square), each side
+    at most one vertex per cell."""
+    longer = max(rows, cols)
+    n_long = min(longer, max_vertices_per_side)
+    spacing = (longer - 1) / max(n_long - 1, 1)  # cells between lattice lines
+
+    def side(n: int) -> int:
+        return n_long if n == longer else min(n, max(2, int(round((n - 1) / spacing)) + 1))
+    return side(rows), side(cols)
+
+
 def bilinear(values: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """values sampled at fractional (row, col) cell indices (outer product)."""
     r0 = np.clip(np.floor(rows).astype(np.int64), 0, max(values.shape[0] - 2, 0))
@@ -57,8 +71,9 @@ def build_terrain_mesh(height: Grid, max_vertices_per_side: int) -> TerrainMesh:
     if rows < 2 or cols < 2:
         raise ValueError(f"a terrain mesh needs at least 2x2 cells, the grid is {rows}x{cols}")
     dx = height.cell_size_m
-    ri = lattice_coordinates(rows, min(rows, max_vertices_per_side))
-    ci = lattice_coordinates(cols, min(cols, max_vertices_per_side))
+    nr, nc = lattice_shape(rows, cols, max_vertices_per_side)
+    ri = lattice_coordinates(rows, nr)
+    ci = lattice_coordinates(cols, nc)
     hv = bilinear(h, ri, ci)
     x = height.origin_m[0] + (ci + 0.5) * dx
     z = height.origin_m[1] + (ri + 0.5) * dx

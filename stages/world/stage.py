@@ -43,7 +43,8 @@ ASSET_INPUTS = (
 
 class WorldParams(Params):
     mesh_max_vertices: int = Param(513, ge=2, le=8193, units="vertices",
-                                   description="largest number of terrain mesh vertices per side; the height grid is resampled down to it")
+                                   description="largest number of terrain mesh vertices along the longer side (the shorter side keeps "
+                                   "the same spacing); the height grid is resampled down to it")
     texture_size: int = Param(1024, ge=16, le=16384, units="texels",
                               description="ground colour texture size per side")
     snow_line_m: float = Param(2200.0, ge=-11000.0, le=9000.0, units="m", description="altitude above which the ground is snow")

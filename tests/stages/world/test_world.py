@@ -37,7 +37,10 @@ def test_world_layers_validate_and_follow_conventions(tmp_path):
     mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Terrain/Ground"))
     assert mesh.GetSubdivisionSchemeAttr().Get() == UsdGeom.Tokens.none
     pts = np.array(mesh.GetPointsAttr().Get())
-    assert len(pts) == 17 * 17
+    # 17 vertices along the 40 columns; along the 33 rows the same spacing (39 / 16 cells) gives 14
+    assert len(pts) == 14 * 17
+    spacing = np.diff(np.unique(pts[:, 0])).mean(), np.diff(np.unique(pts[:, 2])).mean()
+    assert abs(spacing[0] / spacing[1] - 1) < 0.02
     normals = np.array(mesh.GetNormalsAttr().Get())
     assert np.allclose(np.linalg.norm(normals, axis=1), 1, atol=1e-5) and (normals[:, 1] > 0).all()
     ext = np.array(mesh.GetExtentAttr().Get())
