@@ -4,8 +4,9 @@ renderer's kernel.
 Binned surface-area heuristic (Wald 2007): a node's triangles are put in
 BINS bins by centroid along each axis, and of the BINS - 1 planes per axis
 the one with the least expected cost (child box area x triangle count,
-summed) is taken, or the node becomes a leaf when testing its triangles is
-cheaper than descending (at most `leaf_size` triangles). Plant assets are
+summed) is taken; a node of at most `leaf_size` triangles is a leaf (the
+kernel tests a leaf's four triangle slots at once, so a full leaf costs
+no more than a single triangle). Plant assets are
 thousands of crossed cards, twigs and needles overlapping in one crown: a
 median split makes children whose boxes both span the crown, the SAH makes
 tight ones, and every ray visits far fewer nodes.
@@ -29,7 +30,6 @@ from dataclasses import dataclass
 import numpy as np
 
 BINS = 16
-TRAVERSAL_COST = 1.0  # of one node step, in triangle tests
 MEDIAN_DEPTH = 30  # nodes this deep split at the median: 30 + log2(triangles) levels stay within the kernel's stack
 
 
@@ -86,7 +86,6 @@ def build(positions: np.ndarray, triangles: np.ndarray, leaf_size: int = 4) -> B
         return BVH(nodes, np.zeros(0, np.int32))
     lo, hi = tri.min(1), tri.max(1)
     cen = 0.5 * (lo.astype(np.float64) + hi)
-    lo64, hi64 = lo.astype(np.float64), hi.astype(np.float64)
     order = np.arange(m, dtype=np.int64)
     # node table, grown a level at a time; a level's nodes are in increasing start order
     starts, counts, child = [np.array([0])], [np.array([m])], []
@@ -101,8 +100,6 @@ def build(positions: np.ndarray, triangles: np.ndarray, leaf_size: int = 4) -> B
         offsets = np.cumsum(level_ct) - level_ct
         cmin = np.minimum.reduceat(c, offsets, axis=0)
         cmax = np.maximum.reduceat(c, offsets, axis=0)
-        nlo = np.minimum.reduceat(lo64[tris], offsets, axis=0)
-        nhi = np.maximum.reduceat(hi64[tris], offsets, axis=0)
         extent = cmax - cmin
         # bin of every triangle along every axis (3 columns)
         scale = np.where(extent > 0, BINS / np.where(extent > 0, extent, 1.0), 0.0)
@@ -127,10 +124,7 @@ def build(positions: np.ndarray, triangles: np.ndarray, leaf_size: int = 4) -> B
         best = np.argmin(cost, axis=1)  # first minimum: deterministic
         best_cost = cost[np.arange(k), best]
         axis, plane = best // (BINS - 1), best % (BINS - 1) + 1
-        area = np.maximum(_half_area(nlo.T, nhi.T), 1e-30)
-        split_cost = TRAVERSAL_COST + best_cost / area
-        can_split = np.isfinite(best_cost)
-        sah = can_split & ((level_ct > leaf_size) | (split_cost < level_ct))
+        sah = np.isfinite(best_cost) & (level_ct > leaf_size)  # a leaf costs one 4-wide test: fill it
         if depth >= MEDIAN_DEPTH:
             sah[:] = False
         median = ~sah & (level_ct > leaf_size)
