@@ -209,7 +209,8 @@ def image_difference(a, b) -> str:
     return f"coverage differs in {cov.mean():.3%} px, elsewhere |albedo| {d_alb:.1e} |depth| {d_dep:.1e} m |ao| {d_ao:.2f}"
 
 
-def assets(plants: str | None, baseline: str | None, repeat: int, species=("conifer", "broadleaf")) -> None:
+def assets(plants: str | None, baseline: str | None, repeat: int, species=("conifer", "broadleaf"),
+           with_reference: bool = True) -> None:
     import pipeline.render as current
     from pathlib import Path
 
@@ -256,6 +257,8 @@ def assets(plants: str | None, baseline: str | None, repeat: int, species=("coni
                 c_new, c_old = best["this checkout"][1], best[f"baseline {baseline}"][1]
                 print(f"   {'':15s} speed-up {t_old / t_new:5.2f} x wall, {c_old / c_new:5.2f} x CPU; against the baseline: "
                       f"{image_difference(a[worst], b[worst])}")
+    if not with_reference:
+        return
     # the oracle: the numpy reference on a small view of the conifer
     ps = asset_scene.load(layer, plant_asset_prim("conifer"))
     cam = workloads(ps, current)["atlas frames"][3][0]
@@ -274,6 +277,7 @@ def main(argv=None) -> None:
     ap.add_argument("--section", choices=("all", "tiny", "tree", "bake", "assets"), default="all")
     ap.add_argument("--plants", help="a plants artifact's plants.usda (default: the newest under build/artifacts)")
     ap.add_argument("--baseline", metavar="REV", help="also measure pipeline/render of this git revision")
+    ap.add_argument("--no-reference", action="store_true", help="skip the numpy reference on the conifer (about a minute)")
     a = ap.parse_args(argv)
     from pipeline.opencl import get_cl
 
@@ -285,7 +289,7 @@ def main(argv=None) -> None:
     if a.section in ("all", "bake"):
         bake_quality(a.quick, a.repeat)
     if a.section in ("all", "assets"):
-        assets(a.plants, a.baseline, a.repeat)
+        assets(a.plants, a.baseline, a.repeat, with_reference=not a.no_reference)
 
 
 if __name__ == "__main__":

@@ -206,9 +206,10 @@ class WideBVH:
 
 
 def widen(tree: BVH) -> WideBVH:
-    """Each wide node takes the children of a binary node's two children (a
-    leaf child stays one lane): a breadth-first pass, one level of wide nodes
-    at a time."""
+    """Each wide node starts from a binary node's two children, and twice the
+    inner child of largest box area gives way to its two children (Wald et
+    al. 2008): four lanes wherever the tree has them. A breadth-first pass,
+    one level of wide nodes at a time."""
     ints = tree.nodes.view(np.int32)
     child, count = ints[:, 3].astype(np.int64), ints[:, 7].astype(np.int64)
     inner = count == 0
@@ -224,10 +225,19 @@ def widen(tree: BVH) -> WideBVH:
         records.append(lanes)
         level = np.zeros(0, np.int64)
     n_wide, depth = (1 if len(records) else 0), 0
+    lo, hi = tree.nodes[:, 0:3].astype(np.float64), tree.nodes[:, 4:7].astype(np.float64)
+    area = _half_area(lo.T, hi.T)
     while len(level):
-        a, b = child[level], child[level] + 1
-        lanes = np.stack([np.where(inner[a], child[a], a), np.where(inner[a], child[a] + 1, -1),
-                          np.where(inner[b], child[b], b), np.where(inner[b], child[b] + 1, -1)], 1)
+        lanes = np.full((len(level), 4), -1, np.int64)
+        lanes[:, 0], lanes[:, 1] = child[level], child[level] + 1
+        for free in (2, 3):  # the inner lane of largest box area gives way to its two children
+            src = np.maximum(lanes, 0)
+            score = np.where((lanes >= 0) & inner[src], area[src], -1.0)
+            pick = np.argmax(score, axis=1)
+            rows = np.nonzero(score[np.arange(len(lanes)), pick] >= 0)[0]
+            node = lanes[rows, pick[rows]]
+            lanes[rows, pick[rows]] = child[node]
+            lanes[rows, free] = child[node] + 1
         records.append(lanes)
         n_wide += len(level)
         nxt = lanes[(lanes >= 0) & inner[np.maximum(lanes, 0)]]
