@@ -2,7 +2,8 @@
 renderer's kernel.
 
 Binned surface-area heuristic (Wald 2007): a node's triangles are put in
-BINS bins by centroid along each axis, and of the BINS - 1 planes per axis
+BINS bins (half as many at levels of small nodes) by centroid along each
+axis, and of the bins - 1 planes per axis
 the one with the least expected cost (child box area x triangle count,
 summed) is taken; a node of at most `leaf_size` triangles is a leaf (the
 kernel tests a leaf's four triangle slots at once, so a full leaf costs
@@ -85,7 +86,7 @@ def build(positions: np.ndarray, triangles: np.ndarray, leaf_size: int = 4) -> B
         nodes[0, 0:3], nodes[0, 4:7] = 1.0, -1.0  # an empty box no ray enters
         return BVH(nodes, np.zeros(0, np.int32))
     lo, hi = tri.min(1), tri.max(1)
-    cen = 0.5 * (lo.astype(np.float64) + hi)
+    cen = 0.5 * (lo + hi)
     order = np.arange(m, dtype=np.int64)
     # node table, grown a level at a time; a level's nodes are in increasing start order
     starts, counts, child = [np.array([0])], [np.array([m])], []
@@ -101,21 +102,24 @@ def build(positions: np.ndarray, triangles: np.ndarray, leaf_size: int = 4) -> B
         cmin = np.minimum.reduceat(c, offsets, axis=0)
         cmax = np.maximum.reduceat(c, offsets, axis=0)
         extent = cmax - cmin
+        # fine bins while nodes are large; deep levels hold many small nodes, where the per-bin arrays
+        # (nodes x bins) outweigh the triangles and coarse bins choose nearly as well
+        bins = BINS if level_ct.mean() > 64 else BINS // 2
         # bin of every triangle along every axis (3 columns)
-        scale = np.where(extent > 0, BINS / np.where(extent > 0, extent, 1.0), 0.0)
-        b = np.clip(((c - cmin[idx]) * scale[idx]).astype(np.int64), 0, BINS - 1)
+        scale = np.where(extent > 0, bins / np.where(extent > 0, extent, 1.0), 0.0)
+        b = np.clip(((c - cmin[idx]) * scale[idx]).astype(np.int64), 0, bins - 1)
         # per (coordinate, bin, node, axis) triangle bounds: 1-D scatters (numpy's fast path)
         lo_t, hi_t = lo[tris], hi[tris]
-        blo = np.full((3, BINS * k * 3), np.inf, np.float32)
-        bhi = np.full((3, BINS * k * 3), -np.inf, np.float32)
+        blo = np.full((3, bins * k * 3), np.inf, np.float32)
+        bhi = np.full((3, bins * k * 3), -np.inf, np.float32)
         keys = (b * k + idx[:, None]) * 3 + np.arange(3)  # (n, axis)
         for ax in range(3):
             for co in range(3):
                 np.minimum.at(blo[co], keys[:, ax], lo_t[:, co])
                 np.maximum.at(bhi[co], keys[:, ax], hi_t[:, co])
-        cnt = np.bincount(keys.ravel(), minlength=BINS * k * 3).reshape(BINS, k, 3)
-        blo, bhi = blo.reshape(3, BINS, k, 3), bhi.reshape(3, BINS, k, 3)
-        # sweep: left side = bins [0, p), right side = bins [p, BINS), p = 1 .. BINS-1
+        cnt = np.bincount(keys.ravel(), minlength=bins * k * 3).reshape(bins, k, 3)
+        blo, bhi = blo.reshape(3, bins, k, 3), bhi.reshape(3, bins, k, 3)
+        # sweep: left side = bins [0, p), right side = bins [p, bins), p = 1 .. bins-1
         l_cnt = np.cumsum(cnt, axis=0)[:-1]
         r_cnt = np.cumsum(cnt[::-1], axis=0)[::-1][1:]
         l_area, r_area = _sweep_areas(blo, bhi)
@@ -123,7 +127,7 @@ def build(positions: np.ndarray, triangles: np.ndarray, leaf_size: int = 4) -> B
         cost = cost.transpose(1, 2, 0).reshape(k, -1)
         best = np.argmin(cost, axis=1)  # first minimum: deterministic
         best_cost = cost[np.arange(k), best]
-        axis, plane = best // (BINS - 1), best % (BINS - 1) + 1
+        axis, plane = best // (bins - 1), best % (bins - 1) + 1
         sah = np.isfinite(best_cost) & (level_ct > leaf_size)  # a leaf costs one 4-wide test: fill it
         if depth >= MEDIAN_DEPTH:
             sah[:] = False
