@@ -216,3 +216,18 @@ def test_equal_distances_go_to_the_lowest_triangle_id():
     a, b = render(scene, cam, s), render(scene, cam, s, device=False)
     assert np.array_equal(a.albedo, b.albedo)
     assert np.allclose(a.albedo, 0.9)
+
+
+@pytest.mark.parametrize("n", [0, 1, 3])
+def test_tiny_scenes_render_through_a_prepared_scene(n):
+    """No triangles (a root without children) and a root that is one leaf."""
+    full = _random_cards(3, 8, size=1.5)
+    scene = Scene(full.positions, full.normals, full.uv, full.triangles[:n], full.tint[:n], full.texture[:n], full.textures)
+    s = Settings(12, 12, samples=2, ao_rays=1, ao_radius_m=0.5, seed=3)
+    cam = Camera((0.0, 0.0, 4.0), (0.0, 0.0, -1.0), ortho_height_m=3.0)
+    a = Prepared(scene).render(cam, s)
+    if n == 0:
+        assert a.alpha.max() == 0.0 and np.isinf(a.depth).all()
+    else:
+        assert a.alpha.max() > 0.0
+        _compare(a, render(scene, cam, s, device=False), 1.0)
