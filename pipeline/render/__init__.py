@@ -7,6 +7,17 @@ brute-force numpy reference (reference.py) for tiny scenes:
     img = render(scene, Camera(eye, forward, ortho_height_m=2.0), Settings(256, 256, samples=3, ao_rays=8))
     img.albedo, img.alpha, img.normal, img.depth, img.ao
 
+Many views of one scene (atlas frames, held-out views, measures): prepare
+it once, so its BVH is built and its buffers uploaded once, then render:
+
+    prepared = Prepared(scene)
+    images = [prepared.render(camera, settings) for camera in cameras]
+
+`render(scene, ...)` prepares the scene for that one view. The kernel
+traverses a four-wide BVH (bvh.widen), so the images do not depend on the
+tree: of hits at equal distance the lowest scene triangle id wins, as in
+the reference.
+
 Why ray casting and not rasterization: ambient occlusion needs rays against
 the whole scene anyway, the alpha test of cards is the same code for primary
 and AO rays, and one work-item per pixel that owns its samples makes the
@@ -24,7 +35,8 @@ from . import bvh as _bvh
 from . import reference
 from .scene import Camera, Image, Scene, Settings, linear_from_srgb, srgb8
 
-__all__ = ["Camera", "Image", "Scene", "Settings", "render", "reference", "linear_from_srgb", "srgb8", "KERNELS"]
+__all__ = ["Camera", "Image", "Prepared", "Scene", "Settings", "render", "reference", "linear_from_srgb", "srgb8",
+           "KERNELS"]
 
 KERNELS = Path(__file__).with_name("kernels.cl")
 LOCAL = (8, 8)
@@ -72,7 +84,9 @@ def triangle_blocks(scene: Scene, slots: np.ndarray) -> np.ndarray:
 
 
 class Prepared:
-    """A scene's BVH and device buffers, to render many views of one scene."""
+    """A scene's BVH and device buffers, to render many views of one scene:
+    build one per scene and call render() per view (the BVH build costs
+    more than a small view's rays)."""
 
     def __init__(self, scene: Scene, leaf_size: int = LEAF_SIZE):
         import pyopencl as cl
