@@ -112,7 +112,7 @@ class Prepared:
         self.buffers = [buf(tree.nodes.ravel()), buf(triangle_blocks(scene, tree.slots).ravel()),
                         buf(scene.normals[corners].ravel()), buf(scene.uv[corners].ravel()),
                         buf(scene.tint[np.maximum(tree.slots, 0)].ravel() if scene.n_triangles else np.zeros(4, np.float32)),
-                        buf(scene.textures[..., 3].reshape(len(scene.textures), -1).min(1)),
+                        buf(np.array([t[..., 3].min() for t in scene.textures] or [1.0], np.float32)),
                         buf(scene.textures.ravel())]
         self.n_nodes = len(tree.nodes)
 
