@@ -3,14 +3,13 @@ renderer's kernel.
 
 Binned surface-area heuristic (Wald 2007): a node's triangles are put in
 BINS bins (half as many at levels of small nodes) by centroid along each
-axis, and of the bins - 1 planes per axis
-the one with the least expected cost (child box area x triangle count,
-summed) is taken; a node of at most `leaf_size` triangles is a leaf (the
-kernel tests a leaf's four triangle slots at once, so a full leaf costs
-no more than a single triangle). Plant assets are
-thousands of crossed cards, twigs and needles overlapping in one crown: a
-median split makes children whose boxes both span the crown, the SAH makes
-tight ones, and every ray visits far fewer nodes.
+axis, and of the bins - 1 planes per axis the one with the least expected
+cost (child box area x triangle count, summed) is taken; a node of at most
+`leaf_size` triangles is a leaf (the kernel tests a leaf's four triangle
+slots at once, so a full leaf costs no more than a single triangle). Plant
+assets are thousands of crossed cards, twigs and needles overlapping in one
+crown: a median split makes children whose boxes both span the crown, the
+SAH makes tight ones, and every ray visits fewer nodes.
 
 The build runs one level of the tree at a time: every node of a level is
 binned, costed and partitioned by a few vectorised passes over all of the
@@ -19,10 +18,11 @@ deterministic), never one Python call per node. Nodes deeper than
 MEDIAN_DEPTH are split at their median triangle instead, so the depth stays
 bounded whatever the scene (the kernel's stack).
 
-Node record (8 float32, 32 bytes): bmin.xyz, first (int bits), bmax.xyz,
-count (int bits): count = 0 marks an inner node whose children are first
-and first+1 (next to each other: the kernel tests both boxes from one
-64-byte line); count > 0 a leaf of triangles order[first .. first+count-1].
+The binary tree (BVH) is then collapsed to four children per node (widen,
+WideBVH), the layout the kernel reads. Binary node record (8 float32):
+bmin.xyz, first (int bits), bmax.xyz, count (int bits): count = 0 marks an
+inner node whose children are first and first+1; count > 0 a leaf of
+triangles order[first .. first+count-1].
 """
 from __future__ import annotations
 
