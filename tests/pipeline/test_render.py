@@ -10,8 +10,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.render import Camera, Scene, Settings, render
+from pipeline.render import Camera, Prepared, Scene, Settings, render
 from pipeline.render import bvh
+
+pytestmark = pytest.mark.every_device
 
 
 def tiny_scene(seed: int = 0) -> Scene:
@@ -81,6 +83,13 @@ def test_alpha_test_cuts_the_card():
 
 @pytest.mark.parametrize("local", [(8, 8), (4, 2), (1, 1), None])
 def test_deterministic_and_independent_of_work_group(local):
+    from pipeline.opencl import get_cl
+
+    if local is None and get_cl().device.platform.name.startswith("Intel"):
+        # Intel's CPU runtime renders coverage wrongly in a third of the pixels when it chooses the
+        # work-group size itself, with this kernel and with the one before the wide BVH alike; the
+        # renderer always passes LOCAL
+        pytest.skip("Intel's CPU runtime with a work-group size of its own choosing")
     scene = tiny_scene(3)
     s = Settings(37, 23, samples=2, ao_rays=3, seed=11)
     a = render(scene, CAMERAS["persp"], s, local=(8, 8))
@@ -119,3 +128,106 @@ def test_many_triangles_against_reference():
 def test_bad_scene_is_refused():
     with pytest.raises(ValueError, match="NaN"):
         Scene([[0, 0, np.nan]] * 3, [[0, 0, 1]] * 3, [[0, 0]] * 3, [[0, 1, 2]], [1, 1, 1], -1)
+
+
+def _random_cards(n: int, seed: int, size: float = 0.3) -> Scene:
+    """n random triangles in a box, half of them cut-out cards (a disc texture)."""
+    rng = np.random.default_rng(seed)
+    c = rng.random((n, 3)) * 2 - 1
+    P = (c[:, None, :] + size * (rng.random((n, 3, 3)) - 0.5)).reshape(-1, 3)
+    N = np.repeat(np.cross(P[1::3] - P[0::3], P[2::3] - P[0::3]), 3, axis=0)
+    UV = np.tile([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], (n, 1))
+    tex = np.ones((2, 8, 8, 4), np.float32)
+    yy, xx = np.mgrid[0:8, 0:8]
+    tex[1, ..., 3] = ((xx - 2.0) ** 2 + (yy - 5.0) ** 2 < 9).astype(np.float32)
+    tex[1, ..., 0] = 0.3
+    return Scene(P, N, UV, np.arange(len(P)).reshape(-1, 3), rng.random((n, 3)), rng.integers(-1, 2, n), tex)
+
+
+def test_wide_bvh_holds_every_triangle_once_inside_its_boxes():
+    scene = _random_cards(700, 2, size=0.4)
+    tree = bvh.build(scene.positions, scene.triangles, leaf_size=4)
+    wide = bvh.widen(tree)
+    used = wide.slots[wide.slots >= 0]
+    assert np.array_equal(np.sort(used), np.arange(scene.n_triangles))
+    P = scene.positions[scene.triangles]
+    lo, hi = P.min(1), P.max(1)
+    ints = wide.nodes.view(np.int32)
+    box_lo = wide.nodes[:, 0:12].reshape(-1, 3, 4).transpose(0, 2, 1)  # (node, lane, xyz)
+    box_hi = wide.nodes[:, 12:24].reshape(-1, 3, 4).transpose(0, 2, 1)
+    seen_nodes, leaves = {0}, 0
+    for n in range(len(wide.nodes)):
+        for lane in range(4):
+            ref, count = ints[n, 24 + lane], ints[n, 28 + lane]
+            if count < 0:
+                continue
+            if count == 0:  # an inner child: its own lanes lie inside this lane's box
+                seen_nodes.add(int(ref))
+                valid = ints[ref, 28:32] >= 0
+                assert (box_lo[ref][valid] >= box_lo[n, lane]).all() and (box_hi[ref][valid] <= box_hi[n, lane]).all()
+            else:
+                leaves += 1
+                ids = wide.slots[4 * ref: 4 * ref + count]
+                assert (ids >= 0).all() and (wide.slots[4 * ref + count: 4 * ref + 4] < 0).all()
+                assert (lo[ids] >= box_lo[n, lane]).all() and (hi[ids] <= box_hi[n, lane]).all()
+    assert seen_nodes == set(range(len(wide.nodes)))  # every node is some lane's child
+    assert leaves == len(wide.slots) // 4
+    assert 3 * wide.depth + 4 <= 80
+
+
+def test_median_fallback_for_deep_trees(monkeypatch):
+    """Below MEDIAN_DEPTH nodes split at their median: the tree is still a
+    partition and renders as the reference does."""
+    monkeypatch.setattr(bvh, "MEDIAN_DEPTH", 2)
+    scene = _random_cards(300, 4)
+    tree = bvh.build(scene.positions, scene.triangles, leaf_size=4)
+    assert np.array_equal(np.sort(tree.order), np.arange(scene.n_triangles))
+    ints = tree.nodes.view(np.int32)
+    assert ints[ints[:, 7] > 0, 7].max() <= 4
+    s = Settings(20, 20, samples=2, ao_rays=2, ao_radius_m=0.5, seed=2)
+    cam = Camera((0.3, 0.2, 4.0), (-0.05, 0.0, -1.0), fov_y_deg=40.0)
+    _compare(render(scene, cam, s), render(scene, cam, s, device=False), 0.5)
+
+
+def test_alpha_tested_cards_against_reference():
+    """Many leaves of mixed cut-out, opaque-textured and untextured triangles,
+    orthographic (the impostor atlas' view) and perspective."""
+    scene = _random_cards(400, 6)
+    prepared = Prepared(scene)
+    s = Settings(24, 24, samples=2, ao_rays=1, ao_radius_m=0.3, seed=9)
+    for cam in (Camera((0.0, 0.0, 3.0), (0.0, 0.0, -1.0), ortho_height_m=2.4),
+                Camera((2.5, 1.5, 2.0), (-2.5, -1.5, -2.0), fov_y_deg=50.0)):
+        a, b = prepared.render(cam, s), render(scene, cam, s, device=False)
+        assert 0.1 < a.alpha.mean() < 0.95 and a.ao.min() < 1.0
+        _compare(a, b, 1.0)
+
+
+def test_equal_distances_go_to_the_lowest_triangle_id():
+    """Coincident triangles: the kernel, whatever its BVH's order, keeps the
+    first in the scene, as the reference does."""
+    quad = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
+    copies = 6
+    P = np.concatenate([quad] * copies)
+    T = np.concatenate([[[0, 1, 2], [0, 2, 3]] + 4 * np.array(i) for i in range(copies)])
+    tint = np.repeat(np.linspace(0.1, 0.9, copies)[:, None], 2, axis=0) * np.ones(3)
+    scene = Scene(P, np.tile([0.0, 0.0, 1.0], (len(P), 1)), np.zeros((len(P), 2)), T, tint[::-1].copy(), -1)
+    s = Settings(8, 8, samples=1)
+    cam = Camera((0.1, 0.05, 2.0), (0.0, 0.0, -1.0), ortho_height_m=1.5)
+    a, b = render(scene, cam, s), render(scene, cam, s, device=False)
+    assert np.array_equal(a.albedo, b.albedo)
+    assert np.allclose(a.albedo, 0.9)
+
+
+@pytest.mark.parametrize("n", [0, 1, 3])
+def test_tiny_scenes_render_through_a_prepared_scene(n):
+    """No triangles (a root without children) and a root that is one leaf."""
+    full = _random_cards(3, 8, size=1.5)
+    scene = Scene(full.positions, full.normals, full.uv, full.triangles[:n], full.tint[:n], full.texture[:n], full.textures)
+    s = Settings(12, 12, samples=2, ao_rays=1, ao_radius_m=0.5, seed=3)
+    cam = Camera((0.0, 0.0, 4.0), (0.0, 0.0, -1.0), ortho_height_m=3.0)
+    a = Prepared(scene).render(cam, s)
+    if n == 0:
+        assert a.alpha.max() == 0.0 and np.isinf(a.depth).all()
+    else:
+        assert a.alpha.max() > 0.0
+        _compare(a, render(scene, cam, s, device=False), 1.0)
