@@ -124,15 +124,15 @@ class SpeciesVolume:
         level_for(voxel_m / s_i), whose voxels, scaled, are at most a sector
         voxel (a 20 m spruce is several voxels, a 3 m one a single voxel).
         Returns (level, indices of its instances), finest level first."""
-        edges = sorted({self.level_for(voxel_m / s).voxel_m for s in np.unique(np.round(scales, 3))})
-        chosen = np.zeros(len(scales), np.int64)
-        for j, e in enumerate(edges):  # the coarsest level whose scaled voxel fits
-            chosen[e * scales <= voxel_m * (1 + 1e-9)] = j
-        out = []
+        # level_for(t) changes only where t passes a level's voxel edge, e_k x 2^p (file level k pooled p times)
+        edges = np.unique([e["voxel_m"] * 2.0 ** p for e in self.entries for p in range(16)])
+        target = voxel_m / np.asarray(scales, np.float64)
+        chosen = np.maximum(np.searchsorted(edges, target * (1 + 1e-9), side="right") - 1, 0)
+        groups: dict[int, tuple[volume.VolumeLevel, list]] = {}
         for j in np.unique(chosen):
-            level = self.level_for(edges[j] * (1 + 1e-9))
-            out.append((level, np.flatnonzero(chosen == j)))
-        return out
+            level = self.level_for(float(edges[j]) * (1 + 1e-9))
+            groups.setdefault(id(level), (level, []))[1].append(np.flatnonzero(chosen == j))
+        return sorted(((lv, np.sort(np.concatenate(w))) for lv, w in groups.values()), key=lambda g: g[0].voxel_m)
 
 
 def read_species_volumes(layer: Path) -> dict[str, SpeciesVolume]:
