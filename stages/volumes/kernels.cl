@@ -5,6 +5,7 @@
  * throughout so the numpy reference (reference.py) gives the same numbers.
  */
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
 
 /* One work-item per triangle. Triangle t is cut into m[t]^2 equal
  * sub-triangles (a regular barycentric grid); a sample sits at each
@@ -71,6 +72,67 @@ __kernel void surface_samples(const int n_tris, __global const double *pos, __gl
                 s_rgb[3 * o] = r; s_rgb[3 * o + 1] = g; s_rgb[3 * o + 2] = b;
                 s_normal[3 * o] = qx; s_normal[3 * o + 1] = qy; s_normal[3 * o + 2] = qz;
                 ++o;
+            }
+    }
+}
+
+/* surface_samples summed per voxel where they fall, in 64-bit fixed point
+ * (value x `fixed`, rounded to nearest even) with integer atomics: no
+ * sample leaves the device, and integer sums do not depend on the order,
+ * so they are the same for any work-group size. sums: 7 channels of
+ * nx * ny * nz voxels: area, area x albedo (3), area x normal (3). */
+__kernel void surface_sums(const int n_tris, __global const double *pos, __global const double *nrm,
+                           __global const double *uv, __global const double *tint, __global const int *tex_id,
+                           __global const float *textures, const int tw, const int th, const float alpha_threshold,
+                           __global const int *m_sub, const double ox, const double oy, const double oz,
+                           const double voxel, const int nx, const int ny, const int nz, const double fixed,
+                           __global long *sums)
+{
+    const int t = get_global_id(0);
+    if (t >= n_tris) return;
+    const long count = (long)nx * ny * nz;
+    const int m = m_sub[t];
+    double p[9], n[9], w[6];
+    for (int i = 0; i < 9; ++i) { p[i] = pos[9 * t + i]; n[i] = nrm[9 * t + i]; }
+    for (int i = 0; i < 6; ++i) w[i] = uv[6 * t + i];
+    const double e1x = p[3] - p[0], e1y = p[4] - p[1], e1z = p[5] - p[2];
+    const double e2x = p[6] - p[0], e2y = p[7] - p[1], e2z = p[8] - p[2];
+    const double cx = e1y * e2z - e1z * e2y, cy = e1z * e2x - e1x * e2z, cz = e1x * e2y - e1y * e2x;
+    const double area = 0.5 * sqrt(cx * cx + cy * cy + cz * cz);
+    const double weight = area / ((double)m * (double)m);
+    const int k = tex_id[t];
+    for (int up = 1; up >= 0; --up) {
+        const double shift = up ? 1.0 / 3.0 : 2.0 / 3.0;
+        const int rows = up ? m : m - 1;
+        for (int i = 0; i < rows; ++i)
+            for (int j = 0; j < rows - i; ++j) {
+                const double b1 = ((double)i + shift) / (double)m, b2 = ((double)j + shift) / (double)m;
+                const double b0 = 1.0 - b1 - b2;
+                double r = tint[3 * t], g = tint[3 * t + 1], b = tint[3 * t + 2];
+                if (k >= 0) {
+                    const double u = b0 * w[0] + b1 * w[2] + b2 * w[4];
+                    const double v = b0 * w[1] + b1 * w[3] + b2 * w[5];
+                    const double fu = u - floor(u), fv = v - floor(v);
+                    const int x = min((int)(fu * (double)tw), tw - 1);
+                    const int y = min((int)((1.0 - fv) * (double)th), th - 1);
+                    __global const float *texel = textures + 4 * (((long)k * th + y) * tw + x);
+                    if (!((double)texel[3] >= (double)alpha_threshold)) continue;  /* the card's alpha test */
+                    r *= (double)texel[0]; g *= (double)texel[1]; b *= (double)texel[2];
+                }
+                const double px = b0 * p[0] + b1 * p[3] + b2 * p[6];
+                const double py = b0 * p[1] + b1 * p[4] + b2 * p[7];
+                const double pz = b0 * p[2] + b1 * p[5] + b2 * p[8];
+                const int ix = clamp((int)floor((px - ox) / voxel), 0, nx - 1);
+                const int iy = clamp((int)floor((py - oy) / voxel), 0, ny - 1);
+                const int iz = clamp((int)floor((pz - oz) / voxel), 0, nz - 1);
+                double qx = b0 * n[0] + b1 * n[3] + b2 * n[6];
+                double qy = b0 * n[1] + b1 * n[4] + b2 * n[7];
+                double qz = b0 * n[2] + b1 * n[5] + b2 * n[8];
+                const double ql = sqrt(qx * qx + qy * qy + qz * qz);
+                if (ql > 0.0) { qx /= ql; qy /= ql; qz /= ql; }
+                const long at = ((long)iz * ny + iy) * nx + ix;
+                const double val[7] = {weight, weight * r, weight * g, weight * b, weight * qx, weight * qy, weight * qz};
+                for (int q = 0; q < 7; ++q) atom_add(sums + q * count + at, (long)rint(val[q] * fixed));
             }
     }
 }
