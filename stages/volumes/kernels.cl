@@ -101,6 +101,9 @@ __kernel void surface_sums(const int n_tris, __global const double *pos, __globa
     const double area = 0.5 * sqrt(cx * cx + cy * cy + cz * cz);
     const double weight = area / ((double)m * (double)m);
     const int k = tex_id[t];
+    /* consecutive samples mostly fall in one voxel: their fixed-point values
+     * are added here first (integers: the same sums) and flushed per run */
+    long run_at = -1, run[7];
     for (int up = 1; up >= 0; --up) {
         const double shift = up ? 1.0 / 3.0 : 2.0 / 3.0;
         const int rows = up ? m : m - 1;
@@ -131,10 +134,18 @@ __kernel void surface_sums(const int n_tris, __global const double *pos, __globa
                 const double ql = sqrt(qx * qx + qy * qy + qz * qz);
                 if (ql > 0.0) { qx /= ql; qy /= ql; qz /= ql; }
                 const long at = ((long)iz * ny + iy) * nx + ix;
+                if (at != run_at) {  /* flush the run of samples that fell in one voxel */
+                    if (run_at >= 0)
+                        for (int q = 0; q < 7; ++q) atom_add(sums + q * count + run_at, run[q]);
+                    run_at = at;
+                    for (int q = 0; q < 7; ++q) run[q] = 0;
+                }
                 const double val[7] = {weight, weight * r, weight * g, weight * b, weight * qx, weight * qy, weight * qz};
-                for (int q = 0; q < 7; ++q) atom_add(sums + q * count + at, (long)rint(val[q] * fixed));
+                for (int q = 0; q < 7; ++q) run[q] += (long)rint(val[q] * fixed);
             }
     }
+    if (run_at >= 0)
+        for (int q = 0; q < 7; ++q) atom_add(sums + q * count + run_at, run[q]);
 }
 
 /* Trilinear sample of a grid at voxel coordinates (voxel centres at
