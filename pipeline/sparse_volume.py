@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from .volume import CHANNEL_UNITS, CHANNELS, HALF_MAX, VolumeLevel
+from .volume import CHANNEL_UNITS, CHANNELS, HALF_MAX, VolumeLevel, header_attributes
 
 RUNS_WIDTH = 256  # pixels a row of the voxels part
 RUN_CHANNELS = ("run.y0", "run.length", "run.offset")
@@ -236,13 +236,7 @@ def read_runs(path: Path | str) -> SparseLevel:
             raise InputError(f"{path}: channels {names}, a column runs volume has {CHANNELS}")
         voxels = np.asarray(inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT), np.float32)
         voxels = voxels.reshape(-1, spec.nchannels)[:, [names.index(c) for c in CHANNELS]]
-        attrs = {}
-        for a in spec.extra_attribs:
-            if a.name.startswith("worldbake:"):
-                try:
-                    attrs[a.name[10:]] = json.loads(a.value)
-                except (TypeError, ValueError):
-                    attrs[a.name[10:]] = a.value
+        attrs = header_attributes(spec)
         if attrs.get("volume_layout") != "column runs" or not inp.seek_subimage(1, 0):
             raise InputError(f"{path}: not a column runs volume (no worldbake:volume_layout or no columns part)")
         tspec = inp.spec()

@@ -228,6 +228,18 @@ def write_atlas(path: Path | str, level: VolumeLevel, mip: int, provenance: dict
         raise OSError(f"cannot write {path}: {out.geterror()}")
 
 
+def header_attributes(spec) -> dict[str, Any]:
+    """The worldbake:* attributes of an OpenImageIO ImageSpec, JSON decoded."""
+    attrs = {}
+    for a in spec.extra_attribs:
+        if a.name.startswith("worldbake:"):
+            try:
+                attrs[a.name[10:]] = json.loads(a.value)
+            except (TypeError, ValueError):
+                attrs[a.name[10:]] = a.value
+    return attrs
+
+
 def read_atlas(path: Path | str) -> VolumeLevel:
     """A level written by write_atlas (or by pipeline.sparse_volume.write_runs,
     as a dense level), its header attributes in `attributes`."""
@@ -246,13 +258,7 @@ def read_atlas(path: Path | str) -> VolumeLevel:
         pixels = np.asarray(inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT), np.float32)
         # OpenEXR stores channels sorted by name: put them back in CHANNELS order
         pixels = pixels.reshape(spec.height, spec.width, spec.nchannels)[..., [names.index(c) for c in CHANNELS]]
-        attrs = {}
-        for a in spec.extra_attribs:
-            if a.name.startswith("worldbake:"):
-                try:
-                    attrs[a.name[10:]] = json.loads(a.value)
-                except (TypeError, ValueError):
-                    attrs[a.name[10:]] = a.value
+        attrs = header_attributes(spec)
     finally:
         inp.close()
     if "volume_grid" not in attrs:
