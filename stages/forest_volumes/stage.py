@@ -48,7 +48,7 @@ from pipeline import sparse_volume, usdio, volume
 from pipeline.contract import Artifact, Check, CheckContext, Input, Param, Params, RunContext, Stage
 from pipeline.errors import InputError, StageError
 
-from . import splat
+from . import reference, splat
 
 MAX_DEPOSITS = 4_000_000  # bounds the error reference's index and weight buffers per batch
 # Measured on 18 default-world sector levels (column runs): zip 6.78 MB, pxr24 6.07 (density rounded to 24-bit
@@ -229,7 +229,7 @@ def bake_sector(tile: TileInstances, species: dict[str, SpeciesVolume], params: 
             if params.use_opencl:
                 device.add(source, pos[which], rot[which], s[which])
             else:
-                splat.reference(shape, origin, voxel, source, pos[which], rot[which], s[which], sums)
+                reference.splat(shape, origin, voxel, source, pos[which], rot[which], s[which], sums)
         counts[n] = int(len(pos))
     if params.use_opencl:
         sums = device.result()

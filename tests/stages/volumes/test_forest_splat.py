@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pipeline import volume
-from stages.forest_volumes import splat
+from stages.forest_volumes import reference, splat
 from stages.forest_volumes.stage import _rotations
 
 pytestmark = pytest.mark.every_device
@@ -35,7 +35,7 @@ GRID = ((12, 6, 12), (0.0, -0.5, 0.0), 0.5)
 def test_the_kernel_equals_the_reference_for_any_work_group(scene):
     src, pos, rot, scale = scene
     ref = np.zeros((8, 12 * 6 * 12), np.int64)
-    splat.reference(*GRID, src, pos, rot, scale, ref)
+    reference.splat(*GRID, src, pos, rot, scale, ref)
     assert (ref[0] > 0).sum() > 100
     for local in (1, 7, 64, None):
         dev = splat.DeviceSplat(*GRID, local=local)

@@ -15,7 +15,7 @@ from pipeline import usdio, volume
 from pipeline.config import canonical_params
 from pipeline.contract import RunContext
 from stages.forest_volumes import STAGE as FOREST
-from stages.forest_volumes import splat
+from stages.forest_volumes import reference, splat
 from stages.forest_volumes.stage import ForestVolumesParams, _rotations, occupied_box, read_species_volumes, read_tiles
 from stages.volumes import STAGE
 from stages.volumes.stage import VolumesParams
@@ -112,7 +112,7 @@ def test_a_splat_keeps_the_projected_area_of_every_instance(volumes):
     shape, origin, voxel = (32, 16, 32), (-4.0, -2.0, -4.0), 0.25
     acc = np.zeros((8, 32 * 16 * 32), np.int64)
     q = np.array([[1.0, 0, 0, 0], [np.cos(0.3), 0, np.sin(0.3), 0]])
-    splat.reference(shape, origin, voxel, src, np.array([[0.0, 0, 0], [1.0, 0.5, 1.0]]), _rotations(q),
+    reference.splat(shape, origin, voxel, src, np.array([[0.0, 0, 0], [1.0, 0.5, 1.0]]), _rotations(q),
                     np.array([1.0, 2.0]), acc)
     per_instance = src.density.astype(np.float64).sum() * src.voxel_m ** 3
     assert acc[0].sum() / splat.FIXED * voxel ** 3 == pytest.approx(per_instance * (1 + 2 ** 2), rel=1e-9)
