@@ -281,7 +281,7 @@ def _projection_errors(sector: np.ndarray, fine: np.ndarray, total: float, h: fl
     """Figures of column_errors for one projection: sector (rows, cols) sums
     of extinction x volume, fine the reference on cells half as wide."""
     nr, nc = sector.shape
-    reference = fine.reshape(nr, 2, nc, 2).sum(axis=(1, 3))
+    instances = fine.reshape(nr, 2, nc, 2).sum(axis=(1, 3))
 
     def blocks(a: np.ndarray, k: int) -> np.ndarray:
         a = np.pad(a, ((0, -nr % k), (0, -nc % k)))
@@ -290,11 +290,11 @@ def _projection_errors(sector: np.ndarray, fine: np.ndarray, total: float, h: fl
     k32 = max(1, int(round(32.0 / h)))
     cover_s = 1 - np.exp(-sector / h ** 2)
     cover_r = (1 - np.exp(-fine / (h / 2) ** 2)).reshape(nr, 2, nc, 2).mean(axis=(1, 3))
-    seen = (sector > 0) | (reference > 0)
-    ref_sum = max(float(reference.sum()), 1e-300)
+    seen = (sector > 0) | (instances > 0)
+    ref_sum = max(float(instances.sum()), 1e-300)
     return {"extinction_relative": float(sector.sum() / max(total, 1e-300) - 1.0),
-            "column_relative_l1": float(np.abs(sector - reference).sum() / ref_sum),
-            "column_relative_l1_32m": float(np.abs(blocks(sector, k32) - blocks(reference, k32)).sum() / ref_sum),
+            "column_relative_l1": float(np.abs(sector - instances).sum() / ref_sum),
+            "column_relative_l1_32m": float(np.abs(blocks(sector, k32) - blocks(instances, k32)).sum() / ref_sum),
             "cover_mae": float(np.abs(cover_s - cover_r)[seen].mean()) if seen.any() else 0.0,
             "cover_bias": float((cover_s - cover_r)[seen].mean()) if seen.any() else 0.0,
             "cover_sector": float(cover_s[seen].mean()) if seen.any() else 0.0,
