@@ -138,6 +138,17 @@ def downsample(level: SparseLevel) -> SparseLevel:
                        (nx // 2, ny // 2, nz // 2), level.origin.copy(), 2 * level.voxel_m)
 
 
+def round_to_pxr24(a: np.ndarray) -> np.ndarray:
+    """float32 values as OpenEXR's pxr24 compression stores them (the
+    significand rounded to 15 bits, ImfPxr24Compressor floatToFloat24), so
+    that what is computed from them is what is read back."""
+    u = np.ascontiguousarray(a, np.float32).view(np.uint32)
+    em = u & np.uint32(0x7FFFFFFF)
+    r = ((em + (u & np.uint32(0x80))) >> np.uint32(8)) << np.uint32(8)
+    r = np.where((em >= np.uint32(0x7F800000)) | (r >= np.uint32(0x7F800000)), (em >> np.uint32(8)) << np.uint32(8), r)
+    return ((u & np.uint32(0x80000000)) | r).view(np.float32)
+
+
 def mip_chain(level: SparseLevel, count: int) -> list[SparseLevel]:
     out = [level]
     for _ in range(count - 1):

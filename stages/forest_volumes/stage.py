@@ -52,9 +52,11 @@ from . import reference, splat
 
 MAX_DEPOSITS = 4_000_000  # bounds the error reference's index and weight buffers per batch
 # Measured on 18 default-world sector levels (column runs): zip 6.78 MB, pxr24 6.07 (density rounded to 24-bit
-# floats, relative 1.5e-5 a voxel, stored mean coverage within 2e-7; the half channels stay lossless), piz 7.78,
-# dwaa 5.50 but albedo off by up to 0.0085 1/m; zip and pxr24 cost the same time.
-COMPRESSION = "pxr24"
+# floats, relative 1.5e-5 a voxel; the half channels stay lossless), piz 7.78, dwaa 5.50 but albedo off by up to
+# 0.0085 1/m; zip and pxr24 cost the same time. The finest level is pxr24, its density rounded so before the mips
+# are made from it (what is stored is what they average); the mips are zip, so the stored mips keep the stored
+# finest level's mean coverage (pxr24 on every level drifted by up to 7.6e-7).
+COMPRESSION = ("pxr24", "zip")
 
 
 class ForestVolumesParams(Params):
@@ -389,6 +391,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) ->
             continue
         sector, info = baked
         t_mips = time.perf_counter()
+        sector.density = sparse_volume.round_to_pxr24(sector.density)
         chain = sparse_volume.mip_chain(sector, params.mip_levels)
         phases["mips"] += time.perf_counter() - t_mips
         if i in measured:
@@ -409,7 +412,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) ->
                      "occupied_voxels": int(len(lv.index)), "mean_density": lv.mean_density(),
                      "mean_density_drift": drift}
             sparse_volume.write_runs(ctx.out_dir / f, lv, k, {**ctx.provenance, "tile": tile.path},
-                                     {"volume_errors": entry}, compression=COMPRESSION)
+                                     {"volume_errors": entry}, compression=COMPRESSION[min(k, 1)])
             entry["bytes_file"] = (ctx.out_dir / f).stat().st_size
             info["levels"].append(entry)
         phases["write"] += time.perf_counter() - t_write
