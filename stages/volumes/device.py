@@ -84,7 +84,8 @@ def surface_sums(table: SampleTable, grid: Grid3, textures: np.ndarray, alpha_th
         mapped.base.release()
     else:
         sums = acc / FIXED
-    return SurfaceSums(sums[0], np.ascontiguousarray(sums[1:4].T), np.ascontiguousarray(sums[4:7].T))
+    del acc
+    return SurfaceSums(sums[0], sums[1:4].T, sums[4:7].T)  # views of the one float64 array
 
 
 def composite(camera_record: np.ndarray, width: int, height: int, grid: np.ndarray, origin, voxel: float, step: float,
