@@ -9,8 +9,11 @@ of every mip level against the mesh from all four held-out views (2 x 2
 samples a pixel; the bake measures two at 96 px), memory per
 level (float32 as stored, and as an RGBA8 engine texture), and the woody
 solid's volume against manifold3d's. --sectors prints the time per sector
-from a forest_volumes stats.json. --pictures writes, per species, the mesh
-render beside the composite of each level (first held-out view).
+from a forest_volumes stats.json (grid, occupied voxels, file size,
+phases), the sectors' errors against their instances (column_errors, on
+the sectors the stage measured) and the stored mips' mean coverage drift.
+--pictures writes, per species, the mesh render beside the composite of
+each level (first held-out view), and the largest sector at every level.
 """
 from __future__ import annotations
 
@@ -78,10 +81,38 @@ def main(argv=None) -> None:
                     _picture(a.pictures / f"{name}_view{v}.png", [(mesh.alpha, mesh.albedo)] + comps)
     if a.sectors:
         stats = json.loads(a.sectors.read_text())
-        print(f"\n{'sector':<40} {'instances':>9} {'grid':>13} {'voxel m':>7} {'MiB f32':>8} {'s':>6}")
+        print(f"\n{'sector':<40} {'instances':>9} {'grid':>13} {'voxel m':>7} {'MiB f32':>8} {'occupied':>8} "
+              f"{'KiB file':>8} {'s':>6}")
         for path, s in stats["sectors"].items():
+            lv0 = s["levels"][0]
             print(f"{path:<40} {sum(s['instances'].values()):>9} {'x'.join(map(str, s['grid'])):>13} {s['voxel_m']:>7.2f} "
-                  f"{s['levels'][0]['bytes'] / 2**20:>8.2f} {s['seconds']:>6.2f}")
+                  f"{lv0['bytes'] / 2**20:>8.2f} {lv0.get('occupied_voxels', 0):>8} "
+                  f"{sum(e.get('bytes_file', 0) for e in s['levels']) / 1024:>8.0f} {s['seconds']:>6.2f}")
+        files = sorted(a.sectors.parent.glob("*.mip*.exr"))
+        print(f"sector files: {len(files)}, {sum(f.stat().st_size for f in files) / 1e6:.1f} MB; phases (s): "
+              + ", ".join(f"{k} {v:.2f}" for k, v in stats.get("phases_seconds", {}).items()))
+        # the sectors against their instances (forest_volumes column_errors), where the stage measured them
+        measured = {p: s["error"] for p, s in stats["sectors"].items() if "error" in s}
+        if measured:
+            keys = ("extinction_relative", "column_relative_l1", "column_relative_l1_32m", "cover_mae", "cover_bias",
+                    "side_column_relative_l1", "side_column_relative_l1_32m", "side_cover_mae", "side_cover_bias")
+            short = ("extinct", "L1", "L1 32m", "cover", "bias", "side L1", "s L1 32m", "s cover", "s bias")
+            print(f"\n{'sector error vs instances':<40} " + " ".join(f"{k:>8}" for k in short))
+            for path, e in measured.items():
+                print(f"{path:<40} " + " ".join(f"{e[k]:>8.3f}" if k != "extinction_relative" else f"{e[k]:>8.1e}"
+                                                for k in keys))
+            print(f"{'max |.|':<40} " + " ".join(f"{max(abs(e[k]) for e in measured.values()):>8.3g}" for k in keys))
+        # the stored levels' mean coverage against the finest stored level's (read back)
+        from pipeline import volume as _volume
+
+        drift = 0.0
+        for path, s in list(stats["sectors"].items())[:: max(1, len(stats["sectors"]) // 16)]:
+            stem = path.rsplit("/", 1)[-1]
+            means = [_volume.read_atlas(a.sectors.parent / f"{stem}.mip{k}.exr").mean_density()
+                     for k in range(len(s["levels"]))]
+            drift = max(drift, max(abs(m / means[0] - 1) for m in means))
+        print(f"stored mean coverage drift over the mips (every {max(1, len(stats['sectors']) // 16)}th sector): "
+              f"{drift:.2e}")
         if a.pictures and stats["sectors"]:
             # the sector with the most instances, from above at 35 degrees, every level
             from pipeline import volume

@@ -80,6 +80,10 @@ class VolumeLevel:
             if not np.isfinite(a).all():
                 raise FloatingPointError(f"{what}: the volume's {name} holds NaN or Inf")
 
+    def atlas_info(self) -> dict[str, Any]:
+        """How the level's file lays out its voxels (USD customData worldbake:atlas)."""
+        return {"layout": "z slices", "tiles": list(atlas_tiles(self.shape_xyz[2]))}
+
 
 def empty_level(shape_xyz: tuple[int, int, int], origin, voxel_m: float) -> VolumeLevel:
     nx, ny, nz = shape_xyz
@@ -224,8 +228,21 @@ def write_atlas(path: Path | str, level: VolumeLevel, mip: int, provenance: dict
         raise OSError(f"cannot write {path}: {out.geterror()}")
 
 
+def header_attributes(spec) -> dict[str, Any]:
+    """The worldbake:* attributes of an OpenImageIO ImageSpec, JSON decoded."""
+    attrs = {}
+    for a in spec.extra_attribs:
+        if a.name.startswith("worldbake:"):
+            try:
+                attrs[a.name[10:]] = json.loads(a.value)
+            except (TypeError, ValueError):
+                attrs[a.name[10:]] = a.value
+    return attrs
+
+
 def read_atlas(path: Path | str) -> VolumeLevel:
-    """A level written by write_atlas, its header attributes in `attributes`."""
+    """A level written by write_atlas (or by pipeline.sparse_volume.write_runs,
+    as a dense level), its header attributes in `attributes`."""
     import OpenImageIO as oiio
 
     from .errors import InputError
@@ -241,17 +258,15 @@ def read_atlas(path: Path | str) -> VolumeLevel:
         pixels = np.asarray(inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT), np.float32)
         # OpenEXR stores channels sorted by name: put them back in CHANNELS order
         pixels = pixels.reshape(spec.height, spec.width, spec.nchannels)[..., [names.index(c) for c in CHANNELS]]
-        attrs = {}
-        for a in spec.extra_attribs:
-            if a.name.startswith("worldbake:"):
-                try:
-                    attrs[a.name[10:]] = json.loads(a.value)
-                except (TypeError, ValueError):
-                    attrs[a.name[10:]] = a.value
+        attrs = header_attributes(spec)
     finally:
         inp.close()
     if "volume_grid" not in attrs:
         raise InputError(f"{path}: no worldbake:volume_grid attribute; not a volume atlas")
+    if attrs.get("volume_layout") == "column runs":  # a sparse level (pipeline.sparse_volume)
+        from .sparse_volume import read_runs
+
+        return read_runs(path).to_dense()
     level = from_atlas(np.ascontiguousarray(pixels), tuple(attrs["volume_grid"]),
                        attrs["volume_bbox_min"], attrs["volume_voxel_m"])
     level.attributes = attrs
@@ -287,9 +302,12 @@ def define_volume_prim(stage, path: str, level: VolumeLevel, atlas_file: str, pu
         fld.CreateFieldNameAttr(name)
         fld.CreateFieldDataTypeAttr("float" if name == "density" else "float3")
         vol.CreateFieldRelationship(name, fld.GetPath())
-    vol.GetPrim().SetCustomDataByKey("worldbake:atlas", {
-        "file": atlas_file, "grid": Vt.IntArray([nx, ny, nz]), "tiles": Vt.IntArray(list(atlas_tiles(nz))),
-        "voxel_m": float(level.voxel_m), "channels": Vt.StringArray(list(CHANNELS))})
+    info = level.atlas_info()
+    data = {"file": atlas_file, "grid": Vt.IntArray([nx, ny, nz]), "voxel_m": float(level.voxel_m),
+            "channels": Vt.StringArray(list(CHANNELS)), "layout": info["layout"]}
+    if "tiles" in info:
+        data["tiles"] = Vt.IntArray(info["tiles"])
+    vol.GetPrim().SetCustomDataByKey("worldbake:atlas", data)
     return vol
 
 

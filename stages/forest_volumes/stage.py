@@ -9,19 +9,26 @@ Volumetric Billboards, Decaudin and Neyret 2009).
 2. Per tile with instances of a species at least forest_min_height_m tall:
    a grid of cubic voxels of voxel_m over the instances' boxes (coarser by
    powers of 2 while it would pass max_voxels), padded to whole mips.
-3. Splat: every occupied voxel of each species' level pooled to about the
-   sector voxel (a tree is a few voxels) is carried through each
-   instance's transform and added to the 8 sector voxels around it with
-   trilinear weights; what it holds (extinction x volume, premultiplied
-   albedo, surface, surface x normal) scales with the instance's area
-   (scale^2), so the sector keeps the plants' projected area. np.bincount
-   adds in instance order: deterministic.
-4. The grid is clipped to its occupied voxels (whole mips kept), then mips,
-   EXR atlases in half floats but for density (pipeline.volume; a far LOD
-   needs no more than 3 digits, and it nearly halves the disk; density stays
-   float32 so the stored mips keep the mean coverage) and sectors.usda: over each
-   forest tile /World/Vegetation/q<path> a FarVolume prim (purpose proxy)
-   with a `mip` variant set of UsdVol.Volume prims.
+3. Splat (splat.py, OpenCL kernel `splat` with a numpy reference): each
+   instance takes the coarsest level of its species whose voxels, scaled
+   by the instance, are at most source_voxel_ratio sector voxels; every
+   occupied voxel of it is carried through the instance's transform and,
+   as a cube of at most a sector voxel, shared among the sector voxels it
+   overlaps; what it holds (extinction x volume, premultiplied albedo,
+   surface, surface x normal) scales with the instance's area (scale^2),
+   so the sector keeps the plants' projected area. Sums in 64-bit fixed
+   point with integer atomics: the same for any work-group size.
+4. Only the occupied voxels go on (pipeline.sparse_volume: a forest on a
+   slope fills ~4 % of its box): the grid is clipped to them (whole mips
+   kept), mips sum the occupied 2 x 2 x 2 blocks, and each level is an EXR
+   in the column runs layout (per (x, z) column one run of voxels along y;
+   density float32, the other channels half floats; pxr24), and
+   sectors.usda: over each forest tile /World/Vegetation/q<path> a
+   FarVolume prim (purpose proxy) with a `mip` variant set of
+   UsdVol.Volume prims.
+5. Error (column_errors) on error_sectors tiles: the sector's columns, from
+   above and from the side, against the instances' own volumes at finer
+   voxels: extinction kept, relative L1 per column, cover.
 
 Only the instances change a sector; a world whose instances and plant
 volumes are unchanged reuses them (the key hashes both).
@@ -37,11 +44,19 @@ from typing import Any
 
 import numpy as np
 
-from pipeline import usdio, volume
+from pipeline import sparse_volume, usdio, volume
 from pipeline.contract import Artifact, Check, CheckContext, Input, Param, Params, RunContext, Stage
 from pipeline.errors import InputError, StageError
 
-MAX_DEPOSITS = 4_000_000  # bounds the splat's index and weight buffers per batch
+from . import reference, splat
+
+MAX_DEPOSITS = 4_000_000  # bounds the error reference's index and weight buffers per batch
+# Measured on 18 default-world sector levels (column runs): zip 6.78 MB, pxr24 6.07 (density rounded to 24-bit
+# floats, relative 1.5e-5 a voxel; the half channels stay lossless), piz 7.78, dwaa 5.50 but albedo off by up to
+# 0.0085 1/m; zip and pxr24 cost the same time. The finest level is pxr24, its density rounded so before the mips
+# are made from it (what is stored is what they average); the mips are zip, so the stored mips keep the stored
+# finest level's mean coverage (pxr24 on every level drifted by up to 7.6e-7).
+COMPRESSION = ("pxr24", "zip")
 
 
 class ForestVolumesParams(Params):
@@ -52,6 +67,18 @@ class ForestVolumesParams(Params):
                             le=6)
     max_voxels: int = Param(4_000_000, units="voxels", description="largest finest grid of one sector", ge=1000,
                             le=200_000_000)
+    source_voxel_ratio: float = Param(4.0, units="sector voxels", description="largest source voxel of a splat, "
+                                      "scaled by its instance, in sector voxels: each instance splats the coarsest "
+                                      "level of its species whose voxels, scaled, are at most this. 4: a spruce is "
+                                      "one cube of at most a sector voxel (cover from above within 0.12, 63 MB on "
+                                      "the default world); 1.25: 8 voxels (canopy height closer, from the side "
+                                      "0.033 against 0.094 of L1 at 32 m; cover from above 0.18; 115 MB)",
+                                      ge=0.25, le=8.0)
+    use_opencl: bool = Param(True, description="splat with the OpenCL kernel (false: its numpy reference, small "
+                             "forests only)")
+    error_sectors: int = Param(8, units="sectors", description="sectors (spread evenly over the tiles) whose "
+                               "columns are measured against their instances (column_errors; 0: none)", ge=0,
+                               le=100_000)
     forest_min_height_m: float = Param(1.0, units="m", description="species whose volume is lower than this (grass, "
                                        "flowers) are left out of the sectors", ge=0.0, le=200.0)
 
@@ -63,6 +90,7 @@ class SpeciesVolume:
     def __init__(self, folder: Path, entries: list[dict]):
         self.folder, self.entries = folder, entries
         self._read: dict[int, volume.VolumeLevel] = {}
+        self._pooled: dict[tuple[int, int], volume.VolumeLevel] = {}
 
     @property
     def height_m(self) -> float:
@@ -81,13 +109,32 @@ class SpeciesVolume:
     def level_for(self, voxel_m: float) -> volume.VolumeLevel:
         """The source of a splat into voxels of voxel_m: the coarsest level
         at most that edge (else the finest), pooled further while its voxels
-        stay at most the edge: a plant splats as a few voxels, each spread
-        over the 8 sector voxels around its centre."""
+        stay at most the edge: a plant splats as a few voxels, each shared
+        among the sector voxels it overlaps."""
         fine = [k for k, e in enumerate(self.entries) if e["voxel_m"] <= voxel_m]
-        level = self.level(fine[-1] if fine else 0)
+        k = fine[-1] if fine else 0
+        level, pooled = self.level(k), 0
         while 2 * level.voxel_m <= voxel_m and max(level.density.shape) > 1:
-            level = volume.downsample(volume.pad_even(level))
+            pooled += 1
+            if (k, pooled) not in self._pooled:
+                self._pooled[k, pooled] = volume.downsample(volume.pad_even(level))
+            level = self._pooled[k, pooled]
         return level
+
+    def levels_for(self, voxel_m: float, scales: np.ndarray) -> list[tuple[volume.VolumeLevel, np.ndarray]]:
+        """Instances by their source level: instance i (scale s_i) splats
+        level_for(voxel_m / s_i), whose voxels, scaled, are at most a sector
+        voxel (a 20 m spruce is several voxels, a 3 m one a single voxel).
+        Returns (level, indices of its instances), finest level first."""
+        # level_for(t) changes only where t passes a level's voxel edge, e_k x 2^p (file level k pooled p times)
+        edges = np.unique([e["voxel_m"] * 2.0 ** p for e in self.entries for p in range(16)])
+        target = voxel_m / np.asarray(scales, np.float64)
+        chosen = np.maximum(np.searchsorted(edges, target * (1 + 1e-9), side="right") - 1, 0)
+        groups: dict[int, tuple[volume.VolumeLevel, list]] = {}
+        for j in np.unique(chosen):
+            level = self.level_for(float(edges[j]) * (1 + 1e-9))
+            groups.setdefault(id(level), (level, []))[1].append(np.flatnonzero(chosen == j))
+        return sorted(((lv, np.sort(np.concatenate(w))) for lv, w in groups.values()), key=lambda g: g[0].voxel_m)
 
 
 def read_species_volumes(layer: Path) -> dict[str, SpeciesVolume]:
@@ -159,50 +206,8 @@ def sector_grid(boxes_lo: np.ndarray, boxes_hi: np.ndarray, voxel_m: float, mip_
     return origin, voxel, (int(n[0]), int(n[1]), int(n[2]))
 
 
-def splat(sector: volume.VolumeLevel, source: volume.VolumeLevel, pos: np.ndarray, rot: np.ndarray,
-          scale: np.ndarray, acc: np.ndarray) -> None:
-    """Add the source level at each instance transform into acc (8, voxels):
-    extinction, premultiplied albedo (3), surface, surface x normal (3)."""
-    nx, ny, nz = sector.shape_xyz
-    occupied = np.nonzero(source.density.ravel() > 0)[0]
-    if len(occupied) == 0:
-        return
-    sz, sy_, sx = np.unravel_index(occupied, source.density.shape)
-    centres = source.origin + (np.stack([sx, sy_, sz], 1) + 0.5) * source.voxel_m
-    flat = lambda a: a.reshape(-1, *a.shape[3:])[occupied]  # noqa: E731
-    dens, alb, surf, nrm = flat(source.density), flat(source.albedo), flat(source.surface), flat(source.normal)
-    ratio = (source.voxel_m / sector.voxel_m) ** 3
-    batch = max(1, MAX_DEPOSITS // (8 * len(occupied)))
-    for b0 in range(0, len(pos), batch):
-        P, R, S = pos[b0:b0 + batch], rot[b0:b0 + batch], scale[b0:b0 + batch]
-        world = P[:, None, :] + S[:, None, None] * np.einsum("nij,vj->nvi", R, centres)
-        u = (world - sector.origin) / sector.voxel_m - 0.5
-        i0 = np.floor(u).astype(np.int64)
-        f = u - i0
-        k = (S ** 2)[:, None] * ratio  # what a voxel holds scales with the instance's area
-        normal = np.einsum("nij,vj->nvi", R, nrm.astype(np.float64))
-        values = np.empty((len(P), len(occupied), 8))
-        values[..., 0] = k * dens[None]
-        values[..., 1:4] = k[..., None] * alb[None]
-        values[..., 4] = k * surf[None]
-        values[..., 5:8] = (k * surf[None])[..., None] * normal
-        indices, weighted = [], []
-        for dk in (0, 1):
-            for dj in (0, 1):
-                for di in (0, 1):
-                    ii, jj, kk = i0[..., 0] + di, i0[..., 1] + dj, i0[..., 2] + dk
-                    w = ((f[..., 0] if di else 1 - f[..., 0]) * (f[..., 1] if dj else 1 - f[..., 1])
-                         * (f[..., 2] if dk else 1 - f[..., 2]))
-                    ok = (ii >= 0) & (jj >= 0) & (kk >= 0) & (ii < nx) & (jj < ny) & (kk < nz)
-                    indices.append(((kk * ny + jj) * nx + ii)[ok])
-                    weighted.append(w[ok][:, None] * values[ok])
-        idx, wv = np.concatenate(indices), np.concatenate(weighted)
-        for c in range(8):
-            acc[c] += np.bincount(idx, wv[:, c], acc.shape[1])
-
-
 def bake_sector(tile: TileInstances, species: dict[str, SpeciesVolume], params: ForestVolumesParams) -> tuple[
-        volume.VolumeLevel, dict] | None:
+        sparse_volume.SparseLevel, dict] | None:
     names = [n for n in tile.species if n in species]
     if not names:
         return None
@@ -214,33 +219,142 @@ def bake_sector(tile: TileInstances, species: dict[str, SpeciesVolume], params: 
         his.append(pos + (radius * s)[:, None])
     origin, voxel, shape = sector_grid(np.concatenate(los), np.concatenate(his), params.voxel_m, params.mip_levels,
                                        params.max_voxels)
-    sector = volume.empty_level(shape, origin, voxel)
-    acc = np.zeros((8, sector.density.size))
     counts = {}
+    if params.use_opencl:
+        device = splat.DeviceSplat(shape, origin, voxel)
+    else:
+        nx, ny, nz = shape
+        sums = np.zeros((splat.CHANNELS, nx * ny * nz), np.int64)
     for n in names:
         pos, rot, s = tile.species[n]
-        splat(sector, species[n].level_for(voxel), pos, rot, s, acc)
+        for source, which in species[n].levels_for(voxel * params.source_voxel_ratio, s):
+            if params.use_opencl:
+                device.add(source, pos[which], rot[which], s[which])
+            else:
+                reference.splat(shape, origin, voxel, source, pos[which], rot[which], s[which], sums)
         counts[n] = int(len(pos))
-    full = sector.density.shape
-    grid = acc.reshape(8, *full)
-    box = occupied_box(grid[0] > 0, 2 ** (params.mip_levels - 1))
-    if box is None:
+    if params.use_opencl:
+        sums = device.result()
+    full = (shape[2], shape[1], shape[0])
+    # only the occupied voxels go on: a forest on a slope fills a few % of its box
+    occupied = np.flatnonzero((sums[0] > 0) | (sums[4] > 0))
+    if len(occupied) == 0:
         return None
-    grid = grid[(slice(None),) + box]
-    nz, ny, nx = grid.shape[1:]
-    sector = volume.empty_level((nx, ny, nz), origin + voxel * np.array([box[2].start, box[1].start, box[0].start]),
-                                voxel)
-    sector.density = grid[0].astype(np.float32)
-    sector.albedo = np.moveaxis(grid[1:4], 0, -1).astype(np.float32)
-    sector.surface = grid[4].astype(np.float32)
-    # normals only where there is surface: a sector is mostly air (a forest on a slope fills ~1 % of its box)
-    where = np.nonzero(grid[4].ravel() > 0)[0]
-    normal = grid[5:8].reshape(3, -1)[:, where].T / grid[4].ravel()[where, None]
-    length = np.linalg.norm(normal, axis=-1, keepdims=True)
-    normal = np.where(length > 1.0, normal / np.maximum(length, 1e-30), normal)
-    sector.normal.reshape(-1, 3)[where] = normal
-    return sector, {"instances": counts, "grid": [nx, ny, nz], "voxel_m": voxel,
-                    "grid_before_clip": [full[2], full[1], full[0]]}
+    coords = np.unravel_index(occupied, full)
+    box = occupied_range([(int(c.min()), int(c.max()) + 1) for c in coords], full, 2 ** (params.mip_levels - 1))
+    nz, ny, nx = (b.stop - b.start for b in box)
+    index = ((coords[0] - box[0].start) * ny + coords[1] - box[1].start) * nx + coords[2] - box[2].start
+    values = sums[:, occupied] / splat.FIXED
+    level = sparse_volume.SparseLevel(
+        index, values[0].astype(np.float32), values[1:4].T.astype(np.float32),
+        sparse_volume.normals_from_sums(values[5:8].T, values[4]), values[4].astype(np.float32), (nx, ny, nz),
+        origin + voxel * np.array([box[2].start, box[1].start, box[0].start]), voxel)
+    return level, {"instances": counts, "grid": [nx, ny, nz], "voxel_m": voxel,
+                   "grid_before_clip": [full[2], full[1], full[0]]}
+
+
+ERROR_KEYS = ("extinction_relative", "column_relative_l1", "column_relative_l1_32m", "cover_mae", "cover_bias",
+              "side_column_relative_l1", "side_column_relative_l1_32m", "side_cover_mae", "side_cover_bias")
+
+
+def _projected_deposits(src: volume.VolumeLevel, pos, rot, scale, origin, axes: tuple[int, int], cell_m: float,
+                        fine: np.ndarray) -> float:
+    """Add each instance's source voxels (extinction x volume x scale^2) to
+    the cell of `fine` (rows along axes[1], columns along axes[0], cell_m
+    wide) under its carried centre; returns the total held."""
+    occ = np.flatnonzero(src.density.ravel() > 0)
+    sz, sy, sx = np.unravel_index(occ, src.density.shape)
+    centres = src.origin + (np.stack([sx, sy, sz], 1) + 0.5) * src.voxel_m
+    held = src.density.ravel()[occ].astype(np.float64) * src.voxel_m ** 3
+    ax = list(axes)
+    batch, total = max(1, MAX_DEPOSITS // max(len(occ), 1)), 0.0
+    for b0 in range(0, len(pos), batch):
+        P, R, S = pos[b0:b0 + batch], rot[b0:b0 + batch], scale[b0:b0 + batch]
+        world = P[:, None, ax] + S[:, None, None] * np.einsum("nij,vj->nvi", R[:, ax], centres)
+        cell = np.floor((world - origin[ax]) / cell_m).astype(np.int64)
+        w = (S ** 2)[:, None] * held[None]
+        total += float(w.sum())
+        ok = (cell >= 0).all(-1) & (cell[..., 0] < fine.shape[1]) & (cell[..., 1] < fine.shape[0])
+        fine += np.bincount((cell[..., 1] * fine.shape[1] + cell[..., 0])[ok], w[ok], fine.size).reshape(fine.shape)
+    return total
+
+
+def _projection_errors(sector: np.ndarray, fine: np.ndarray, total: float, h: float) -> dict:
+    """Figures of column_errors for one projection: sector (rows, cols) sums
+    of extinction x volume, fine the reference on cells half as wide."""
+    nr, nc = sector.shape
+    instances = fine.reshape(nr, 2, nc, 2).sum(axis=(1, 3))
+
+    def blocks(a: np.ndarray, k: int) -> np.ndarray:
+        a = np.pad(a, ((0, -nr % k), (0, -nc % k)))
+        return a.reshape(a.shape[0] // k, k, a.shape[1] // k, k).sum(axis=(1, 3))
+
+    k32 = max(1, int(round(32.0 / h)))
+    cover_s = 1 - np.exp(-sector / h ** 2)
+    cover_r = (1 - np.exp(-fine / (h / 2) ** 2)).reshape(nr, 2, nc, 2).mean(axis=(1, 3))
+    seen = (sector > 0) | (instances > 0)
+    ref_sum = max(float(instances.sum()), 1e-300)
+    return {"extinction_relative": float(sector.sum() / max(total, 1e-300) - 1.0),
+            "column_relative_l1": float(np.abs(sector - instances).sum() / ref_sum),
+            "column_relative_l1_32m": float(np.abs(blocks(sector, k32) - blocks(instances, k32)).sum() / ref_sum),
+            "cover_mae": float(np.abs(cover_s - cover_r)[seen].mean()) if seen.any() else 0.0,
+            "cover_bias": float((cover_s - cover_r)[seen].mean()) if seen.any() else 0.0,
+            "cover_sector": float(cover_s[seen].mean()) if seen.any() else 0.0,
+            "cover_reference": float(cover_r[seen].mean()) if seen.any() else 0.0}
+
+
+def column_errors(level: sparse_volume.SparseLevel, tile: TileInstances, species: dict[str, SpeciesVolume]) -> dict:
+    """The sector's finest level against its instances, column by column,
+    from straight above (columns along y) and from the side (along x: how
+    the height of the canopy is kept). Reference: every instance's species
+    volume at voxels that, scaled, are at most half the sector's
+    (SpeciesVolume.levels_for), each voxel's extinction x volume (scale^2,
+    as the splat) put in the column of its transformed centre, on columns
+    half the sector's voxel wide. Sector: density x voxel^3 summed over each
+    of its columns. Figures (from above; side_* from the side):
+
+        extinction_relative     total sector / total reference - 1 (what
+                                the splat keeps; clipping loses nothing)
+        column_relative_l1      sum |sector - reference| / sum reference
+                                per sector column (voxel_m wide)
+        column_relative_l1_32m  the same on columns 32 m wide (blocks of
+                                sector columns): the error beyond the
+                                splat's one-voxel blur
+        cover_mae, cover_bias   mean |a_s - a_r| and mean a_s - a_r over
+                                the columns either covers, a = 1 -
+                                exp(-optical depth) the cover seen along
+                                the column; a_r the mean of the reference's
+                                fine columns (a sector voxel averages its
+                                clumps, so it covers more)."""
+    nx, ny, nz = level.shape_xyz
+    h = level.voxel_m
+    z, rest = np.divmod(level.index, nx * ny)
+    y, x = np.divmod(rest, nx)
+    held = level.density.astype(np.float64) * h ** 3
+    out = {}
+    for prefix, axes, (rows, cols), (nr, nc) in (("", (0, 2), (z, x), (nz, nx)), ("side_", (2, 1), (y, z), (ny, nz))):
+        sector = np.bincount(rows * nc + cols, held, nr * nc).reshape(nr, nc)
+        fine = np.zeros((2 * nr, 2 * nc))
+        total = 0.0
+        for name, (pos, rot, scale) in tile.species.items():
+            if name in species:
+                for src, which in species[name].levels_for(h / 2, scale):
+                    total += _projected_deposits(src, pos[which], rot[which], scale[which], level.origin, axes, h / 2,
+                                                 fine)
+        out.update({prefix + k: v for k, v in _projection_errors(sector, fine, total, h).items()})
+    return out
+
+
+def occupied_range(ranges: list[tuple[int, int]], shape: tuple[int, ...], multiple: int) -> tuple[slice, ...]:
+    """Per axis the occupied range lo..hi grown to a multiple of `multiple`
+    voxels (towards the far side, else the near one) inside the axis's
+    `shape` (itself a multiple)."""
+    box = []
+    for (lo, hi), n in zip(ranges, shape):
+        size = -(-(hi - lo) // multiple) * multiple
+        lo = min(lo, n - size)
+        box.append(slice(lo, lo + size))
+    return tuple(box)
 
 
 def occupied_box(occupied: np.ndarray, multiple: int) -> tuple[slice, slice, slice] | None:
@@ -249,15 +363,8 @@ def occupied_box(occupied: np.ndarray, multiple: int) -> tuple[slice, slice, sli
     (towards the far side, else the near one); None when nothing is."""
     if not occupied.any():
         return None
-    box = []
-    for axis in range(3):
-        rest = tuple(a for a in range(3) if a != axis)
-        hit = np.nonzero(occupied.any(axis=rest))[0]
-        lo, hi, n = int(hit[0]), int(hit[-1]) + 1, occupied.shape[axis]
-        size = -(-(hi - lo) // multiple) * multiple
-        lo = min(lo, n - size)
-        box.append(slice(lo, lo + size))
-    return tuple(box)
+    coords = np.nonzero(occupied)
+    return occupied_range([(int(c.min()), int(c.max()) + 1) for c in coords], occupied.shape, multiple)
 
 
 def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) -> dict[str, Any]:
@@ -271,31 +378,46 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) ->
     layer = ctx.path("forest_volumes.sectors")
     stage, _ = usdio.create_stage(layer, ctx.provenance)
     report: dict[str, Any] = {"forest_species": sorted(forest), "sectors": {}}
+    phases = {"read": time.perf_counter() - t0, "splat": 0.0, "mips": 0.0, "error": 0.0, "write": 0.0, "usd": 0.0}
+    # the error is measured on error_sectors tiles spread evenly over the list (deterministic)
+    measured = set(np.linspace(0, len(tiles) - 1, min(params.error_sectors, len(tiles))).round().astype(int).tolist()
+                   if tiles and params.error_sectors else [])
     for i, tile in enumerate(tiles):
         ctx.progress(i / max(len(tiles), 1), f"forest volumes: {tile.path}")
         t = time.perf_counter()
         baked = bake_sector(tile, forest, params)
+        phases["splat"] += time.perf_counter() - t
         if baked is None:
             continue
         sector, info = baked
-        chain = volume.mip_chain(sector, params.mip_levels)
+        t_mips = time.perf_counter()
+        sector.density = sparse_volume.round_to_pxr24(sector.density)
+        chain = sparse_volume.mip_chain(sector, params.mip_levels)
+        phases["mips"] += time.perf_counter() - t_mips
+        if i in measured:
+            t_err = time.perf_counter()
+            info["error"] = column_errors(sector, tile, forest)
+            phases["error"] += time.perf_counter() - t_err
         stem = tile.path.rsplit("/", 1)[-1]
         files = [f"{stem}.mip{k}.exr" for k in range(len(chain))]
         mean0 = chain[0].mean_density()
         info["levels"] = []
+        t_write = time.perf_counter()
         for k, (lv, f) in enumerate(zip(chain, files)):
             lv.check_finite(f"forest volumes: {tile.path} mip {k}")
             drift = abs(lv.mean_density() - mean0) / mean0 if mean0 > 0 else 0.0
             if drift > 1e-6:
                 raise StageError(f"forest volumes: {tile.path}: mip {k} changes the mean coverage by {drift:.2e}")
-            # the atlas holds density as float32 and the 7 other channels as half floats: 18 B a voxel
             entry = {"mip": k, "grid": list(lv.shape_xyz), "voxel_m": lv.voxel_m, "bytes": lv.nbytes,
-                     "bytes_stored": int(lv.density.size * 18), "mean_density": lv.mean_density(),
+                     "occupied_voxels": int(len(lv.index)), "mean_density": lv.mean_density(),
                      "mean_density_drift": drift}
-            volume.write_atlas(ctx.out_dir / f, lv, k, {**ctx.provenance, "tile": tile.path}, {"volume_errors": entry},
-                               half=True)
+            sparse_volume.write_runs(ctx.out_dir / f, lv, k, {**ctx.provenance, "tile": tile.path},
+                                     {"volume_errors": entry}, compression=COMPRESSION[min(k, 1)])
+            entry["bytes_file"] = (ctx.out_dir / f).stat().st_size
             info["levels"].append(entry)
+        phases["write"] += time.perf_counter() - t_write
         info["seconds"] = time.perf_counter() - t
+        t_usd = time.perf_counter()
         parts = tile.path.split("/")
         for j in range(2, len(parts) + 1):
             stage.OverridePrim("/".join(parts[:j]))
@@ -307,22 +429,32 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) ->
         lo, hi = chain[0].origin, chain[0].bbox_max
         UsdGeom.ModelAPI(far).SetExtentsHint(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
         report["sectors"][tile.path] = info
+        phases["usd"] += time.perf_counter() - t_usd
+    t_usd = time.perf_counter()
     stage.GetRootLayer().Save()
     errors = usdio.validate(layer)
     if errors:
         raise StageError("forest volumes: the layer fails USD validation: " + "; ".join(errors[:10]))
+    phases["usd"] += time.perf_counter() - t_usd
     report["seconds"] = time.perf_counter() - t0
-    ctx.metrics.update(sectors=len(report["sectors"]), seconds=report["seconds"],
+    report["phases_seconds"] = phases
+    report["bytes_files"] = sum(e["bytes_file"] for v in report["sectors"].values() for e in v["levels"])
+    errs = [v["error"] for v in report["sectors"].values() if "error" in v]
+    if errs:
+        report["error"] = {"sectors": len(errs), **{f"{k}_max": max(abs(e[k]) for e in errs) for k in ERROR_KEYS}}
+    ctx.metrics.update(sectors=len(report["sectors"]), seconds=report["seconds"], phases_seconds=phases,
+                       bytes_files=report["bytes_files"], error=report.get("error"),
                        seconds_per_sector={k: v["seconds"] for k, v in report["sectors"].items()})
     return {"forest_volumes.sectors": layer, "forest_volumes.stats": report}
 
 
 def check(params: ForestVolumesParams, ctx: CheckContext) -> Check:
-    """Memory: one sector at a time, at most max_voxels: its 8 float64 sums,
-    the level's 8 float32 channels and its mips, about 110 B a voxel, and
-    the splat's batch buffers (about 40 B a deposit)."""
-    return Check(memory_bytes=110.0 * params.max_voxels + 40.0 * MAX_DEPOSITS,
-                 memory_how=f"max_voxels = {params.max_voxels:,} x 110 B + {MAX_DEPOSITS:,} deposits x 40 B")
+    """Memory: one sector at a time, at most max_voxels: its 8 int64 sums
+    (64 B a voxel), the occupied voxels' channels and mips (under 20 B a
+    voxel of the box), and the error reference's batch buffers (about 40 B
+    a deposit)."""
+    return Check(memory_bytes=90.0 * params.max_voxels + 40.0 * MAX_DEPOSITS,
+                 memory_how=f"max_voxels = {params.max_voxels:,} x 90 B + {MAX_DEPOSITS:,} deposits x 40 B")
 
 
 STAGE = Stage(
@@ -334,13 +466,16 @@ STAGE = Stage(
             Input("instances", one_of=("vegetation.instances",), description="the PointInstancers per quadtree tile")),
     outputs=(Artifact("forest_volumes.sectors", kind="usd", file="sectors.usda", shape="any", beside=("*.mip*.exr",),
                       description="over each forest tile /World/Vegetation/q<path>: FarVolume (purpose proxy) with a "
-                      "`mip` variant set of UsdVol.Volume prims; each level an EXR Z-slice atlas q<path>.mip<k>.exr "
-                      "in half floats (density float32), clipped to the occupied voxels"),
+                      "`mip` variant set of UsdVol.Volume prims; each level q<path>.mip<k>.exr holds the occupied "
+                      "voxels as column runs (pipeline.sparse_volume: part voxels, half floats but density float32; "
+                      "part columns, run.y0/length/offset per (x, z))"),
              Artifact("forest_volumes.stats", kind="json", file="stats.json", shape="any",
-                      description="per sector: instances per species, grid, voxel size, memory and mean coverage per "
-                      "level, time")),
+                      description="per sector: instances per species, grid, voxel size, memory, occupied voxels, "
+                      "file size and mean coverage per level, time, and on error_sectors sectors the column errors "
+                      "against the instances (column_errors); the phases' seconds")),
     params=ForestVolumesParams,
     run=run,
     check=check,
     source_dir=Path(__file__).parent,
+    uses_opencl=True,
 )

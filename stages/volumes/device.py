@@ -53,22 +53,67 @@ def surface_samples(table: SampleTable, grid: Grid3, textures: np.ndarray, alpha
     return out
 
 
-def composite(camera_record: np.ndarray, width: int, height: int, grid: np.ndarray, origin, voxel: float, step: float,
-              local: tuple[int, int] | None = (8, 8)) -> tuple[np.ndarray, np.ndarray]:
+FIXED = float(2 ** 40)  # surface_sums' fixed point: 1e-12 m^2 a unit, up to 8e6 m^2 a voxel
+
+
+def surface_sums(table: SampleTable, grid: Grid3, textures: np.ndarray, alpha_threshold: float,
+                 local: int | None = 64):
+    """The surface samples of `table` summed per voxel on the device
+    (kernels.cl surface_sums): a samples.SurfaceSums."""
     import pyopencl as cl
 
     from pipeline.opencl import get_cl, global_size
 
+    from .samples import SurfaceSums
+
     env = get_cl()
+    nt = len(table.m)
+    acc = np.zeros((7, grid.count), np.int64)
+    if nt:
+        _, th, tw, _ = textures.shape
+        dev = cl.Buffer(env.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=acc)
+        k = cl.Kernel(_program(), "surface_sums")
+        loc = None if local is None else (local,)
+        k(env.queue, global_size((nt,), loc), loc, np.int32(nt), _buf(table.pos), _buf(table.nrm), _buf(table.uv),
+          _buf(table.tint), _buf(table.tex), _buf(np.asarray(textures, np.float32)), np.int32(tw), np.int32(th),
+          np.float32(alpha_threshold), _buf(table.m), *map(np.float64, grid.origin), np.float64(grid.voxel),
+          *map(np.int32, grid.shape), np.float64(FIXED), dev)
+        mapped, _ = cl.enqueue_map_buffer(env.queue, dev, cl.map_flags.READ, 0, acc.shape, acc.dtype)
+        env.queue.finish()
+        sums = mapped / FIXED  # (the host array itself where the runtime shares it)
+        mapped.base.release()
+    else:
+        sums = acc / FIXED
+    del acc
+    return SurfaceSums(sums[0], sums[1:4].T, sums[4:7].T)  # views of the one float64 array
+
+
+def composite(camera_record: np.ndarray, width: int, height: int, grid: np.ndarray, origin, voxel: float, step: float,
+              local: tuple[int, int] | None = (8, 8)) -> tuple[np.ndarray, np.ndarray]:
+    return composite_views([camera_record], width, height, grid, origin, voxel, step, local)[0]
+
+
+def composite_views(camera_records: list[np.ndarray], width: int, height: int, grid: np.ndarray, origin, voxel: float,
+                    step: float, local: tuple[int, int] | None = (8, 8)) -> list[tuple[np.ndarray, np.ndarray]]:
+    """composite from each camera, the grid sent to the device once."""
+    import pyopencl as cl
+
+    from pipeline.opencl import get_cl, global_size
     from pipeline.volume import LEAF_PROJECTION
 
+    env = get_cl()
     nz, ny, nx = grid.shape[:3]
-    alpha, rgb = np.zeros((height, width), np.float32), np.zeros((height, width, 3), np.float32)
-    da, dr = (cl.Buffer(env.ctx, cl.mem_flags.WRITE_ONLY, a.nbytes) for a in (alpha, rgb))
+    dgrid = _buf(np.asarray(grid, np.float32))
     k = cl.Kernel(_program(), "composite")
-    k(env.queue, global_size((width, height), local), local, np.int32(width), np.int32(height),
-      _buf(camera_record.astype(np.float32)), _buf(grid.astype(np.float32)), np.float64(LEAF_PROJECTION), np.int32(nx), np.int32(ny), np.int32(nz), *map(np.float64, origin), np.float64(voxel), np.float64(step), da, dr)
-    cl.enqueue_copy(env.queue, alpha, da)
-    cl.enqueue_copy(env.queue, rgb, dr)
+    out = []
+    for record in camera_records:
+        alpha, rgb = np.zeros((height, width), np.float32), np.zeros((height, width, 3), np.float32)
+        da, dr = (cl.Buffer(env.ctx, cl.mem_flags.WRITE_ONLY, a.nbytes) for a in (alpha, rgb))
+        k(env.queue, global_size((width, height), local), local, np.int32(width), np.int32(height),
+          _buf(np.asarray(record, np.float32)), dgrid, np.float64(LEAF_PROJECTION), np.int32(nx), np.int32(ny),
+          np.int32(nz), *map(np.float64, origin), np.float64(voxel), np.float64(step), da, dr)
+        cl.enqueue_copy(env.queue, alpha, da)
+        cl.enqueue_copy(env.queue, rgb, dr)
+        out.append((alpha, rgb))
     env.queue.finish()
-    return alpha, rgb
+    return out

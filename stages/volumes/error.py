@@ -51,6 +51,9 @@ def mesh_views(scene: Scene, cams: list[Camera], size: int, samples: int = 2):
 
 def level_views(level: VolumeLevel, cams: list[Camera], size: int, backend) -> list[tuple[np.ndarray, np.ndarray]]:
     grid = composite_grid(level)
+    if hasattr(backend, "composite_views"):  # the device: the grid is sent once for every view
+        return backend.composite_views([cam.frame(size, size) for cam in cams], size, size, grid, level.origin,
+                                       level.voxel_m, 0.5 * level.voxel_m)
     return [backend.composite(cam.frame(size, size), size, size, grid, level.origin, level.voxel_m, 0.5 * level.voxel_m)
             for cam in cams]
 

@@ -5,13 +5,64 @@
  * throughout so the numpy reference (reference.py) gives the same numbers.
  */
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
+
+/* Triangle t's corners, normals and uv into p, n, w; returns the weight
+ * (m^2) of each of its m^2 samples. */
+static double load_triangle(__global const double *pos, __global const double *nrm, __global const double *uv,
+                            const int t, const int m, double *p, double *n, double *w)
+{
+    for (int i = 0; i < 9; ++i) { p[i] = pos[9 * t + i]; n[i] = nrm[9 * t + i]; }
+    for (int i = 0; i < 6; ++i) w[i] = uv[6 * t + i];
+    const double e1x = p[3] - p[0], e1y = p[4] - p[1], e1z = p[5] - p[2];
+    const double e2x = p[6] - p[0], e2y = p[7] - p[1], e2z = p[8] - p[2];
+    const double cx = e1y * e2z - e1z * e2y, cy = e1z * e2x - e1x * e2z, cz = e1x * e2y - e1y * e2x;
+    const double area = 0.5 * sqrt(cx * cx + cy * cy + cz * cz);
+    return area / ((double)m * (double)m);
+}
+
+/* Sample (b0, b1, b2) of a triangle (corners p, normals n, uv w, tint,
+ * texture k or -1): its albedo (tint x the texel under it, nearest,
+ * wrapping uv, as pipeline/render), its voxel (x fastest, clamped to the
+ * grid) and its interpolated unit normal; 0 where the texel's alpha fails
+ * the test (no surface: the alpha test of the cards), else 1. */
+static int sample_at(const double *p, const double *n, const double *w, __global const double *tint, const int k,
+                     __global const float *textures, const int tw, const int th, const float alpha_threshold,
+                     const double b0, const double b1, const double b2, const double ox, const double oy,
+                     const double oz, const double voxel, const int nx, const int ny, const int nz,
+                     double *rgb, double *q, long *at)
+{
+    rgb[0] = tint[0]; rgb[1] = tint[1]; rgb[2] = tint[2];
+    int keep = 1;
+    if (k >= 0) {
+        const double u = b0 * w[0] + b1 * w[2] + b2 * w[4];
+        const double v = b0 * w[1] + b1 * w[3] + b2 * w[5];
+        const double fu = u - floor(u), fv = v - floor(v);
+        const int x = min((int)(fu * (double)tw), tw - 1);
+        const int y = min((int)((1.0 - fv) * (double)th), th - 1);
+        __global const float *texel = textures + 4 * (((long)k * th + y) * tw + x);
+        rgb[0] *= (double)texel[0]; rgb[1] *= (double)texel[1]; rgb[2] *= (double)texel[2];
+        keep = (double)texel[3] >= (double)alpha_threshold;
+    }
+    const double px = b0 * p[0] + b1 * p[3] + b2 * p[6];
+    const double py = b0 * p[1] + b1 * p[4] + b2 * p[7];
+    const double pz = b0 * p[2] + b1 * p[5] + b2 * p[8];
+    const int ix = clamp((int)floor((px - ox) / voxel), 0, nx - 1);
+    const int iy = clamp((int)floor((py - oy) / voxel), 0, ny - 1);
+    const int iz = clamp((int)floor((pz - oz) / voxel), 0, nz - 1);
+    q[0] = b0 * n[0] + b1 * n[3] + b2 * n[6];
+    q[1] = b0 * n[1] + b1 * n[4] + b2 * n[7];
+    q[2] = b0 * n[2] + b1 * n[5] + b2 * n[8];
+    const double ql = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2]);
+    if (ql > 0.0) { q[0] /= ql; q[1] /= ql; q[2] /= ql; }
+    *at = ((long)iz * ny + iy) * nx + ix;
+    return keep;
+}
 
 /* One work-item per triangle. Triangle t is cut into m[t]^2 equal
  * sub-triangles (a regular barycentric grid); a sample sits at each
- * sub-triangle's centroid and carries area / m^2. Where the triangle is
- * textured, the texel under the sample (nearest, wrapping uv, as
- * pipeline/render) gives its colour and alpha: alpha below the threshold is
- * no surface (weight 0), the alpha test of the cards. Samples are written
+ * sub-triangle's centroid and carries area / m^2 (sample_at; a sample the
+ * alpha test rejects has weight 0). Samples are written
  * from offset[t]: the voxel they fall in (x fastest; -1 when rejected), the
  * weight (m^2), linear albedo and the interpolated unit normal. */
 __kernel void surface_samples(const int n_tris, __global const double *pos, __global const double *nrm,
@@ -28,13 +79,7 @@ __kernel void surface_samples(const int n_tris, __global const double *pos, __gl
     const int m = m_sub[t];
     long o = offset[t];
     double p[9], n[9], w[6];
-    for (int i = 0; i < 9; ++i) { p[i] = pos[9 * t + i]; n[i] = nrm[9 * t + i]; }
-    for (int i = 0; i < 6; ++i) w[i] = uv[6 * t + i];
-    const double e1x = p[3] - p[0], e1y = p[4] - p[1], e1z = p[5] - p[2];
-    const double e2x = p[6] - p[0], e2y = p[7] - p[1], e2z = p[8] - p[2];
-    const double cx = e1y * e2z - e1z * e2y, cy = e1z * e2x - e1x * e2z, cz = e1x * e2y - e1y * e2x;
-    const double area = 0.5 * sqrt(cx * cx + cy * cy + cz * cz);
-    const double weight = area / ((double)m * (double)m);
+    const double weight = load_triangle(pos, nrm, uv, t, m, p, n, w);
     const int k = tex_id[t];
     for (int up = 1; up >= 0; --up) {
         const double shift = up ? 1.0 / 3.0 : 2.0 / 3.0;
@@ -43,36 +88,66 @@ __kernel void surface_samples(const int n_tris, __global const double *pos, __gl
             for (int j = 0; j < rows - i; ++j) {
                 const double b1 = ((double)i + shift) / (double)m, b2 = ((double)j + shift) / (double)m;
                 const double b0 = 1.0 - b1 - b2;
-                double r = tint[3 * t], g = tint[3 * t + 1], b = tint[3 * t + 2];
-                int keep = 1;
-                if (k >= 0) {
-                    const double u = b0 * w[0] + b1 * w[2] + b2 * w[4];
-                    const double v = b0 * w[1] + b1 * w[3] + b2 * w[5];
-                    const double fu = u - floor(u), fv = v - floor(v);
-                    const int x = min((int)(fu * (double)tw), tw - 1);
-                    const int y = min((int)((1.0 - fv) * (double)th), th - 1);
-                    __global const float *texel = textures + 4 * (((long)k * th + y) * tw + x);
-                    r *= (double)texel[0]; g *= (double)texel[1]; b *= (double)texel[2];
-                    keep = (double)texel[3] >= (double)alpha_threshold;
-                }
-                const double px = b0 * p[0] + b1 * p[3] + b2 * p[6];
-                const double py = b0 * p[1] + b1 * p[4] + b2 * p[7];
-                const double pz = b0 * p[2] + b1 * p[5] + b2 * p[8];
-                const int ix = clamp((int)floor((px - ox) / voxel), 0, nx - 1);
-                const int iy = clamp((int)floor((py - oy) / voxel), 0, ny - 1);
-                const int iz = clamp((int)floor((pz - oz) / voxel), 0, nz - 1);
-                double qx = b0 * n[0] + b1 * n[3] + b2 * n[6];
-                double qy = b0 * n[1] + b1 * n[4] + b2 * n[7];
-                double qz = b0 * n[2] + b1 * n[5] + b2 * n[8];
-                const double ql = sqrt(qx * qx + qy * qy + qz * qz);
-                if (ql > 0.0) { qx /= ql; qy /= ql; qz /= ql; }
-                s_voxel[o] = keep ? (iz * ny + iy) * nx + ix : -1;
+                double c[3], q[3];
+                long at;
+                const int keep = sample_at(p, n, w, tint + 3 * t, k, textures, tw, th, alpha_threshold, b0, b1, b2,
+                                           ox, oy, oz, voxel, nx, ny, nz, c, q, &at);
+                s_voxel[o] = keep ? (int)at : -1;
                 s_weight[o] = keep ? weight : 0.0;
-                s_rgb[3 * o] = r; s_rgb[3 * o + 1] = g; s_rgb[3 * o + 2] = b;
-                s_normal[3 * o] = qx; s_normal[3 * o + 1] = qy; s_normal[3 * o + 2] = qz;
+                s_rgb[3 * o] = c[0]; s_rgb[3 * o + 1] = c[1]; s_rgb[3 * o + 2] = c[2];
+                s_normal[3 * o] = q[0]; s_normal[3 * o + 1] = q[1]; s_normal[3 * o + 2] = q[2];
                 ++o;
             }
     }
+}
+
+/* surface_samples summed per voxel where they fall, in 64-bit fixed point
+ * (value x `fixed`, rounded to nearest even) with integer atomics: no
+ * sample leaves the device, and integer sums do not depend on the order,
+ * so they are the same for any work-group size. sums: 7 channels of
+ * nx * ny * nz voxels: area, area x albedo (3), area x normal (3). */
+__kernel void surface_sums(const int n_tris, __global const double *pos, __global const double *nrm,
+                           __global const double *uv, __global const double *tint, __global const int *tex_id,
+                           __global const float *textures, const int tw, const int th, const float alpha_threshold,
+                           __global const int *m_sub, const double ox, const double oy, const double oz,
+                           const double voxel, const int nx, const int ny, const int nz, const double fixed,
+                           __global long *sums)
+{
+    const int t = get_global_id(0);
+    if (t >= n_tris) return;
+    const long count = (long)nx * ny * nz;
+    const int m = m_sub[t];
+    double p[9], n[9], w[6];
+    const double weight = load_triangle(pos, nrm, uv, t, m, p, n, w);
+    const int k = tex_id[t];
+    /* consecutive samples mostly fall in one voxel: their fixed-point values
+     * are added here first (integers: the same sums) and flushed per run */
+    long run_at = -1, run[7];
+    for (int up = 1; up >= 0; --up) {
+        const double shift = up ? 1.0 / 3.0 : 2.0 / 3.0;
+        const int rows = up ? m : m - 1;
+        for (int i = 0; i < rows; ++i)
+            for (int j = 0; j < rows - i; ++j) {
+                const double b1 = ((double)i + shift) / (double)m, b2 = ((double)j + shift) / (double)m;
+                const double b0 = 1.0 - b1 - b2;
+                double c[3], q[3];
+                long at;
+                if (!sample_at(p, n, w, tint + 3 * t, k, textures, tw, th, alpha_threshold, b0, b1, b2, ox, oy, oz,
+                               voxel, nx, ny, nz, c, q, &at))
+                    continue;
+                if (at != run_at) {  /* flush the run of samples that fell in one voxel */
+                    if (run_at >= 0)
+                        for (int ch = 0; ch < 7; ++ch) atom_add(sums + ch * count + run_at, run[ch]);
+                    run_at = at;
+                    for (int ch = 0; ch < 7; ++ch) run[ch] = 0;
+                }
+                const double val[7] = {weight, weight * c[0], weight * c[1], weight * c[2], weight * q[0], weight * q[1],
+                                      weight * q[2]};
+                for (int ch = 0; ch < 7; ++ch) run[ch] += (long)rint(val[ch] * fixed);
+            }
+    }
+    if (run_at >= 0)
+        for (int ch = 0; ch < 7; ++ch) atom_add(sums + ch * count + run_at, run[ch]);
 }
 
 /* Trilinear sample of a grid at voxel coordinates (voxel centres at

@@ -5,9 +5,12 @@
 2. Surfaces (every triangle, foliage cards, blades and bark): point samples
    on a barycentric grid about voxel / samples_per_voxel apart, each with
    its share of the triangle's area; a sample where a card's texture alpha
-   fails the test is no surface (kernels.cl surface_samples). Samples are
-   reduced into voxel sums of area, area x albedo, area x normal in sample
-   order (samples.SurfaceSums).
+   fails the test is no surface. On the device (kernels.cl surface_sums)
+   the samples are summed where they fall, area, area x albedo, area x
+   normal, in 64-bit fixed point with integer atomics (no sample leaves the
+   device; the sums do not depend on the work-group size); the numpy
+   reference writes every sample (kernels.cl surface_samples does the
+   same) and reduces them in sample order (samples.SurfaceSums).
 3. The woody solid (the watertight Wood mesh): its occupied share of each
    voxel, from columns along z (sub x sub per voxel): the crossings of each
    column with the mesh, sorted, give the inside intervals by winding
@@ -60,6 +63,10 @@ def surface_sums(scene: Scene, triangles: np.ndarray, grid: Grid3, samples_per_v
     if len(triangles) == 0:
         return sums, 0
     table = sample_table(scene, triangles, grid.voxel / samples_per_voxel)
+    if use_opencl:  # summed on the device: no sample leaves it
+        from .device import surface_sums as device_sums
+
+        return device_sums(table, grid, scene.textures, alpha_threshold), int(table.offset[-1])
     be = backend(use_opencl)
     lo, total = 0, 0
     while lo < len(table.m):

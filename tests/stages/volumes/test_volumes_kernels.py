@@ -34,6 +34,26 @@ def test_surface_samples_equal_the_reference_for_any_work_group(tiny):
             np.testing.assert_allclose(getattr(dev, name), getattr(ref, name), rtol=1e-12, atol=1e-15)
 
 
+def test_surface_sums_equal_the_reference_s_samples_summed_for_any_work_group(tiny):
+    from stages.volumes.samples import SurfaceSums
+
+    scene, _, grid = tiny
+    table = sample_table(scene, np.arange(scene.n_triangles), grid.voxel / 2)
+    ref = SurfaceSums.zeros(grid.count)
+    ref.add(reference.surface_samples(table, grid, scene.textures, 0.5))
+    first = None
+    for local in (1, 7, 64, None):
+        got = device.surface_sums(table, grid, scene.textures, 0.5, local=local)
+        for name in ("area", "rgb", "normal"):
+            # each sample rounds to 2^-40 m^2; the samples of a triangle share one weight, so they round alike
+            np.testing.assert_allclose(getattr(got, name), getattr(ref, name), rtol=1e-7, atol=1e-12)
+        if first is None:
+            first = got
+        for name in ("area", "rgb", "normal"):  # integer sums: the same bits for every work-group size
+            assert np.array_equal(getattr(got, name), getattr(first, name)), (local, name)
+    assert (ref.area > 0).sum() > 20
+
+
 def test_voxelization_is_deterministic_and_equals_the_reference(tiny):
     scene, parts, _ = tiny
     a = voxelize(scene, parts, 8, 2, samples_per_voxel=1.5, use_opencl=True)

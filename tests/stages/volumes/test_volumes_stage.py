@@ -15,8 +15,8 @@ from pipeline import usdio, volume
 from pipeline.config import canonical_params
 from pipeline.contract import RunContext
 from stages.forest_volumes import STAGE as FOREST
-from stages.forest_volumes.stage import (ForestVolumesParams, _rotations, occupied_box, read_species_volumes, read_tiles,
-                                         splat)
+from stages.forest_volumes import reference, splat
+from stages.forest_volumes.stage import ForestVolumesParams, _rotations, occupied_box, read_species_volumes, read_tiles
 from stages.volumes import STAGE
 from stages.volumes.stage import VolumesParams
 
@@ -109,22 +109,23 @@ def test_errors_and_the_woody_solid_are_measured(volumes):
 def test_a_splat_keeps_the_projected_area_of_every_instance(volumes):
     out, _ = volumes
     src = read_species_volumes(out["volumes.assets"])["bush"].level(0)
-    sector = volume.empty_level((32, 16, 32), (-4.0, -2.0, -4.0), 0.25)
-    acc = np.zeros((8, sector.density.size))
+    shape, origin, voxel = (32, 16, 32), (-4.0, -2.0, -4.0), 0.25
+    acc = np.zeros((8, 32 * 16 * 32), np.int64)
     q = np.array([[1.0, 0, 0, 0], [np.cos(0.3), 0, np.sin(0.3), 0]])
-    splat(sector, src, np.array([[0.0, 0, 0], [1.0, 0.5, 1.0]]), _rotations(q), np.array([1.0, 2.0]), acc)
+    reference.splat(shape, origin, voxel, src, np.array([[0.0, 0, 0], [1.0, 0.5, 1.0]]), _rotations(q),
+                    np.array([1.0, 2.0]), acc)
     per_instance = src.density.astype(np.float64).sum() * src.voxel_m ** 3
-    assert acc[0].sum() * sector.voxel_m ** 3 == pytest.approx(per_instance * (1 + 2 ** 2), rel=1e-9)
+    assert acc[0].sum() / splat.FIXED * voxel ** 3 == pytest.approx(per_instance * (1 + 2 ** 2), rel=1e-9)
 
 
-def test_forest_tiles_get_sector_volumes(volumes, tmp_path):
-    """A two-tile instances layer as vegetation writes it: the tile with the
-    shrubs gets a sector volume over it, the tile of grass none."""
-    from pxr import Usd, UsdGeom
-
+@pytest.fixture(scope="module")
+def forest(volumes, tmp_path_factory):
+    """A two-tile instances layer as vegetation writes it (30 turned bushes
+    in one tile, 30 grass tufts in the other) and its forest volumes."""
     from stages.vegetation import usd_layer
     from stages.vegetation.placement import Instances
 
+    tmp_path = tmp_path_factory.mktemp("forest")
     rng = np.random.default_rng(3)
 
     def inst(name, n, x0):
@@ -138,13 +139,23 @@ def test_forest_tiles_get_sector_volumes(volumes, tmp_path):
     layer = tmp_path / "instances.usdc"
     usd_layer.write(layer, {"stage": "vegetation"}, sets, {"bush": 0.6, "grass": 0.3}, {"bush": "plant", "grass": "grass"},
                     0.0, 0.0, 32.0, 40, 8.0)
+    out, _ = volumes
+    params = ForestVolumesParams(voxel_m=0.5, mip_levels=2, forest_min_height_m=0.1)
+    res, _ = _run(FOREST, params, {"volumes": out["volumes.assets"], "instances": layer}, tmp_path / "out")
+    return layer, res, tmp_path / "out"
+
+
+def test_forest_tiles_get_sector_volumes(volumes, forest):
+    """The tile with the shrubs gets a sector volume over it, the tile of
+    grass none."""
+    from pxr import Usd, UsdGeom
+
+    layer, res, folder = forest
     tiles = read_tiles(layer)
     assert sum(len(t.species.get("bush", ([],))[0]) for t in tiles) == 30
     rot = next(t.species["bush"][1] for t in tiles if "bush" in t.species)
     np.testing.assert_allclose(rot[0] @ [1.0, 0, 0], [0, 0, -1.0], atol=1e-3)  # x turns to -z about +y
     out, _ = volumes
-    params = ForestVolumesParams(voxel_m=0.5, mip_levels=2, forest_min_height_m=0.1)
-    res, _ = _run(FOREST, params, {"volumes": out["volumes.assets"], "instances": layer}, tmp_path / "forest")
     sectors = res["forest_volumes.stats"]["sectors"]
     assert len(sectors) == 1 and list(sectors.values())[0]["instances"] == {"bush": 30}
     path = next(iter(sectors))
@@ -152,7 +163,7 @@ def test_forest_tiles_get_sector_volumes(volumes, tmp_path):
     world = Usd.Stage.Open(str(res["forest_volumes.sectors"]))
     far = world.GetPrimAtPath(f"{path}/FarVolume")
     assert UsdGeom.Imageable(far).GetPurposeAttr().Get() == UsdGeom.Tokens.proxy
-    lv = volume.read_atlas(tmp_path / "forest" / f"{path.rsplit('/', 1)[-1]}.mip0.exr")
+    lv = volume.read_atlas(folder / f"{path.rsplit('/', 1)[-1]}.mip0.exr")
     src = read_species_volumes(out["volumes.assets"])["bush"].level(0)
     expect = 30 * src.density.astype(np.float64).sum() * src.voxel_m ** 3
     assert lv.density.astype(np.float64).sum() * lv.voxel_m ** 3 == pytest.approx(expect, rel=1e-3)
@@ -161,6 +172,54 @@ def test_forest_tiles_get_sector_volumes(volumes, tmp_path):
     assert all(a <= b for a, b in zip(info["grid"], info["grid_before_clip"]))
     assert (lv.density[0] > 0).any() or (lv.density[:, 0] > 0).any() or (lv.density[..., 0] > 0).any()
     assert json.loads(far.GetCustomDataByKey("worldbake:volume"))["instances"] == {"bush": 30}
+
+
+def test_stored_sector_levels_are_column_runs_that_keep_the_mean_coverage(forest):
+    from pipeline import sparse_volume
+
+    _, res, folder = forest
+    path, info = next(iter(res["forest_volumes.stats"]["sectors"].items()))
+    stem = path.rsplit("/", 1)[-1]
+    levels = [sparse_volume.read_runs(folder / f"{stem}.mip{k}.exr") for k in range(2)]
+    for k, lv in enumerate(levels):
+        assert lv.attributes["volume_layout"] == "column runs" and len(lv.index) == info["levels"][k]["occupied_voxels"]
+        # the runs hold no more than the occupied voxels and the gaps inside their columns
+        assert len(lv.index) <= lv.attributes["volume_runs_voxels"] < 2 * len(lv.index)
+        # the finest level's density is rounded to pxr24's 24 bits before the mips are made: what is read back
+        # is what was computed, and the stored mips keep the stored finest level's mean coverage
+        assert abs(lv.mean_density() / levels[0].mean_density() - 1) <= 1e-7
+        assert lv.mean_density() == pytest.approx(info["levels"][k]["mean_density"], rel=1e-12)
+    assert np.array_equal(levels[0].density, sparse_volume.round_to_pxr24(levels[0].density))
+    dense = levels[0].to_dense()
+    again = sparse_volume.downsample(sparse_volume.from_dense(dense)).to_dense()
+    np.testing.assert_allclose(again.density, levels[1].to_dense().density, rtol=2e-5, atol=1e-9)
+
+
+def test_the_sector_is_measured_against_its_instances(forest, volumes):
+    """column_errors: the baked sector keeps its instances' extinction and
+    lies close to them column by column; a sector moved by three voxels, or
+    with half its density, is caught."""
+    from pipeline import sparse_volume
+    from stages.forest_volumes.stage import column_errors
+
+    layer, res, folder = forest
+    path, info = next(iter(res["forest_volumes.stats"]["sectors"].items()))
+    err = info["error"]
+    assert abs(err["extinction_relative"]) < 1e-6 and abs(err["side_extinction_relative"]) < 1e-6
+    assert err["column_relative_l1_32m"] < 0.05 and err["column_relative_l1"] < 0.5 and err["cover_mae"] < 0.1
+    assert res["forest_volumes.stats"]["error"]["sectors"] == 1
+    level = sparse_volume.read_runs(folder / f"{path.rsplit('/', 1)[-1]}.mip0.exr")
+    tile = next(t for t in read_tiles(layer) if t.path == path)
+    species = read_species_volumes(volumes[0]["volumes.assets"])
+    again = column_errors(level, tile, species)
+    assert again["column_relative_l1"] == pytest.approx(err["column_relative_l1"], abs=1e-3)
+    level.origin = level.origin + [3 * level.voxel_m, 0.0, 0.0]
+    moved = column_errors(level, tile, species)
+    assert moved["column_relative_l1"] > 2 * err["column_relative_l1"] + 0.3
+    assert moved["side_column_relative_l1"] < 0.5 * moved["column_relative_l1"]  # along x: the side sees no move
+    level.origin = level.origin - [3 * level.voxel_m, 0.0, 0.0]
+    level.density = level.density / 2
+    assert column_errors(level, tile, species)["extinction_relative"] == pytest.approx(-0.5, abs=1e-3)
 
 
 def test_vdb_levels_read_back_with_the_same_values(plants, tmp_path):
