@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-DEFAULT = dict(years=2.0e6, dt_years=2.0e5, k=1.0e-5, m=0.5, n_exp=1.0, uplift_m_per_year=5.0e-4,
+DEFAULT = dict(years=2.0e6, dt_years=2.0e5, k=2.0e-5, m=0.45, n_exp=1.0, uplift_m_per_year=5.0e-4,
                routing="mfd", diffusivity_m2_per_year=0.01, mfd_exponent=1.1, flat_routing="distance",
                fill_lakes=True)
 VARIANTS = {
