@@ -161,3 +161,10 @@ def test_mfd_isotropy_makes_incision_on_a_plane_the_same_in_every_direction():
             out.append((h - new)[n // 2, n // 2] / (k_dt * gradient))
     assert max(plain) / min(plain) > 1.09  # the bias the scale removes
     np.testing.assert_allclose(scaled, 1.0, rtol=2e-3)
+
+
+def test_ascending_order_is_a_stable_argsort():
+    rng = np.random.default_rng(5)
+    z = np.round(rng.normal(0.0, 3.0, (31, 17)), 1).astype(np.float32)  # many ties, negatives
+    z[0, :4] = [-0.0, 0.0, -0.0, np.float32(1e-40)]
+    np.testing.assert_array_equal(sp.ascending_order(z), np.argsort(z.ravel(), kind="stable"))
