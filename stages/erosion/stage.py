@@ -111,6 +111,9 @@ class ErosionParams(Params):
         "epsilon, Barnes 2014: the flood order, straight lines along rows, columns and diagonals) or distance (the "
         "filled level tilted toward the depression's outlet by the Euclidean distance: water converges on the outlet "
         "from every direction)")
+    geological_mfd_isotropic: bool = Param(
+        True, description="mfd: scale each cell's incision so that a plane erodes at K A^m |grad h| whatever its "
+        "direction (the plain mfd slope is 10 % steeper down the grid axes than between them)")
     geological_lake_fill: bool = Param(
         False, description="mfd: sediment settles in the closed depressions up to the routing surface every step "
         "(counted in the volume budget), so no pit survives to the next step")
@@ -249,7 +252,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[
                                routing=params.geological_routing, channel_area_m2=params.channel_area_m2,
                                diffusivity_m2_per_year=params.hillslope_diffusivity_m2_per_year,
                                breach=params.geological_breach, mfd_exponent=params.geological_mfd_exponent,
-                               flat_routing=params.geological_flat_routing, fill_lakes=params.geological_lake_fill)
+                               flat_routing=params.geological_flat_routing, fill_lakes=params.geological_lake_fill,
+                               mfd_isotropic=params.geological_mfd_isotropic)
         if res.budget_relative_error > 1e-9:
             raise StageError(f"erosion: stream power lost {res.budget_relative_error:.2e} of the eroded volume "
                              f"on its way to base level")
