@@ -178,7 +178,9 @@ class Poisson:
                    np.int32(self.rows), np.int32(self.cols), *self.tail)
 
     def read(self):
-        return self.b.get(self.pts, (self.nz * self.nx, 4), F)
+        pts = self.b.get(self.pts, (self.nz * self.nx, 4), F)
+        pts[pts[:, 2] < 0] = 0.0  # cells the kernel marked as unusable are free cells
+        return pts
 
 
 def grass_tufts(dens, dx, nx, nz, sp, jitter, wdom, ddom, key, local=None):
