@@ -143,8 +143,9 @@ def _measure_looks(spec, res: PlantResult) -> dict:
     rgba = np.concatenate([res.cards.albedo, res.cards.alpha[..., None]], -1) if res.cards is not None else None
     slices = (np.concatenate([res.slices.albedo, res.slices.alpha[..., None]], -1) if res.slices is not None else None)
     levels = []
+    hulls: dict = {}  # levels with the foliage and views of one before reuse its hull masks
     for k, parts in enumerate(res.lods):
-        co = measure.crown_opacity(parts, spec, rgba, slices_rgba=slices)
+        co = measure.crown_opacity(parts, spec, rgba, slices_rgba=slices, hulls=hulls)
         levels.append({"level": k, "crown_opacity": co["mean"], "crown_opacity_per_azimuth": co["per_azimuth"],
                        "foliage_area_m2": measure.foliage_area(parts, cov, cpc),
                        "wood_area_m2": measure.surface_area(parts.get("Wood"))})
