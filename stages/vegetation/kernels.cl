@@ -328,27 +328,29 @@ __kernel void sim_sources(__global const int *sp, __global const int *birth, con
     }
 }
 
-/* integer box sums of half-width w_s along x (axis 0) or z (axis 1) */
+/* integer box sums of half-width w_s along x (axis 0) or z (axis 1): one
+ * work-item per line (a row for axis 0, a column for axis 1) and species,
+ * a running sum (one add and one subtract a cell, whatever w_s; integers,
+ * so exactly the window's sum) */
 __kernel void box_sum(__global const int *src, const int nx, const int nz, const int axis,
                       __constant float *tab, const int nsp, __global int *dst)
 {
-    const int x = get_global_id(0), z = get_global_id(1);
-    if (x >= nx || z >= nz)
+    const int line = get_global_id(0), s = get_global_id(1);
+    const int len = axis == 0 ? nx : nz, lines = axis == 0 ? nz : nx;
+    if (line >= lines || s >= nsp)
         return;
-    const int n = nx * nz;
-    for (int s = 0; s < nsp; ++s) {
-        const int w = (int)tab[s * SPW + 8];
-        int acc = 0;
-        if (axis == 0) {
-            const int lo = max(x - w, 0), hi = min(x + w, nx - 1);
-            for (int k = lo; k <= hi; ++k)
-                acc += src[s * n + z * nx + k];
-        } else {
-            const int lo = max(z - w, 0), hi = min(z + w, nz - 1);
-            for (int k = lo; k <= hi; ++k)
-                acc += src[s * n + k * nx + x];
-        }
-        dst[s * n + z * nx + x] = acc;
+    const int stride = axis == 0 ? 1 : nx;
+    const int base = s * nx * nz + (axis == 0 ? line * nx : line);
+    const int w = (int)tab[s * SPW + 8];
+    int acc = 0;
+    for (int k = 0; k <= min(w, len - 1); ++k)
+        acc += src[base + k * stride];
+    for (int k = 0; k < len; ++k) {
+        dst[base + k * stride] = acc;
+        if (k + w + 1 < len)
+            acc += src[base + (k + w + 1) * stride];
+        if (k - w >= 0)
+            acc -= src[base + (k - w) * stride];
     }
 }
 
