@@ -99,9 +99,11 @@ __kernel void horizon(__global const float *h, const int rows, const int cols, c
         const float s = steps[m];
         const float fc = (float)c + s * ex;
         const float fr = (float)r - s * ez;
-        const bool inside = !(fc < 0.0f || fr < 0.0f || fc > (float)(cols - 1) || fr > (float)(rows - 1));
+        /* the samples move away monotonically: the first one off the grid ends the scan */
+        if (fc < 0.0f || fr < 0.0f || fc > (float)(cols - 1) || fr > (float)(rows - 1))
+            break;
         const float t = (bilinear(h, rows, cols, fr, fc) - h0) / (s * dx);
-        tmax = inside ? fmax(tmax, t) : tmax;
+        tmax = fmax(tmax, t);
     }
     out[d * rows * cols + r * cols + c] = tmax;
 }
