@@ -210,15 +210,15 @@ def _species_cost(name: str, spec, seed: int, max_modules: int) -> int:
 def _parallel_ok() -> bool:
     import multiprocessing
 
-    # a daemonic process (a Dask worker) may not start processes
+    # a daemonic process (a Dask worker) is left alone: one stage, one process
     return not multiprocessing.current_process().daemon and (os.cpu_count() or 1) > 1
 
 
 def _run_jobs(names: list[str], job, costs: dict[str, int], progress) -> dict[str, tuple]:
     """Run job(name) for every name, largest first: in this process and, when
-    the work is large enough, in one spawned worker process beside it (each
-    takes the next name when it is free). Results do not depend on who ran
-    what."""
+    the work is large enough, in one worker process beside it (worker.py;
+    each takes the next name when it is free). Results do not depend on who
+    ran what."""
     order = sorted(names, key=lambda n: (-costs[n], n))
     done: dict[str, tuple] = {}
     if len(order) < 2 or sum(costs.values()) < PARALLEL_MIN_MODULES or not _parallel_ok():
@@ -226,21 +226,52 @@ def _run_jobs(names: list[str], job, costs: dict[str, int], progress) -> dict[st
             progress(i / len(order), f"plants: building {name}")
             done[name] = job(name)
         return done
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
+    import pickle
+    import select
+    import subprocess
+    import sys
 
-    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+    proc = subprocess.Popen([sys.executable, "-m", "stages.plants.worker"], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE)
+
+    def send(name: str) -> None:
+        pickle.dump((job, (name,)), proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+        proc.stdin.flush()
+
+    def receive() -> tuple:
+        try:
+            status, value = pickle.load(proc.stdout)
+        except EOFError:
+            raise StageError(f"plants: the worker process ended (exit status {proc.wait()})") from None
+        if status == "error":
+            raise value
+        return value
+
+    ok = False
+    try:
         queue = list(order)
-        running = pool.submit(job, queue.pop(0))
-        while running is not None or queue:
-            if running is not None and (running.done() or not queue):
-                name = running.result()[0]
-                done[name] = running.result()
-                running = pool.submit(job, queue.pop(0)) if queue else None
+        send(queue.pop(0))
+        busy = True
+        while busy or queue:
+            if busy and (not queue or select.select([proc.stdout], [], [], 0)[0]):
+                result = receive()
+                done[result[0]] = result
+                busy = False
+                if queue:
+                    send(queue.pop(0))
+                    busy = True
                 continue
             name = queue.pop(0)
             progress(len(done) / len(order), f"plants: building {name}")
             done[name] = job(name)
+        ok = True
+    finally:
+        if ok:
+            proc.stdin.close()
+            proc.wait()
+        else:
+            proc.kill()
+            proc.wait()
     return done
 
 
