@@ -11,7 +11,8 @@ area index over the crown's footprint, and crown opacity from the side.
     crown opacity orthographic side views at 8 azimuths (pipeline.render): of
                   the pixels inside the 2-D convex hull of the foliage's
                   projection (alpha >= 0.5), the share that foliage or wood
-                  covers with alpha >= 0.5; the mean over the azimuths.
+                  covers with alpha >= 0.5; the mean over the azimuths
+                  (opposite azimuths see the same lines of sight: 4 renders).
 """
 from __future__ import annotations
 
@@ -178,7 +179,11 @@ def crown_opacity(parts: dict[str, Part], spec, card_rgba: np.ndarray | None, az
     foliage = plant_scene(parts, spec, card_rgba, None, foliage_only=True, slices_rgba=slices_rgba)
     if foliage.n_triangles == 0:
         return {"mean": 0.0, "per_azimuth": [0.0] * azimuths}
-    cams = side_cameras(pts, azimuths)
+    # An orthographic view from the opposite side has the same lines of sight
+    # (mirrored), so the same covered pixels and hull: with an even number of
+    # azimuths the first half is rendered and stands for the second.
+    half = azimuths // 2 if azimuths % 2 == 0 else azimuths
+    cams = side_cameras(pts, azimuths)[:half]
     key = _foliage_key(parts, cams) if hulls is not None else None
     masks = hulls.get(key) if hulls is not None else None
     pl = None
@@ -203,4 +208,6 @@ def crown_opacity(parts: dict[str, Part], spec, card_rgba: np.ndarray | None, az
                           Settings(cols[1] - cols[0], rows[1] - rows[0], samples=2)).alpha
         covered = alpha >= 0.5
         values.append(float((covered & hull[rows[0]:rows[1], cols[0]:cols[1]]).sum() / n_hull))
+    if half < azimuths:
+        values = values + values
     return {"mean": float(np.mean(values)), "per_azimuth": values}
