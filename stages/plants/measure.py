@@ -11,7 +11,8 @@ area index over the crown's footprint, and crown opacity from the side.
     crown opacity orthographic side views at 8 azimuths (pipeline.render): of
                   the pixels inside the 2-D convex hull of the foliage's
                   projection (alpha >= 0.5), the share that foliage or wood
-                  covers with alpha >= 0.5; the mean over the azimuths.
+                  covers with alpha >= 0.5; the mean over the azimuths
+                  (opposite azimuths see the same lines of sight: 4 renders).
 """
 from __future__ import annotations
 
@@ -135,21 +136,78 @@ def _inside_hull(mask: np.ndarray) -> np.ndarray:
     return inside.reshape(H, W)
 
 
+def _crop_camera(cam: Camera, rows: tuple[int, int], cols: tuple[int, int], size: int) -> Camera:
+    """The orthographic view of pixels rows[0]:rows[1], cols[0]:cols[1] of
+    `cam`'s size x size image: the same rays (up to float rounding)."""
+    f = np.asarray(cam.forward, np.float64)
+    f = f / np.linalg.norm(f)
+    r = np.cross(f, np.asarray(cam.up, np.float64))
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    half = 0.5 * cam.ortho_height_m  # a square view: half width = half height
+    cx = (cols[0] + cols[1]) / size - 1.0
+    cy = 1.0 - (rows[0] + rows[1]) / size
+    eye = np.asarray(cam.eye, np.float64) + cx * half * r + cy * half * u
+    return Camera(tuple(eye), cam.forward, cam.up, ortho_height_m=cam.ortho_height_m * (rows[1] - rows[0]) / size,
+                  ortho_width_m=cam.ortho_height_m * (cols[1] - cols[0]) / size)
+
+
+def _foliage_key(parts: dict[str, Part], cams: list[Camera]) -> bytes:
+    import hashlib
+
+    h = hashlib.sha1()
+    for name, part in sorted(parts.items()):
+        if name != "Wood" and part.n_tris:
+            h.update(name.encode())
+            h.update(np.ascontiguousarray(part.verts).tobytes())
+            h.update(np.ascontiguousarray(part.tris).tobytes())
+    for cam in cams:
+        h.update(cam.frame(1, 1).tobytes())
+    return h.digest()
+
+
 def crown_opacity(parts: dict[str, Part], spec, card_rgba: np.ndarray | None, azimuths: int = 8,
-                  size: int = 128, slices_rgba: np.ndarray | None = None) -> dict:
-    """Crown opacity from the side (module docstring) and its value per azimuth."""
+                  size: int = 128, slices_rgba: np.ndarray | None = None, hulls: dict | None = None) -> dict:
+    """Crown opacity from the side (module docstring) and its value per azimuth.
+
+    Only the pixels inside a view's hull count, so the full render covers
+    the hull's bounding rectangle only. `hulls` (optional, shared between
+    the LODs of one plant) keeps the hull masks by foliage and cameras: a
+    level whose foliage and views are those of a level before reuses them."""
     pts = np.concatenate([p.verts[:, 0:3] for p in parts.values() if p.n_tris]).astype(np.float64)
-    full = plant_scene(parts, spec, card_rgba, None, slices_rgba=slices_rgba)
+    has_wood = "Wood" in parts and parts["Wood"].n_tris > 0
     foliage = plant_scene(parts, spec, card_rgba, None, foliage_only=True, slices_rgba=slices_rgba)
     if foliage.n_triangles == 0:
         return {"mean": 0.0, "per_azimuth": [0.0] * azimuths}
-    pf, pl = Prepared(full), Prepared(foliage)
-    s = Settings(size, size, samples=2)
-    s_hull = Settings(size, size, samples=1)  # the hull needs only which pixels the crown reaches
+    # An orthographic view from the opposite side has the same lines of sight
+    # (mirrored), so the same covered pixels and hull: with an even number of
+    # azimuths the first half is rendered and stands for the second.
+    half = azimuths // 2 if azimuths % 2 == 0 else azimuths
+    cams = side_cameras(pts, azimuths)[:half]
+    key = _foliage_key(parts, cams) if hulls is not None else None
+    masks = hulls.get(key) if hulls is not None else None
+    pl = None
+    if masks is None:
+        pl = Prepared(foliage)
+        s_hull = Settings(size, size, samples=1)  # the hull needs only which pixels the crown reaches
+        masks = [_inside_hull(pl.render(cam, s_hull).alpha >= 0.5) for cam in cams]
+        if hulls is not None:
+            hulls[key] = masks
+    # without wood the full scene is the foliage scene
+    pf = (Prepared(plant_scene(parts, spec, card_rgba, None, slices_rgba=slices_rgba)) if has_wood
+          else pl or Prepared(foliage))
     values = []
-    for cam in side_cameras(pts, azimuths):
-        crown = pl.render(cam, s_hull).alpha >= 0.5
-        hull = _inside_hull(crown)
-        covered = pf.render(cam, s).alpha >= 0.5
-        values.append(float((covered & hull).sum() / max(hull.sum(), 1)))
+    for cam, hull in zip(cams, masks):
+        n_hull = int(hull.sum())
+        if n_hull == 0:
+            values.append(0.0)
+            continue
+        ys, xs = np.nonzero(hull)
+        rows, cols = (int(ys.min()), int(ys.max()) + 1), (int(xs.min()), int(xs.max()) + 1)
+        alpha = pf.render(_crop_camera(cam, rows, cols, size),
+                          Settings(cols[1] - cols[0], rows[1] - rows[0], samples=2)).alpha
+        covered = alpha >= 0.5
+        values.append(float((covered & hull[rows[0]:rows[1], cols[0]:cols[1]]).sum() / n_hull))
+    if half < azimuths:
+        values = values + values
     return {"mean": float(np.mean(values)), "per_azimuth": values}

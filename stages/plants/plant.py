@@ -206,11 +206,21 @@ def _lod_chain(wood, tmpl, rec, polys, lods, times, cfg: Settings, seeds, m) -> 
         if target >= W0:
             return wood
         if target not in dec_cache:
-            w = lod.decimate(wood, target)
-            if w.n_tris > target:
-                w = lod.decimate(wood, max(int(target * 0.9), 4))
-            dec_cache[target] = w
-        return dec_cache[target]
+            # Quadric collapse from LOD0 follows one order whatever the
+            # target and stops at the first mesh of at most `target`
+            # triangles: a decimation to a larger target that already ended
+            # at <= target triangles is that same mesh (no need to redo it).
+            # Only a first decimation (not the 0.9 x retry) qualifies.
+            same = [w for t, (w, first) in dec_cache.items() if first and t >= target and w.n_tris <= target]
+            if same:
+                dec_cache[target] = (min(same, key=lambda w: w.n_tris), True)
+            else:
+                w = lod.decimate(wood, target)
+                first = w.n_tris <= target
+                if not first:
+                    w = lod.decimate(wood, max(int(target * 0.9), 4))
+                dec_cache[target] = (w, first)
+        return dec_cache[target][0]
 
     prev_total = sum(p.n_tris for p in lods[0].values())
     prev_card, prev_keep = False, 1.0

@@ -15,6 +15,8 @@ the woody solid's checks, each LOD's triangles, Hausdorff error and times.
 """
 from __future__ import annotations
 
+import functools
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -143,8 +145,9 @@ def _measure_looks(spec, res: PlantResult) -> dict:
     rgba = np.concatenate([res.cards.albedo, res.cards.alpha[..., None]], -1) if res.cards is not None else None
     slices = (np.concatenate([res.slices.albedo, res.slices.alpha[..., None]], -1) if res.slices is not None else None)
     levels = []
+    hulls: dict = {}  # levels with the foliage and views of one before reuse its hull masks
     for k, parts in enumerate(res.lods):
-        co = measure.crown_opacity(parts, spec, rgba, slices_rgba=slices)
+        co = measure.crown_opacity(parts, spec, rgba, slices_rgba=slices, hulls=hulls)
         levels.append({"level": k, "crown_opacity": co["mean"], "crown_opacity_per_azimuth": co["per_azimuth"],
                        "foliage_area_m2": measure.foliage_area(parts, cov, cpc),
                        "wood_area_m2": measure.surface_area(parts.get("Wood"))})
@@ -159,6 +162,117 @@ def _measure_looks(spec, res: PlantResult) -> dict:
         if out[name] is not None and not np.isfinite(out[name]):
             raise StageError(f"plants: {name} is not finite")
     return out
+
+
+def _species_job(name: str, spec, seed: int, cfg: Settings, out_dir: Path, top: Path, provenance: dict,
+                 params: PlantsParams) -> tuple[str, dict, str, dict]:
+    """Everything one species makes: its meshes, textures, look measures and
+    USD layer. Returns (name, metrics, layer path relative to the top layer,
+    LOD summary). A top-level function so a worker process can run it."""
+    res = build_plant(name, spec, seed, cfg)
+    t = time.perf_counter()
+    path = out_dir / f"{name}.usdc"
+    prov = dict(provenance)
+    prov["species"] = name
+    looks = _write_textures(out_dir, path, name, spec, res, prov, seed)
+    res.metrics["seconds_foliage_textures"] = res.metrics.get("seconds_foliage_textures", 0.0) + time.perf_counter() - t
+    t = time.perf_counter()
+    measures = _measure_looks(spec, res)
+    res.metrics["seconds_look_measures"] = time.perf_counter() - t
+    res.metrics["looks"] = measures
+    t = time.perf_counter()
+    write_species(path, name, spec, res.lods, res.lod_info, prov, looks, measures)
+    res.metrics["seconds_usd"] = time.perf_counter() - t
+    budget_ok = all(e["hausdorff_fraction"] <= b for e, b in zip(res.lod_info[1:], params.lod_error_budget))
+    halving_ok = all(b["triangles"] <= params.lod_ratio * a["triangles"] for a, b in zip(res.lod_info, res.lod_info[1:]))
+    res.metrics["lod_budget_ok"] = bool(budget_ok)
+    res.metrics["lod_halving_ok"] = bool(halving_ok)
+    summary = {"lods": [{"triangles": e["triangles"], "hausdorff_fraction": round(e["hausdorff_fraction"], 6)}
+                        for e in res.lod_info]}
+    return name, res.metrics, usdio.relative_asset_path(path, top), summary
+
+
+# Species are independent (own seeds, own files), and most of a species'
+# time is single-threaded (pymeshlab, numpy): with at least this many
+# L-system modules in all, a second process builds species beside this one.
+PARALLEL_MIN_MODULES = 20_000
+
+
+def _species_cost(name: str, spec, seed: int, max_modules: int) -> int:
+    """L-system modules of the species (grass: its blades): the order in
+    which species are handed out, largest first."""
+    if spec.kind != "lsystem":
+        return spec.grass.blades if spec.kind == "grass" else 0
+    system = compile_lsystem(spec.lsystem, name)
+    return len(system.derive(spec.lsystem.iterations, species_seeds(seed, name)[0], max_modules))
+
+
+def _parallel_ok() -> bool:
+    import multiprocessing
+
+    # a daemonic process (a Dask worker) is left alone: one stage, one process
+    return not multiprocessing.current_process().daemon and (os.cpu_count() or 1) > 1
+
+
+def _run_jobs(names: list[str], job, costs: dict[str, int], progress) -> dict[str, tuple]:
+    """Run job(name) for every name, largest first: in this process and, when
+    the work is large enough, in one worker process beside it (worker.py;
+    each takes the next name when it is free). Results do not depend on who
+    ran what."""
+    order = sorted(names, key=lambda n: (-costs[n], n))
+    done: dict[str, tuple] = {}
+    if len(order) < 2 or sum(costs.values()) < PARALLEL_MIN_MODULES or not _parallel_ok():
+        for i, name in enumerate(order):
+            progress(i / len(order), f"plants: building {name}")
+            done[name] = job(name)
+        return done
+    import pickle
+    import select
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "stages.plants.worker"], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE)
+
+    def send(name: str) -> None:
+        pickle.dump((job, (name,)), proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+        proc.stdin.flush()
+
+    def receive() -> tuple:
+        try:
+            status, value = pickle.load(proc.stdout)
+        except EOFError:
+            raise StageError(f"plants: the worker process ended (exit status {proc.wait()})") from None
+        if status == "error":
+            raise value
+        return value
+
+    ok = False
+    try:
+        queue = list(order)
+        send(queue.pop(0))
+        busy = True
+        while busy or queue:
+            if busy and (not queue or select.select([proc.stdout], [], [], 0)[0]):
+                result = receive()
+                done[result[0]] = result
+                busy = False
+                if queue:
+                    send(queue.pop(0))
+                    busy = True
+                continue
+            name = queue.pop(0)
+            progress(len(done) / len(order), f"plants: building {name}")
+            done[name] = job(name)
+        ok = True
+    finally:
+        if ok:
+            proc.stdin.close()
+            proc.wait()
+        else:
+            proc.kill()
+            proc.wait()
+    return done
 
 
 def run(ctx: RunContext, inputs: dict[str, Any], params: PlantsParams) -> dict[str, Path]:
@@ -180,31 +294,15 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: PlantsParams) -> dict[s
         names = [n for n in names if n in placed["placed"]]
         metrics["not_placed"] = [n for n in params.build if n not in placed["placed"]]
         metrics["placed_without_shape"] = [n for n in placed["placed"] if n not in params.build]
-    for i, name in enumerate(names):
-        spec = params.species[name]
-        ctx.progress(i / max(len(names), 1), f"plants: building {name}")
-        res = build_plant(name, spec, ctx.seed, cfg)
-        t = time.perf_counter()
-        path = out_dir / f"{name}.usdc"
-        prov = dict(ctx.provenance)
-        prov["species"] = name
-        looks = _write_textures(out_dir, path, name, spec, res, prov, ctx.seed)
-        res.metrics["seconds_foliage_textures"] = res.metrics.get("seconds_foliage_textures", 0.0) + time.perf_counter() - t
-        t = time.perf_counter()
-        measures = _measure_looks(spec, res)
-        res.metrics["seconds_look_measures"] = time.perf_counter() - t
-        res.metrics["looks"] = measures
-        t = time.perf_counter()
-        write_species(path, name, spec, res.lods, res.lod_info, prov, looks, measures)
-        res.metrics["seconds_usd"] = time.perf_counter() - t
-        files[name] = usdio.relative_asset_path(path, top)
-        budget_ok = all(e["hausdorff_fraction"] <= b for e, b in zip(res.lod_info[1:], params.lod_error_budget))
-        halving_ok = all(b["triangles"] <= params.lod_ratio * a["triangles"] for a, b in zip(res.lod_info, res.lod_info[1:]))
-        res.metrics["lod_budget_ok"] = bool(budget_ok)
-        res.metrics["lod_halving_ok"] = bool(halving_ok)
-        metrics["species"][name] = res.metrics
-        summary[name] = {"lods": [{"triangles": e["triangles"], "hausdorff_fraction": round(e["hausdorff_fraction"], 6)}
-                                  for e in res.lod_info]}
+    costs = {n: _species_cost(n, params.species[n], ctx.seed, params.max_modules) for n in names}
+    job = functools.partial(_job_by_name, species=params.species, seed=ctx.seed, cfg=cfg, out_dir=out_dir, top=top,
+                            provenance=dict(ctx.provenance), params=params)
+    done = _run_jobs(names, job, costs, ctx.progress)
+    for name in names:  # in the build order, whichever process made them
+        _, species_metrics, file, lods = done[name]
+        files[name] = file
+        metrics["species"][name] = species_metrics
+        summary[name] = lods
     write_top(top, files, ctx.provenance, summary)
     errors = usdio.validate(top)
     if errors:
@@ -214,6 +312,10 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: PlantsParams) -> dict[s
     ctx.metrics.update(metrics)
     ctx.progress(1.0, "plants: done")
     return {"plants.assets": top}
+
+
+def _job_by_name(name: str, species: dict, **kw) -> tuple:
+    return _species_job(name, species[name], **kw)
 
 
 def check(params: PlantsParams, ctx: CheckContext) -> Check:

@@ -120,9 +120,10 @@ class Sim:
         b, p, n = self.b, self.prg, self.n
         b.run(p.sim_sources, (n,), self.local1, self.sp, self.birth, np.int32(n), np.int32(t), self.tab,
               np.int32(self.nsp), self.mature)
-        b.run(p.box_sum, (self.nx, self.nz), self.local, self.mature, np.int32(self.nx), np.int32(self.nz),
+        # one work-item per line and species (the runtime picks the group: sums do not depend on it)
+        b.run(p.box_sum, (self.nz, self.nsp), None, self.mature, np.int32(self.nx), np.int32(self.nz),
               np.int32(0), self.tab, np.int32(self.nsp), self.tmp)
-        b.run(p.box_sum, (self.nx, self.nz), self.local, self.tmp, np.int32(self.nx), np.int32(self.nz),
+        b.run(p.box_sum, (self.nx, self.nsp), None, self.tmp, np.int32(self.nx), np.int32(self.nz),
               np.int32(1), self.tab, np.int32(self.nsp), self.count)
 
     def update(self, t, stress, key):
@@ -178,7 +179,9 @@ class Poisson:
                    np.int32(self.rows), np.int32(self.cols), *self.tail)
 
     def read(self):
-        return self.b.get(self.pts, (self.nz * self.nx, 4), F)
+        pts = self.b.get(self.pts, (self.nz * self.nx, 4), F)
+        pts[pts[:, 2] < 0] = 0.0  # cells the kernel marked as unusable are free cells
+        return pts
 
 
 def grass_tufts(dens, dx, nx, nz, sp, jitter, wdom, ddom, key, local=None):

@@ -99,9 +99,11 @@ __kernel void horizon(__global const float *h, const int rows, const int cols, c
         const float s = steps[m];
         const float fc = (float)c + s * ex;
         const float fr = (float)r - s * ez;
-        const bool inside = !(fc < 0.0f || fr < 0.0f || fc > (float)(cols - 1) || fr > (float)(rows - 1));
+        /* the samples move away monotonically: the first one off the grid ends the scan */
+        if (fc < 0.0f || fr < 0.0f || fc > (float)(cols - 1) || fr > (float)(rows - 1))
+            break;
         const float t = (bilinear(h, rows, cols, fr, fc) - h0) / (s * dx);
-        tmax = inside ? fmax(tmax, t) : tmax;
+        tmax = fmax(tmax, t);
     }
     out[d * rows * cols + r * cols + c] = tmax;
 }
@@ -328,27 +330,29 @@ __kernel void sim_sources(__global const int *sp, __global const int *birth, con
     }
 }
 
-/* integer box sums of half-width w_s along x (axis 0) or z (axis 1) */
+/* integer box sums of half-width w_s along x (axis 0) or z (axis 1): one
+ * work-item per line (a row for axis 0, a column for axis 1) and species,
+ * a running sum (one add and one subtract a cell, whatever w_s; integers,
+ * so exactly the window's sum) */
 __kernel void box_sum(__global const int *src, const int nx, const int nz, const int axis,
                       __constant float *tab, const int nsp, __global int *dst)
 {
-    const int x = get_global_id(0), z = get_global_id(1);
-    if (x >= nx || z >= nz)
+    const int line = get_global_id(0), s = get_global_id(1);
+    const int len = axis == 0 ? nx : nz, lines = axis == 0 ? nz : nx;
+    if (line >= lines || s >= nsp)
         return;
-    const int n = nx * nz;
-    for (int s = 0; s < nsp; ++s) {
-        const int w = (int)tab[s * SPW + 8];
-        int acc = 0;
-        if (axis == 0) {
-            const int lo = max(x - w, 0), hi = min(x + w, nx - 1);
-            for (int k = lo; k <= hi; ++k)
-                acc += src[s * n + z * nx + k];
-        } else {
-            const int lo = max(z - w, 0), hi = min(z + w, nz - 1);
-            for (int k = lo; k <= hi; ++k)
-                acc += src[s * n + k * nx + x];
-        }
-        dst[s * n + z * nx + x] = acc;
+    const int stride = axis == 0 ? 1 : nx;
+    const int base = s * nx * nz + (axis == 0 ? line * nx : line);
+    const int w = (int)tab[s * SPW + 8];
+    int acc = 0;
+    for (int k = 0; k <= min(w, len - 1); ++k)
+        acc += src[base + k * stride];
+    for (int k = 0; k < len; ++k) {
+        dst[base + k * stride] = acc;
+        if (k + w + 1 < len)
+            acc += src[base + (k + w + 1) * stride];
+        if (k - w >= 0)
+            acc -= src[base + (k - w) * stride];
     }
 }
 
@@ -540,6 +544,20 @@ __kernel void thin_resolve(__global const float4 *rec, __global const uchar *st_
 #endif
 #define PP (PN + 1)
 
+/* A free cell whose whole square lies within distance `reach` of a point
+ * (with 1 % to spare for float rounding) rejects every later dart of that
+ * point's test, which only the distance decides: marked r = -1, later
+ * passes skip it at once. Marks change no result, only the work (the host
+ * reads them as free cells). */
+INLINE void poisson_dead_cell(__global float4 *pts, const int i, const int x, const int z, const float c,
+                              const float qx, const float qz, const float reach)
+{
+    const float fx = fmax(fabs((float)x * c - qx), fabs((float)(x + 1) * c - qx));
+    const float fz = fmax(fabs((float)z * c - qz), fabs((float)(z + 1) * c - qz));
+    if (fx * fx + fz * fz < 0.98f * reach * reach)
+        pts[i] = (float4)(0.0f, 0.0f, -1.0f, 0.0f);
+}
+
 __kernel void poisson_phase(__global float4 *pts, const int nx, const int nz, const float c,
                             const float wdom, const float ddom, const int px, const int pz, const uint pass,
                             const uint key, __global const float *rad, const int rows, const int cols,
@@ -552,7 +570,7 @@ __kernel void poisson_phase(__global float4 *pts, const int nx, const int nz, co
     if (x >= nx || z >= nz)
         return;
     const int i = z * nx + x;
-    if (pts[i].z > 0.0f)
+    if (pts[i].z != 0.0f)  /* a point, or a cell no dart can use (below) */
         return;
     const float u1 = unit(hash4(key, (uint)i, pass, 1u));
     const float u2 = unit(hash4(key, (uint)i, pass, 2u));
@@ -565,6 +583,31 @@ __kernel void poisson_phase(__global float4 *pts, const int nx, const int nz, co
     const float r = rad[tr * cols + tc];
     if (!(r > 0.0f))
         return;
+    /* the points of the species within PN cells, nearest ring first (a
+     * conflict is most likely close by, and any one rejects the dart, so the
+     * order changes nothing but how soon a rejected dart stops) */
+    for (int k = 1; k <= PN; ++k) {
+        for (int dz = -k; dz <= k; ++dz) {
+            const int zz = z + dz;
+            if (zz < 0 || zz >= nz)
+                continue;
+            const int step = (dz == -k || dz == k) ? 1 : 2 * k;  /* the ring's rows, else its two ends */
+            for (int ddx = -k; ddx <= k; ddx += step) {
+                const int xx = x + ddx;
+                if (xx < 0 || xx >= nx)
+                    continue;
+                const float4 q = pts[zz * nx + xx];
+                if (q.z > 0.0f) {
+                    const float ex = fx - q.x, ez = fz - q.y;
+                    const float rr = fmax(r, q.z) + margin;
+                    if (ex * ex + ez * ez < rr * rr) {
+                        poisson_dead_cell(pts, i, x, z, c, q.x, q.y, q.z);
+                        return;
+                    }
+                }
+            }
+        }
+    }
     /* obstacles: the plants of the species placed before */
     if (onx > 0) {
         const int ox = min((int)(fx / oc), onx - 1), oz = min((int)(fz / oc), onz - 1);
@@ -581,26 +624,11 @@ __kernel void poisson_phase(__global float4 *pts, const int nx, const int nz, co
                     const float4 q = obs[k];
                     const float ex = fx - q.x, ez = fz - q.y;
                     const float cl = q.z + margin;
-                    if (ex * ex + ez * ez < cl * cl)
+                    if (ex * ex + ez * ez < cl * cl) {
+                        poisson_dead_cell(pts, i, x, z, c, q.x, q.y, q.z);
                         return;
+                    }
                 }
-            }
-        }
-    }
-    for (int dz = -PN; dz <= PN; ++dz) {
-        const int zz = z + dz;
-        if (zz < 0 || zz >= nz)
-            continue;
-        for (int ddx = -PN; ddx <= PN; ++ddx) {
-            const int xx = x + ddx;
-            if (xx < 0 || xx >= nx)
-                continue;
-            const float4 q = pts[zz * nx + xx];
-            if (q.z > 0.0f) {
-                const float ex = fx - q.x, ez = fz - q.y;
-                const float rr = fmax(r, q.z) + margin;
-                if (ex * ex + ez * ez < rr * rr)
-                    return;
             }
         }
     }

@@ -156,7 +156,8 @@ def _species_maps(plants, gname, sets, dom, suit, share, n_t, gsuit, gdens, g) -
     for s, name in enumerate(plants):
         counts = np.zeros((rows, cols))
         if len(sets[name]):
-            np.add.at(counts, dom.world_cell(sets[name].positions), 1.0)
+            tr, tc = dom.world_cell(sets[name].positions)
+            counts = np.bincount(tr * cols + tc, minlength=rows * cols).reshape(rows, cols).astype(np.float64)
         per_species += [suit[s], share[s], n_t[s] * HA, counts * HA / (dom.dx * dom.dx)]
         per_species_channels += [f"suitability.{name}", f"yield.{name}", f"density.{name}", f"placed.{name}"]
     if gname:
@@ -186,10 +187,15 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
     from pipeline.terrain_mesh import build_terrain_mesh
 
     T: dict[str, float] = {}
+    T_cpu: dict[str, float] = {}  # process CPU seconds (the OpenCL runtime's threads included) per phase
     t_all = time.perf_counter()
+    cpu = [time.process_time()]
 
     def lap(name, t0):
         T[name] = round(time.perf_counter() - t0, 4)
+        now = time.process_time()
+        T_cpu[name.replace("_s", "_cpu_s")] = round(now - cpu[0], 4)
+        cpu[0] = now
 
     h, nodata, dx, origin = _terrain(inputs["terrain"])
     rows, cols = h.shape
@@ -344,6 +350,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
         "timings": T,
     }
     stats["timings"]["total_s"] = round(time.perf_counter() - t_all, 4)
+    stats["timings"].update(T_cpu)
     ctx.metrics.update({
         "instances": stats["instances"], "unplaced": unplaced, "moisture_source": source,
         "splat_max_sum_error": stats["splat_max_sum_error"],

@@ -73,16 +73,18 @@ def build_quadtree(sets: dict[str, Instances], x0: float, z0: float, size: float
         if tile.count <= max_instances or tile.size / 2 < min_size:
             return tile
         h = tile.size / 2
+        quadrant = {}  # per species: child k = east + 2 south of each instance, its indices grouped by child
+        for name, ii in tile.index.items():
+            p = sets[name].positions[ii]
+            q = (p[:, 0] >= tile.x0 + h).astype(np.int8) + 2 * (p[:, 2] >= tile.z0 + h).astype(np.int8)
+            order = np.argsort(q, kind="stable")  # keeps each child's indices in their order
+            quadrant[name] = (ii[order], np.searchsorted(q[order], np.arange(5)))
         for k, (ox, oz) in enumerate(((0, 0), (1, 0), (0, 1), (1, 1))):
             cx, cz = tile.x0 + ox * h, tile.z0 + oz * h
             idx = {}
-            for name, ii in tile.index.items():
-                p = sets[name].positions[ii]
-                east = p[:, 0] >= tile.x0 + h
-                south = p[:, 2] >= tile.z0 + h
-                m = (east == bool(ox)) & (south == bool(oz))
-                if m.any():
-                    idx[name] = ii[m]
+            for name, (ii, bounds) in quadrant.items():
+                if bounds[k + 1] > bounds[k]:
+                    idx[name] = ii[bounds[k]:bounds[k + 1]]
             if idx:
                 tile.children.append(split(Tile(tile.path + str(k), cx, cz, h, idx)))
         tile.index = {}

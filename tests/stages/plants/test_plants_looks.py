@@ -74,6 +74,27 @@ def test_crown_opacity_of_two_squares_with_a_gap_is_two_thirds():
     assert abs(co["mean"] - 1.0 / 2.5) < 0.02
 
 
+def test_the_opposite_azimuth_measures_what_a_render_from_there_would():
+    """crown_opacity renders half of an even number of azimuths: the other
+    half (opposite views, the same lines of sight) must equal the value of
+    the plant turned by 180 degrees seen from the first azimuth."""
+    rng = np.random.default_rng(3)
+    squares = [_square(x, x + w) for x, w in zip(rng.random(6) * 4, 0.3 + rng.random(6))]
+    leaves = Part.concat(squares)
+    leaves.verts[:, 0] += rng.random(len(leaves.verts)) * 0.8  # not flat: depth along the view
+    leaves.verts[:, 1] += np.repeat(rng.random(len(squares)) * 2, 4)
+    spec = PRESETS["shrub"].model_copy(update={})
+    cut = np.ones((8, 8, 4), np.float32)
+    cut[2:5, 5:, 3] = 0.0
+    two = measure.crown_opacity({"Leaves": leaves}, spec, cut, azimuths=2, size=96)
+    turned = Part(leaves.verts.copy(), leaves.tris, leaves.weld)
+    turned.verts[:, [0, 2]] *= -1.0
+    turned.verts[:, [3, 5]] *= -1.0
+    one = measure.crown_opacity({"Leaves": turned}, spec, cut, azimuths=1, size=96)
+    assert 0.05 < one["mean"] < 0.95
+    assert two["per_azimuth"][1] == pytest.approx(one["mean"], abs=0.01)
+
+
 def test_foliage_area_counts_card_coverage():
     leaves = _square(0.0, 2.0)
     assert measure.foliage_area({"Leaves": leaves}, 0.25) == pytest.approx(0.5)

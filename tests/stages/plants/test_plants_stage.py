@@ -102,6 +102,37 @@ def test_same_seed_same_bytes_other_seed_other_plant(tmp_path, small_run):
     assert d1["bush.usdc"] != d3["bush.usdc"] and d1["grass.usdc"] != d3["grass.usdc"]
 
 
+def test_species_built_in_two_processes_give_the_same_bytes(tmp_path, small_run, monkeypatch):
+    """The worker process (started when the work is large) changes nothing."""
+    from stages.plants import stage as plants_stage
+
+    monkeypatch.setattr(plants_stage, "PARALLEL_MIN_MODULES", 0)
+    calls = []
+    real = plants_stage._run_jobs
+    monkeypatch.setattr(plants_stage, "_run_jobs", lambda *a: calls.append(a[0]) or real(*a))
+    out1, m1 = small_run
+    out2, m2 = run_stage(tmp_path / "p", SMALL)
+    assert len(calls[0]) >= 2 and plants_stage._parallel_ok()
+
+    def digests(top):
+        return {p.relative_to(top.parent).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+                for p in sorted(top.parent.rglob("*")) if p.is_file()}
+
+    assert digests(out1["plants.assets"]) == digests(out2["plants.assets"])
+    assert list(m1.metrics["species"]) == list(m2.metrics["species"])
+
+
+def test_an_error_in_the_worker_process_fails_the_stage_with_its_message(tmp_path, monkeypatch):
+    from stages.plants import stage as plants_stage
+
+    monkeypatch.setattr(plants_stage, "PARALLEL_MIN_MODULES", 0)
+    # 128 modules that draw nothing: the largest, so the worker builds it (grass: 48 blades)
+    params = {"build": ["grass", "void"],
+              "species": {"void": {"kind": "lsystem", "lsystem": {"axiom": "A", "rules": ["A=AA"], "iterations": 7}}}}
+    with pytest.raises(InputError, match="produced no geometry"):
+        run_stage(tmp_path, params)
+
+
 def test_an_empty_build_writes_an_empty_valid_layer(tmp_path):
     out, ctx = run_stage(tmp_path, {"build": []})
     assert usdio.validate(out["plants.assets"]) == [] and ctx.metrics["built"] == []
