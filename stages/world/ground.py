@@ -119,19 +119,6 @@ def _periodic_detail(x_m, z_m, ground_type, seed):
     return 1.0 + DETAIL_CONTRAST[ground_type] * 2.0 * total / np.float32(norm)
 
 
-def albedo(weights: np.ndarray, x_m: np.ndarray, z_m: np.ndarray, tables: np.ndarray, texel_m: float) -> np.ndarray:
-    """Linear RGB: the weights (types, rows, cols) blend each type's colour
-    times its detail (looked up in its periodic table at the nearest texel;
-    x_m along the columns, z_m along the rows)."""
-    p = tables.shape[1]
-    i = np.floor(np.asarray(x_m, np.float64).ravel() / texel_m).astype(np.int64) % p
-    j = np.floor(np.asarray(z_m, np.float64).ravel() / texel_m).astype(np.int64) % p
-    blend = tables[:, j][:, :, i]
-    blend *= weights  # (types, rows, cols): weight times detail
-    out = np.tensordot(GROUND_COLOURS.T, blend, axes=(1, 0))  # (3, rows, cols), one BLAS product
-    return np.moveaxis(np.clip(out, 0.0, 1.0, out=out), 0, -1)
-
-
 def udim_layout(size_m: float, texel_m: float, tile_texels: int) -> tuple[int, int]:
     """(tiles per side, texels per tile side): texel_m or finer unless the
     UDIM row limit forces more texels per tile."""
@@ -162,16 +149,6 @@ def axis_taps(pos_m: np.ndarray, origin_m: float, cell_m: float, n: int, texel_m
     i0, i1, f = _bilinear_taps(pos_m / cell_m - 0.5, n)
     detail = np.floor((origin_m + pos_m) / texel_m).astype(np.int64) % period
     return np.stack([i0, i1, detail], axis=1).astype(np.int32), f
-
-
-def tile_albedo(splat: np.ndarray, cell_m: float, origin_m: tuple[float, float], tiles: int, tile_texels: int,
-                u: int, v: int, tables: np.ndarray, texel_m: float) -> np.ndarray:
-    """The albedo of UDIM tile (u, v) (tile_positions), weights from
-    texel_weights (bilinear between cell centres). The reference of the
-    ground.cl kernel (ground_device.GroundAlbedo)."""
-    x, z = tile_positions(cell_m, splat.shape[:2], tiles, tile_texels, u, v)
-    w = texel_weights(splat, z / cell_m - 0.5, x / cell_m - 0.5, types_first=True)
-    return albedo(w, origin_m[0] + x, origin_m[1] + z, tables, texel_m)
 
 
 def normal_map(height: np.ndarray, mesh_height: np.ndarray, cell_m: float) -> np.ndarray:

@@ -1,5 +1,5 @@
 """The ground albedo kernel (ground.cl) on the OpenCL device, with
-ground.tile_albedo's arguments: the numpy function is its reference."""
+reference.tile_albedo's arguments: that numpy function is its reference."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -37,7 +37,7 @@ class GroundAlbedo:
 
     def tile(self, cell_m: float, origin_m: tuple[float, float], tiles: int, texels: int, u: int, v: int,
              texel_m: float) -> np.ndarray:
-        """ground.tile_albedo(splat, cell_m, origin_m, tiles, texels, u, v, tables, texel_m)."""
+        """reference.tile_albedo(splat, cell_m, origin_m, tiles, texels, u, v, tables, texel_m)."""
         rows, cols, types = self.shape
         x, z = tile_positions(cell_m, (rows, cols), tiles, texels, u, v)
         col_taps, col_frac = axis_taps(x, origin_m[0], cell_m, cols, texel_m, self.period)

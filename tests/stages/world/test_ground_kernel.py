@@ -1,11 +1,11 @@
 """The ground albedo kernel (ground.cl) against its numpy reference
-(ground.tile_albedo), on each OpenCL runtime and work-group size."""
+(reference.tile_albedo), on each OpenCL runtime and work-group size."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from stages.world import ground
+from stages.world import ground, reference
 from stages.world.ground_device import GroundAlbedo
 
 pytestmark = pytest.mark.every_device
@@ -24,7 +24,7 @@ def test_tile_albedo_equals_the_reference_and_is_deterministic(local):
     tables = ground.detail_tables(11, texel_m)
     baker = GroundAlbedo(splat, tables, local=local)
     for u, v in ((0, 0), (2, 1), (1, 2)):
-        ref = ground.tile_albedo(splat, 10.0, (-123.0, 45.5), 3, 96, u, v, tables, texel_m)
+        ref = reference.tile_albedo(splat, 10.0, (-123.0, 45.5), 3, 96, u, v, tables, texel_m)
         got = baker.tile(10.0, (-123.0, 45.5), 3, 96, u, v, texel_m)
         # the same taps and detail texels; only the sum's rounding order differs (numpy's is a BLAS product)
         np.testing.assert_allclose(got, ref, rtol=0, atol=2e-6)
@@ -38,5 +38,5 @@ def test_the_splat_is_never_modified_and_the_overview_matches():
     tables = ground.detail_tables(2, 160.0 / 32)
     got = GroundAlbedo(splat, tables).tile(10.0, (0.0, 0.0), 1, 32, 0, 0, 160.0 / 32)
     np.testing.assert_array_equal(splat, before)
-    np.testing.assert_allclose(got, ground.tile_albedo(splat, 10.0, (0.0, 0.0), 1, 32, 0, 0, tables, 160.0 / 32),
+    np.testing.assert_allclose(got, reference.tile_albedo(splat, 10.0, (0.0, 0.0), 1, 32, 0, 0, tables, 160.0 / 32),
                                atol=2e-6)
