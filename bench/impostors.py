@@ -111,7 +111,7 @@ def agreement(plants: list, args, defaults) -> None:
           f"{'PSNR min':>8s} {'seconds':>7s}")
     for plant in plants:
         layout = defaults.layouts.get(plant.name, defaults.layout)
-        frame_px = plant_frame_px(plant.ps.radius, defaults)
+        frame_px = plant_frame_px(plant.ps.radius, plant.height, defaults)
         at = atlas.build(plant.prepared, plant.ps.centre, plant.ps.radius, defaults.frames, defaults.atlas_px, layout,
                          defaults.samples, defaults.ao_rays, defaults.padding_px, seed=1, ao_radius=defaults.ao_radius,
                          frame_px=frame_px)

@@ -57,8 +57,13 @@ class ImpostorsParams(Params):
                                        "pixel there (screen_px, screen_fov_deg), sized 2^k or 3 2^k so their mip "
                                        "levels halve exactly, in the smallest power-of-two atlas that holds them; a "
                                        "plant 20 px tall at that distance gets no 128 px frames", gt=0.0, le=100000.0)
-    min_frame_px: int = Param(32, units="texels", description="the smallest frame side (small plants: grass, flowers)",
-                              ge=4, le=4096)
+    min_frame_px: int = Param(32, units="texels", description="the smallest frame side", ge=4, le=4096)
+    small_plant_m: float = Param(1.0, units="m", description="plants lower than this (grass, flowers) get frames of at "
+                                 "least small_plant_frame_px: their stalks and blades are a fraction of a texel at "
+                                 "their screen size, and a 3-frame blend of sub-texel features loses them", ge=0.0,
+                                 le=1000.0)
+    small_plant_frame_px: int = Param(64, units="texels", description="the smallest frame side of plants lower than "
+                                      "small_plant_m", ge=4, le=4096)
     layout: Layout = Param("hemi", description="hemi: views from above the horizon only (plants on the ground); "
                            "octahedral: the whole sphere")
     layouts: dict[str, Layout] = Param({}, description="per-species layout overriding `layout`")
@@ -121,12 +126,14 @@ def pixel_at_1m(params: "ImpostorsParams") -> float:
     return 2.0 * math.tan(math.radians(0.5 * params.screen_fov_deg)) / params.screen_px
 
 
-def plant_frame_px(radius: float, params: "ImpostorsParams") -> int:
+def plant_frame_px(radius: float, height_m: float, params: "ImpostorsParams") -> int:
     """The frame side of a plant: its bounding sphere's diameter in screen
     pixels at impostor_distance_m (one texel per pixel there), as
-    atlas.frame_size rounds it, between min_frame_px and atlas_px / frames."""
+    atlas.frame_size rounds it, between min_frame_px (small_plant_frame_px
+    for plants lower than small_plant_m) and atlas_px / frames."""
     target = 2.0 * radius / (params.impostor_distance_m * pixel_at_1m(params))
-    return atlas.frame_size(target, params.frames, params.atlas_px, params.min_frame_px)
+    smallest = params.small_plant_frame_px if height_m < params.small_plant_m else params.min_frame_px
+    return atlas.frame_size(target, params.frames, params.atlas_px, smallest)
 
 
 class References:
@@ -181,7 +188,7 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
     timings: dict[str, float] = {"load_s": time.perf_counter() - t0}
 
     t = time.perf_counter()
-    frame_px = plant_frame_px(ps.radius, params)
+    frame_px = plant_frame_px(ps.radius, float(ps.hi[1] - ps.lo[1]), params)
     at = atlas.build(prepared, ps.centre, ps.radius, params.frames, params.atlas_px, layout, params.samples,
                      params.ao_rays, params.padding_px, seed, ao_radius=params.ao_radius, frame_px=frame_px)
     timings["atlas_s"] = time.perf_counter() - t
