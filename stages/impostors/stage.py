@@ -21,6 +21,15 @@ impostors.usda (usd_layer.py): overs on the plants layer's /Plants/<species>
   beside Geom (purpose render), the cards textures, and customData
   worldbake:impostor (atlas, error) and worldbake:lod_switch_m.
 
+Frame size: an impostor is drawn where the plant is small on screen, so
+its frames need no more texels than the plant has pixels there: each
+plant's frames are its bounding sphere's diameter in pixels at
+impostor_distance_m on the reference screen (plant_frame_px; 16 x 16 frames
+of 64 px for the default conifer, 48 for the broadleaf, 32 for the shrub),
+in the smallest power-of-two atlas that holds them. The held-out views are
+that size too (one texel per pixel: the nearest the impostor is used), and
+the measured error then sets the switch distances as before.
+
 Steps (run): read the asset's LOD0 into a render scene
 (pipeline.render.usd_asset, the reader every USD picture shares); bake the atlas;
 measure it from held-out views (heldout.py, sampler.py); bake the slices and
