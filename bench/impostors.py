@@ -17,7 +17,7 @@ mesh rendered once per view and species with --reference-samples^2 samples.
 One size for every setting, so the rows compare. The settings run cheapest
 first (atlas side, then frames, then species), so a sweep stopped early
 still covers every species. It prints one row per species and setting
-(bake seconds, frame size, median and worst PSNR and IoU, median depth
+(bake seconds wall and CPU: the machine may be shared, frame size, median and worst PSNR and IoU, median depth
 RMSE, worst view) and plots bake seconds against median IoU and PSNR (PNG,
 --out, redrawn after every row).
 
@@ -86,15 +86,17 @@ class Plant:
         return heldout.summarize(errors, self.height)
 
 
-def _row(name, layout, frames, atlas_px, frame_px, bake_s, s) -> str:
+def _row(name, layout, frames, atlas_px, frame_px, bake_s, bake_cpu_s, s) -> str:
     w = s["worst_view"]
-    return (f"{name:14s} {layout:10s} {frames:6d} {atlas_px:5d} {frame_px:5d} {bake_s:7.2f} {s['views']:5d} "
+    return (f"{name:14s} {layout:10s} {frames:6d} {atlas_px:5d} {frame_px:5d} {bake_s:7.2f} {bake_cpu_s:7.2f} "
+            f"{s['views']:5d} "
             f"{s['psnr_db']['median']:8.2f} {s['psnr_db']['min']:8.2f} {s['alpha_iou']['median']:7.3f} "
             f"{s['alpha_iou']['min']:7.3f} {s['depth_rmse_m']['median']:7.3f}  ({w['azimuth_deg']:.0f}, "
             f"{w['elevation_deg']:.0f})")
 
 
-HEADER = (f"{'species':14s} {'layout':10s} {'frames':>6s} {'atlas':>5s} {'frame':>5s} {'bake s':>7s} {'views':>5s} "
+HEADER = (f"{'species':14s} {'layout':10s} {'frames':>6s} {'atlas':>5s} {'frame':>5s} {'bake s':>7s} {'CPU s':>7s} "
+          f"{'views':>5s} "
           f"{'PSNR med':>8s} {'PSNR min':>8s} {'IoU med':>7s} {'IoU min':>7s} {'depth m':>7s}  worst view (az, el)")
 
 
@@ -156,20 +158,23 @@ def main() -> None:
     if args.agreement:
         agreement(list(plants.values()), args, defaults)
         return
-    print(f"plants layer {layer}; species {', '.join(names)}; samples {defaults.samples}^2, AO rays {defaults.ao_rays}; "
+    print(f"plants layer {layer}; species {', '.join(names)}; samples {defaults.samples}^2, "
+          f"AO rays {defaults.ao_rays}; "
           f"held-out: 1/{args.stride} of the 5-degree set at {args.view_px} px, reference {args.reference_samples}^2 "
           "samples")
     print(HEADER)
     rows = []
-    for atlas_px, frames, name, layout in itertools.product(sorted(args.atlas), sorted(args.frames), names, args.layouts):
+    settings = itertools.product(sorted(args.atlas), sorted(args.frames), names, args.layouts)
+    for atlas_px, frames, name, layout in settings:
         plant = plants[name]
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         at = atlas.build(plant.prepared, plant.ps.centre, plant.ps.radius, frames, atlas_px, layout, defaults.samples,
                          defaults.ao_rays, defaults.padding_px, seed=1, ao_radius=defaults.ao_radius)
-        bake_s = time.perf_counter() - t0
+        # CPU seconds of every thread (the OpenCL runtime's too): wall time on a shared machine is noise
+        bake_s, bake_cpu_s = time.perf_counter() - t0, time.process_time() - c0
         s = plant.measure(at, heldout.lattice(layout, args.stride), args.view_px, args.reference_samples,
                           defaults.depth_steps)
-        print(_row(name, layout, frames, atlas_px, at.frame_px, bake_s, s), flush=True)
+        print(_row(name, layout, frames, atlas_px, at.frame_px, bake_s, bake_cpu_s, s), flush=True)
         rows.append((name, layout, frames, atlas_px, bake_s, s))
         _plot(rows, args.out)  # after every row: a long sweep stopped early still leaves its picture
 
