@@ -1,26 +1,37 @@
 """Benchmark of the impostor atlases: bake time against held-out error (not
 part of `make test`).
 
-    python -m bench.impostors                      # every species of the newest plants artifact, the full sweep
-    python -m bench.impostors --species conifer --azimuth-every 3 --out bench/out/impostors.png
+    python -m bench.impostors                      # every placed species of the newest plants artifact, the full sweep
+    python -m bench.impostors --species conifer --frames 16 --atlas 1024 --out bench/out/impostors.png
+    python -m bench.impostors --agreement          # the bake's cheap held-out measure against the whole 5-degree set
 
-For each species of a plants layer (the newest build/artifacts/plants run,
-or --plants PATH) and every combination of frames in {8, 12, 16}, atlas
-side in {1024, 2048, 4096} and layout in {octahedral, hemi}, it bakes the
-view atlas (stages.impostors.atlas, the stage's samples and AO) and
-measures it from the held-out views of stages.impostors.heldout: azimuth
-every 5 degrees (every --azimuth-every-th of them), elevation every 10
-degrees from 0 (hemi) or -80 (octahedral) to 80, the mesh rendered once
-per view and species with --reference-samples^2 samples per pixel at
---view-px. It prints one table row per species and setting (bake seconds,
-frame size, median and worst PSNR and IoU, median depth RMSE, worst view)
-and plots bake seconds against median IoU and PSNR (PNG, --out).
+Sweep: for each species of a plants layer (the newest build/artifacts/plants
+run, or --plants PATH; --species to choose) and every combination of frames
+in {8, 12, 16}, atlas side in {1024, 2048, 4096} and layout in {octahedral,
+hemi}, it bakes the view atlas (stages.impostors.atlas: the largest frames
+that fit the atlas, the stage's samples and AO) and measures it from the
+held-out views of stages.impostors.heldout: the 5-degree set (azimuth every
+5 degrees, elevation every 10 from 0 (hemi) or -80 (octahedral) to 80), the
+lattice share 1/--stride of it (the stage's), --view-px views against the
+mesh rendered once per view and species with --reference-samples^2 samples.
+One size for every setting, so the rows compare. The settings run cheapest
+first (atlas side, then frames, then species), so a sweep stopped early
+still covers every species. It prints one row per species and setting
+(bake seconds wall and CPU: the machine may be shared, frame size, median and worst PSNR and IoU, median depth
+RMSE, worst view) and plots bake seconds against median IoU and PSNR (PNG,
+--out, redrawn after every row).
+
+--agreement: per species, the stage's default atlas (its frame size,
+stages.impostors.stage.plant_frame_px) measured the way the bake does (the
+lattice at the frame's size) and the expensive way (all 648 / 1224 views,
+--full-px views, --full-samples^2 reference samples): medians side by side.
 """
 from __future__ import annotations
 
 import argparse
 import glob
 import itertools
+import json
 import time
 from pathlib import Path
 
@@ -34,62 +45,138 @@ def newest_plants_layer() -> Path:
     return Path(found[-1])
 
 
+def placed_species(layer: Path) -> list[str] | None:
+    """The species the newest vegetation run placed (None: no vegetation artifact)."""
+    found = sorted(glob.glob(str(layer.parents[2] / "vegetation" / "*" / "placed.json")),
+                   key=lambda p: Path(p).stat().st_mtime)
+    return json.loads(Path(found[-1]).read_text())["placed"] if found else None
+
+
+class Plant:
+    """A species' scene, BVH and mesh reference views (rendered once per view set)."""
+
+    def __init__(self, layer: Path, name: str):
+        from pipeline.render import Prepared
+        from pipeline.render.usd_asset import load_plant
+
+        self.name = name
+        self.ps = load_plant(layer, f"/Plants/{name}")
+        self.prepared = Prepared(self.ps.scene)
+        self.height = float(self.ps.hi[1] - self.ps.lo[1])
+        self.references: dict = {}
+
+    def reference(self, az: float, el: float, px: int, samples: int):
+        from stages.impostors import heldout, octahedral
+
+        key = (az, el, px, samples)
+        if key not in self.references:
+            m = heldout.mesh_view(self.prepared, octahedral.view_direction(az, el), self.ps.centre, self.ps.radius,
+                                  px, samples)
+            self.references[key] = (np.concatenate([m.albedo, m.alpha[..., None]], -1), m.depth)
+        return self.references[key]
+
+    def measure(self, at, views, px: int, samples: int, depth_steps: int) -> dict:
+        from stages.impostors import heldout, octahedral, sampler
+
+        errors = []
+        for az, el in heldout.held_out(views, at.directions):
+            rgba, depth = self.reference(az, el, px, samples)
+            v = sampler.render_view(at, octahedral.view_direction(az, el), px, depth_steps)
+            errors.append(heldout.ViewError(az, el, *heldout.compare(rgba, depth, v.rgba, v.depth)))
+        return heldout.summarize(errors, self.height)
+
+
+def _row(name, layout, frames, atlas_px, frame_px, bake_s, bake_cpu_s, s) -> str:
+    w = s["worst_view"]
+    return (f"{name:14s} {layout:10s} {frames:6d} {atlas_px:5d} {frame_px:5d} {bake_s:7.2f} {bake_cpu_s:7.2f} "
+            f"{s['views']:5d} "
+            f"{s['psnr_db']['median']:8.2f} {s['psnr_db']['min']:8.2f} {s['alpha_iou']['median']:7.3f} "
+            f"{s['alpha_iou']['min']:7.3f} {s['depth_rmse_m']['median']:7.3f}  ({w['azimuth_deg']:.0f}, "
+            f"{w['elevation_deg']:.0f})")
+
+
+HEADER = (f"{'species':14s} {'layout':10s} {'frames':>6s} {'atlas':>5s} {'frame':>5s} {'bake s':>7s} {'CPU s':>7s} "
+          f"{'views':>5s} "
+          f"{'PSNR med':>8s} {'PSNR min':>8s} {'IoU med':>7s} {'IoU min':>7s} {'depth m':>7s}  worst view (az, el)")
+
+
+def agreement(plants: list, args, defaults) -> None:
+    """The bake's measure (lattice at the frame's size) against the whole set."""
+    from stages.impostors import atlas, heldout
+    from stages.impostors.stage import plant_frame_px
+
+    full = f"{args.full_px} px" if args.full_px else "the frame's size"
+    print(f"agreement: the stage's default atlas of each species; cheap = lattice 1/{defaults.heldout_stride} at the "
+          f"frame's size, {defaults.heldout_samples}^2 reference samples; full = every view at {full}, "
+          f"{args.full_samples}^2 samples")
+    print(f"{'species':14s} {'measure':8s} {'views':>5s} {'px':>4s} {'IoU med':>7s} {'IoU min':>7s} {'PSNR med':>8s} "
+          f"{'PSNR min':>8s} {'seconds':>7s}")
+    for plant in plants:
+        layout = defaults.layouts.get(plant.name, defaults.layout)
+        frame_px = plant_frame_px(plant.ps.radius, plant.height, defaults)
+        at = atlas.build(plant.prepared, plant.ps.centre, plant.ps.radius, defaults.frames, defaults.atlas_px, layout,
+                         defaults.samples, defaults.ao_rays, defaults.padding_px, seed=1, ao_radius=defaults.ao_radius,
+                         frame_px=frame_px)
+        view_px = min(frame_px, defaults.heldout_px)
+        for label, views, px, samples in (
+                ("cheap", heldout.lattice(layout, defaults.heldout_stride), view_px, defaults.heldout_samples),
+                ("full", heldout.lattice(layout, 1), args.full_px or view_px, args.full_samples)):
+            t0 = time.perf_counter()
+            s = plant.measure(at, views, px, samples, defaults.depth_steps)
+            print(f"{plant.name:14s} {label:8s} {s['views']:5d} {px:4d} {s['alpha_iou']['median']:7.3f} "
+                  f"{s['alpha_iou']['min']:7.3f} {s['psnr_db']['median']:8.2f} {s['psnr_db']['min']:8.2f} "
+                  f"{time.perf_counter() - t0:7.1f}", flush=True)
+
+
 def main() -> None:
-    from pipeline.render import Prepared
-    from stages.impostors import asset_scene, atlas, heldout, octahedral, sampler
+    from stages.impostors import atlas, heldout
     from stages.impostors.stage import ImpostorsParams
 
+    defaults = ImpostorsParams()
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--plants", type=Path, default=None)
-    ap.add_argument("--species", nargs="*", default=None)
+    ap.add_argument("--species", nargs="*", default=None, help="default: the species the vegetation map placed")
     ap.add_argument("--frames", nargs="*", type=int, default=[8, 12, 16])
     ap.add_argument("--atlas", nargs="*", type=int, default=[1024, 2048, 4096])
     ap.add_argument("--layouts", nargs="*", default=["octahedral", "hemi"])
-    ap.add_argument("--azimuth-every", type=int, default=1, help="keep every k-th 5-degree azimuth")
-    ap.add_argument("--view-px", type=int, default=ImpostorsParams().heldout_px)
-    ap.add_argument("--reference-samples", type=int, default=ImpostorsParams().heldout_samples)
+    ap.add_argument("--stride", type=int, default=defaults.heldout_stride, help="the lattice share of the 5-degree set")
+    ap.add_argument("--view-px", type=int, default=64)
+    ap.add_argument("--reference-samples", type=int, default=defaults.heldout_samples)
+    ap.add_argument("--agreement", action="store_true")
+    ap.add_argument("--full-px", type=int, default=0, help="--agreement: size of the full set's views (0: the frame's)")
+    ap.add_argument("--full-samples", type=int, default=4)
     ap.add_argument("--out", type=Path, default=Path("bench/out/impostors.png"))
     args = ap.parse_args()
-    defaults = ImpostorsParams()
     layer = args.plants or newest_plants_layer()
     from pxr import Sdf
 
-    plants = Sdf.Layer.FindOrOpen(str(layer))
-    names = [c.name for c in plants.GetPrimAtPath("/Plants").nameChildren]
-    names = [n for n in names if args.species is None or n in args.species]
-    print(f"plants layer {layer}; samples {defaults.samples}^2, AO rays {defaults.ao_rays}, held-out views at "
-          f"{args.view_px} px, reference {args.reference_samples}^2 samples, azimuth every {5 * args.azimuth_every} deg")
-    print(f"{'species':14s} {'layout':10s} {'frames':>6s} {'atlas':>5s} {'frame':>5s} {'bake s':>7s} {'views':>5s} "
-          f"{'PSNR med':>8s} {'PSNR min':>8s} {'IoU med':>7s} {'IoU min':>7s} {'depth m':>7s}  worst view (az, el)")
+    plants_layer = Sdf.Layer.FindOrOpen(str(layer))
+    names = [c.name for c in plants_layer.GetPrimAtPath("/Plants").nameChildren]
+    chosen = args.species if args.species is not None else placed_species(layer)
+    names = [n for n in names if chosen is None or n in chosen]
+    plants = {n: Plant(layer, n) for n in names}
+    if args.agreement:
+        agreement(list(plants.values()), args, defaults)
+        return
+    print(f"plants layer {layer}; species {', '.join(names)}; samples {defaults.samples}^2, "
+          f"AO rays {defaults.ao_rays}; "
+          f"held-out: 1/{args.stride} of the 5-degree set at {args.view_px} px, reference {args.reference_samples}^2 "
+          "samples")
+    print(HEADER)
     rows = []
-    for name in names:
-        ps = asset_scene.load(layer, f"/Plants/{name}")
-        prepared = Prepared(ps.scene)
-        references: dict = {}
-        height = float(ps.hi[1] - ps.lo[1])
-        for layout, frames, atlas_px in itertools.product(args.layouts, args.frames, args.atlas):
-            t0 = time.perf_counter()
-            at = atlas.build(prepared, ps.centre, ps.radius, frames, atlas_px, layout, defaults.samples, defaults.ao_rays,
-                             defaults.padding_px, seed=1, ao_radius=defaults.ao_radius)
-            bake_s = time.perf_counter() - t0
-            views = heldout.held_out(heldout.directions(layout, subsample=args.azimuth_every), at.directions)
-            errors = []
-            for az, el in views:
-                if (az, el) not in references:
-                    m = heldout.mesh_view(prepared, octahedral.view_direction(az, el), ps.centre, ps.radius,
-                                          args.view_px, args.reference_samples)
-                    references[(az, el)] = (np.concatenate([m.albedo, m.alpha[..., None]], -1), m.depth)
-                rgba, depth = references[(az, el)]
-                v = sampler.render_view(at, octahedral.view_direction(az, el), args.view_px, defaults.depth_steps)
-                errors.append(heldout.ViewError(az, el, *heldout.compare(rgba, depth, v.rgba, v.depth)))
-            s = heldout.summarize(errors, height)
-            w = s["worst_view"]
-            print(f"{name:14s} {layout:10s} {frames:6d} {atlas_px:5d} {at.frame_px:5d} {bake_s:7.2f} {s['views']:5d} "
-                  f"{s['psnr_db']['median']:8.2f} {s['psnr_db']['min']:8.2f} {s['alpha_iou']['median']:7.3f} "
-                  f"{s['alpha_iou']['min']:7.3f} {s['depth_rmse_m']['median']:7.3f}  ({w['azimuth_deg']:.0f}, "
-                  f"{w['elevation_deg']:.0f})", flush=True)
-            rows.append((name, layout, frames, atlas_px, bake_s, s))
-            _plot(rows, args.out)  # after every row: a long sweep stopped early still leaves its picture
+    settings = itertools.product(sorted(args.atlas), sorted(args.frames), names, args.layouts)
+    for atlas_px, frames, name, layout in settings:
+        plant = plants[name]
+        t0, c0 = time.perf_counter(), time.process_time()
+        at = atlas.build(plant.prepared, plant.ps.centre, plant.ps.radius, frames, atlas_px, layout, defaults.samples,
+                         defaults.ao_rays, defaults.padding_px, seed=1, ao_radius=defaults.ao_radius)
+        # CPU seconds of every thread (the OpenCL runtime's too): wall time on a shared machine is noise
+        bake_s, bake_cpu_s = time.perf_counter() - t0, time.process_time() - c0
+        s = plant.measure(at, heldout.lattice(layout, args.stride), args.view_px, args.reference_samples,
+                          defaults.depth_steps)
+        print(_row(name, layout, frames, atlas_px, at.frame_px, bake_s, bake_cpu_s, s), flush=True)
+        rows.append((name, layout, frames, atlas_px, bake_s, s))
+        _plot(rows, args.out)  # after every row: a long sweep stopped early still leaves its picture
 
 
 COLOURS = [(0.85, 0.3, 0.2), (0.2, 0.55, 0.85), (0.25, 0.7, 0.3), (0.8, 0.6, 0.1), (0.6, 0.3, 0.75)]

@@ -25,215 +25,16 @@ its own prototype prim of one asset; the same name is the same asset).
 """
 from __future__ import annotations
 
-import glob
 import math
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .scene import Camera, Image, Scene, Settings, linear_from_srgb, srgb8
+from .scene import Camera, Image, Scene, Settings, srgb8
+from .usd_asset import load_texture, resized, subtree_scene, with_stack
 
 ATLAS_SIZE = 1024  # texels per side of every texture the world picture uses (the ground's and the billboard atlas)
-
-
-@dataclass
-class _Look:
-    colour: tuple[float, float, float]  # linear constant albedo (untextured)
-    texture: str | None  # file (absolute; may hold <UDIM>)
-    colour_space: str  # sRGB or raw
-    st_name: str  # the primvar the texture reads
-    alpha_test: bool
-
-
-def _shader_look(prim) -> _Look | None:
-    """diffuseColor of the UsdPreviewSurface bound to prim."""
-    from pxr import UsdShade
-
-    mat, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
-    if not mat:
-        return None
-    surf = mat.ComputeSurfaceSource()[0]
-    if not surf:
-        return None
-    diffuse = surf.GetInput("diffuseColor")
-    if not diffuse:
-        return None
-    opacity = surf.GetInput("opacity")
-    alpha_test = bool(opacity and opacity.HasConnectedSource())
-    if diffuse.HasConnectedSource():
-        src = diffuse.GetConnectedSource()[0]
-        tex = UsdShade.Shader(src.GetPrim())
-        if tex.GetIdAttr().Get() == "UsdUVTexture":
-            file_in = tex.GetInput("file")
-            asset = file_in.Get()
-            path = asset.resolvedPath
-            if not path:  # a UDIM pattern resolves to nothing: relative to the layer that authored it
-                layer = file_in.GetAttr().GetPropertyStack()[0].layer
-                path = str(Path(layer.realPath).parent / asset.path)
-            cs = tex.GetInput("sourceColorSpace")
-            st_name = "st"
-            st_in = tex.GetInput("st")
-            if st_in and st_in.HasConnectedSource():
-                reader = UsdShade.Shader(st_in.GetConnectedSource()[0].GetPrim())
-                var = reader.GetInput("varname")
-                st_name = str(var.Get()) if var and var.Get() else "st"
-            return _Look((1.0, 1.0, 1.0), path, str(cs.Get()) if cs and cs.Get() else "auto", st_name, alpha_test)
-        return _Look((0.5, 0.5, 0.5), None, "raw", "st", False)
-    v = diffuse.Get()
-    return _Look(tuple(float(c) for c in v) if v is not None else (0.5, 0.5, 0.5), None, "raw", "st", False)
-
-
-def _read_image(path: str, colour_space: str) -> np.ndarray:
-    """(H, W, 4) linear RGBA; rows top first."""
-    import OpenImageIO as oiio
-
-    buf = oiio.ImageBuf(path)
-    px = np.asarray(buf.get_pixels(oiio.FLOAT), np.float32)
-    if px.ndim == 2:
-        px = px[..., None]
-    rgb = px[..., :3] if px.shape[2] >= 3 else np.repeat(px[..., :1], 3, -1)
-    srgb = colour_space == "sRGB" or (colour_space == "auto" and not path.lower().endswith(".exr"))
-    if srgb:
-        rgb = linear_from_srgb(rgb)
-    alpha = px[..., 3] if px.shape[2] >= 4 else np.ones(px.shape[:2], np.float32)
-    return np.concatenate([rgb, alpha[..., None]], -1).astype(np.float32)
-
-
-def _load_texture(path: str, colour_space: str) -> tuple[np.ndarray, int]:
-    """The texture (UDIM tiles joined into one mosaic) and its tiles per
-    side (1 without UDIM): the mosaic's uv is the primvar's uv / tiles."""
-    if "<UDIM>" not in path:
-        return _read_image(path, colour_space), 1
-    pattern = re.escape(path).replace(re.escape("<UDIM>"), r"(\d{4})")
-    tiles = {}
-    for f in glob.glob(path.replace("<UDIM>", "[0-9][0-9][0-9][0-9]")):
-        m = re.fullmatch(pattern, f)
-        if m:
-            k = int(m.group(1)) - 1001
-            tiles[(k % 10, k // 10)] = f
-    if not tiles:
-        raise FileNotFoundError(f"no UDIM tiles for {path}")
-    n = max(max(u, v) for u, v in tiles) + 1
-    first = _read_image(next(iter(tiles.values())), colour_space)
-    th, tw = first.shape[:2]
-    mosaic = np.zeros((n * th, n * tw, 4), np.float32)
-    for (u, v), f in tiles.items():
-        img = first if f == next(iter(tiles.values())) else _read_image(f, colour_space)
-        r0 = (n - 1 - v) * th  # tile v = 0 is the bottom row of the mosaic
-        mosaic[r0:r0 + th, u * tw:(u + 1) * tw] = img[:th, :tw]
-    return mosaic, n
-
-
-def _resized(img: np.ndarray, size: int) -> np.ndarray:
-    """Box-filtered down (or nearest up) to size x size."""
-    h, w = img.shape[:2]
-    if h % size == 0 and w % size == 0:
-        return img.reshape(size, h // size, size, w // size, -1).mean(axis=(1, 3)).astype(np.float32)
-    ys = (np.arange(size) * h // size).astype(int)
-    xs = (np.arange(size) * w // size).astype(int)
-    return img[ys][:, xs]
-
-
-def _corners(values: np.ndarray, interp: str, vidx: np.ndarray, corner: np.ndarray) -> np.ndarray:
-    """A primvar's flattened values per triangle corner."""
-    if interp == "faceVarying":
-        return values[corner]
-    if interp in ("vertex", "varying"):
-        return values[vidx]
-    return np.broadcast_to(values[0], (len(vidx),) + values.shape[1:])
-
-
-def _mesh_scene(prim, to_world: np.ndarray, textures: dict) -> Scene | None:
-    """A UsdGeom.Mesh as a render Scene in world space (to_world: row-vector
-    4x4, USD's convention). textures: file -> (stack index, tiles), grown here;
-    the stack itself is built by the caller."""
-    from pxr import UsdGeom
-
-    mesh = UsdGeom.Mesh(prim)
-    pts = mesh.GetPointsAttr().Get()
-    counts = mesh.GetFaceVertexCountsAttr().Get()
-    fvi = mesh.GetFaceVertexIndicesAttr().Get()
-    if pts is None or counts is None or fvi is None or len(counts) == 0:
-        return None
-    pts = np.asarray(pts, np.float64)
-    counts = np.asarray(counts, np.int64)
-    fvi = np.asarray(fvi, np.int64)
-    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    # fan triangulation: corner ids (into faceVarying data) of every triangle
-    tri_face = np.repeat(np.arange(len(counts)), np.maximum(counts - 2, 0))
-    k = np.arange(len(tri_face)) - np.repeat(np.cumsum(np.maximum(counts - 2, 0)) - np.maximum(counts - 2, 0),
-                                             np.maximum(counts - 2, 0))
-    corner = np.stack([start[tri_face], start[tri_face] + k + 1, start[tri_face] + k + 2], 1).ravel()
-    vidx = fvi[corner]
-    P = pts[vidx]
-    pv = UsdGeom.PrimvarsAPI(mesh)
-    nrm_pv = pv.GetPrimvar("normals")
-    if nrm_pv and nrm_pv.HasValue():
-        N = _corners(np.asarray(nrm_pv.ComputeFlattened(), np.float64), nrm_pv.GetInterpolation(), vidx, corner)
-    elif mesh.GetNormalsAttr().HasValue():
-        N = _corners(np.asarray(mesh.GetNormalsAttr().Get(), np.float64), mesh.GetNormalsInterpolation(), vidx, corner)
-    else:
-        t = P.reshape(-1, 3, 3)
-        fn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-        N = np.repeat(fn, 3, axis=0)
-    m = np.asarray(to_world, np.float64)
-    P = P @ m[:3, :3] + m[3, :3]
-    N = N @ np.linalg.inv(m[:3, :3]).T
-    N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-20)
-    look = _shader_look(prim)
-    ntri = len(P) // 3
-    uv = np.zeros((len(P), 2))
-    tex_id = -1
-    if look is not None and look.texture is not None:
-        st_pv = pv.GetPrimvar(look.st_name)
-        if st_pv and st_pv.HasValue():
-            if look.texture not in textures:
-                textures[look.texture] = (len(textures), look.colour_space)
-            tex_id = textures[look.texture][0]
-            uv = _corners(np.asarray(st_pv.ComputeFlattened(), np.float64), st_pv.GetInterpolation(), vidx, corner)
-    if look is not None and look.texture is None:
-        tint = np.broadcast_to(np.asarray(look.colour), (ntri, 3))
-    elif look is None:
-        dc = pv.GetPrimvar("displayColor")
-        col = np.asarray(dc.ComputeFlattened(), np.float64) if dc and dc.HasValue() else np.full((1, 3), 0.5)
-        tint = (np.broadcast_to(col[0], (ntri, 3)) if len(col) == 1 or dc.GetInterpolation() == "constant"
-                else _corners(col, dc.GetInterpolation(), vidx, corner).reshape(-1, 3, 3).mean(1))
-    else:
-        tint = np.ones((ntri, 3))
-    tris = np.arange(len(P)).reshape(-1, 3)
-    # the texture index is local to `textures`; the stack is filled by the caller (placeholder 1-texel stack here)
-    return Scene(P, N, uv, tris, tint, np.full(ntri, tex_id), np.ones((max(len(textures), 1), 1, 1, 4), np.float32))
-
-
-def _subtree_scene(root, root_to_world_inv: np.ndarray | None, textures: dict, skip_instancers=True) -> list[Scene]:
-    """Every mesh under root (inactive and invisible prims skipped), in world
-    space or, given the inverse of root's world transform, in root's space."""
-    from pxr import Usd, UsdGeom
-
-    cache = UsdGeom.XformCache()
-    out = []
-    it = iter(Usd.PrimRange(root))
-    for prim in it:
-        img = UsdGeom.Imageable(prim)
-        if img and img.ComputeVisibility() == UsdGeom.Tokens.invisible:
-            it.PruneChildren()
-            continue
-        if skip_instancers and prim.IsA(UsdGeom.PointInstancer):
-            it.PruneChildren()
-            continue
-        if img and img.GetPurposeAttr().Get() in (UsdGeom.Tokens.proxy, UsdGeom.Tokens.guide):
-            it.PruneChildren()
-            continue
-        if prim.IsA(UsdGeom.Mesh):
-            m = np.asarray(cache.GetLocalToWorldTransform(prim), np.float64)
-            if root_to_world_inv is not None:
-                m = m @ root_to_world_inv
-            s = _mesh_scene(prim, m, textures)
-            if s is not None and s.n_triangles:
-                out.append(s)
-    return out
 
 
 @dataclass
@@ -346,7 +147,7 @@ def build_world_scene(world_usda: str | Path, min_instance_height_m: float = 0.8
     if not stage:
         raise FileNotFoundError(f"cannot open {world_usda}")
     textures: dict = {}
-    meshes = _subtree_scene(stage.GetPseudoRoot(), None, textures)
+    meshes = subtree_scene(stage.GetPseudoRoot(), None, textures)
     lo = np.min([s.positions.min(0) for s in meshes], 0) if meshes else np.zeros(3)
     hi = np.max([s.positions.max(0) for s in meshes], 0) if meshes else np.ones(3)
     # instancers
@@ -375,8 +176,8 @@ def build_world_scene(world_usda: str | Path, min_instance_height_m: float = 0.8
             name = proto.GetName()
             if name not in proto_scene:
                 inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(proto), np.float64))
-                parts = _subtree_scene(proto, inv, proto_tex, skip_instancers=True)
-                proto_scene[name] = _with_stack(parts, proto_tex, 256) if parts else None
+                parts = subtree_scene(proto, inv, proto_tex, skip_instancers=True)
+                proto_scene[name] = with_stack(parts, proto_tex, 256) if parts else None
             sel = idx == k
             if proto_scene[name] is not None and sel.any():
                 groups.setdefault(name, []).append((xf[sel], tints[sel]))
@@ -405,8 +206,8 @@ def build_world_scene(world_usda: str | Path, min_instance_height_m: float = 0.8
     stack = [np.zeros((ATLAS_SIZE, ATLAS_SIZE, 4), np.float32)] * (len(textures) + 1)
     udim_tiles = {}
     for f, (k, cs) in textures.items():
-        img, tiles = _load_texture(f, cs)
-        stack[k] = _resized(img, ATLAS_SIZE)
+        img, tiles = load_texture(f, cs)
+        stack[k] = resized(img, ATLAS_SIZE)
         udim_tiles[k] = tiles
     stack[len(textures)] = atlas
     stack = np.stack(stack)
@@ -423,14 +224,6 @@ def build_world_scene(world_usda: str | Path, min_instance_height_m: float = 0.8
     scene = Scene.concat(parts)
     summary.update(triangles=scene.n_triangles, bounds=[lo.tolist(), hi.tolist()])
     return scene, summary
-
-
-def _with_stack(parts: list[Scene], textures: dict, size: int) -> Scene:
-    """Join a prototype's meshes with their textures resized to one size."""
-    stack = np.ones((max(len(textures), 1), size, size, 4), np.float32)
-    for f, (k, cs) in textures.items():
-        stack[k] = _resized(_load_texture(f, cs)[0], size)
-    return Scene.concat([Scene(s.positions, s.normals, s.uv, s.triangles, s.tint, s.texture, stack) for s in parts])
 
 
 _CACHE: dict = {}  # (path, mtime) -> (Scene, summary, Prepared): several views of one world build it once

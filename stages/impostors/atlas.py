@@ -52,6 +52,22 @@ def frame_layout(atlas_px: int, frames: int, min_frame_mip_px: int = 4) -> tuple
     return (f0 // step) * step, halvings + 1
 
 
+def frame_size(target_px: float, frames: int, atlas_px: int, min_frame_px: int = 4) -> int:
+    """The smallest frame side of the form 2^k or 3 2^k (sides whose halvings
+    stay integers, so the per-frame mip levels stay inside the frames) that
+    is at least target_px and min_frame_px; at most the frame that
+    frame_layout(atlas_px, frames) gives."""
+    largest = frame_layout(atlas_px, frames)[0]
+    need = max(float(target_px), float(min_frame_px))
+    sizes = sorted({m << k for m in (1, 3) for k in range(2, 16) if 4 <= (m << k) <= largest})
+    return next((s for s in sizes if s >= need), largest)
+
+
+def atlas_side(frames: int, frame_px: int) -> int:
+    """The power-of-two atlas side that holds frames x frames frames of frame_px."""
+    return 1 << max(0, math.ceil(math.log2(frames * frame_px)))
+
+
 @dataclass
 class Atlas:
     layout: str
@@ -178,8 +194,18 @@ def mip_chain(tiles: np.ndarray, frames: int, atlas_px: int, frame_levels: int) 
 
 
 def build(prepared: Prepared, centre: np.ndarray, radius: float, frames: int, atlas_px: int, layout: str,
-          samples: int, ao_rays: int, padding_px: int, seed: int, progress=None, ao_radius: float = 0.08) -> Atlas:
-    frame_px, frame_levels = frame_layout(atlas_px, frames)
+          samples: int, ao_rays: int, padding_px: int, seed: int, progress=None, ao_radius: float = 0.08,
+          frame_px: int | None = None) -> Atlas:
+    """The atlas of frames x frames frames: the largest that fit atlas_px
+    (frame_layout), or frames of frame_px texels in the smallest power-of-two
+    atlas that holds them (atlas_side; frame_size picks such sizes)."""
+    if frame_px is None:
+        frame_px, frame_levels = frame_layout(atlas_px, frames)
+    else:
+        frame_levels = frame_layout(frame_px, 1)[1]
+        if frame_layout(frame_px, 1)[0] != frame_px:
+            raise ValueError(f"frame_px = {frame_px} does not halve to integers (use frame_size)")
+        atlas_px = atlas_side(frames, frame_px)
     raw, dirs = render_frames(prepared, centre, radius, frames, frame_px, layout, samples, ao_rays, seed, progress,
                               ao_radius)
     tiles = _frames_view(raw, frames, frame_px)

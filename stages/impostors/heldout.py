@@ -9,10 +9,13 @@ same orthographic camera, framed on the plant's bounding sphere:
     IoU       of the alpha masks at 0.5;
     depth     RMSE (m) over the pixels both cover.
 Directions: azimuth every 5 degrees, elevation 0 to 80 every 10 degrees
-(hemi) or -80 to 80 (octahedral); `subsample` keeps every k-th azimuth
-(the bake's affordable set; the full set is bench/impostors.py's). A
-direction within half a degree of a baked frame is not held out and is
-skipped.
+(hemi) or -80 to 80 (octahedral): 72 x 9 = 648 views for hemi. The bake
+measures a stratified share of that set (lattice): 1/stride of the
+azimuths at every elevation, shifted by 4 azimuth steps from one elevation
+to the next (stride 9 on hemi: each of the 72 azimuths once, 8 per
+elevation; stride 18: 4 per elevation, 36 views); bench/impostors.py
+--agreement measures the whole set beside it. A direction within half a degree of a
+baked frame is not held out and is skipped.
 """
 from __future__ import annotations
 
@@ -42,6 +45,18 @@ def directions(layout: str, azimuth_step_deg: float = 5.0, elevation_step_deg: f
     bottom = 0.0 if layout == "hemi" else -80.0
     elevations = np.arange(bottom, top + 1e-9, elevation_step_deg)
     return [(float(a), float(e)) for e in elevations for a in azimuths]
+
+
+def lattice(layout: str, stride: int = 1) -> list[tuple[float, float]]:
+    """The 5-degree set's views (azimuth index i, elevation index e) with
+    (i + 4 e) mod stride = 0: every elevation's azimuths every stride-th,
+    shifted by 4 steps per elevation (so the elevations see different
+    azimuths; with a stride of 9, prime to 4, every azimuth once)."""
+    full = directions(layout)
+    azimuths = sorted({a for a, _ in full})
+    elevations = sorted({e for _, e in full})
+    return [(a, e) for e in elevations for a in azimuths
+            if (azimuths.index(a) + 4 * elevations.index(e)) % stride == 0]
 
 
 def held_out(views: list[tuple[float, float]], frame_dirs: np.ndarray | None) -> list[tuple[float, float]]:

@@ -4,8 +4,8 @@ of slabs of the plant.
 Trees and shrubs (seed 002, after Jakulin 2000): 3 orientations (0, 120,
 240 degrees about y) x front and back x N slabs. For orientation k with
 horizontal direction d_k, the plant's extent along d_k (its vertices'
-projections) is cut into N equal slabs; every triangle belongs to the slab
-of its centroid. Each slab is rendered orthographically from the front
+projections) is cut into N equal slabs of space (a card crossing a slab's
+face is cut by it). Each slab is rendered orthographically from the front
 (viewer on the +d_k side) and from the back (a real render, not a mirror)
 onto a quad at the slab's middle plane, spanning the plant's extent across
 and up; the front quad faces +d_k, the back quad -d_k, 1 mm apart, so a
@@ -22,6 +22,7 @@ Tile texels: straight linear albedo padded into transparent texels, alpha
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -55,18 +56,28 @@ class Sheet:
         return p, st, tris, tiles
 
 
-def _subscene(scene: Scene, keep: np.ndarray) -> Scene:
-    return Scene(scene.positions, scene.normals, scene.uv, scene.triangles[keep], scene.tint[keep],
-                 scene.texture[keep], scene.textures)
-
-
-def _render_tile(scene: Scene, eye, forward, up, width: float, height: float, tile_px: int, samples: int):
-    if scene.n_triangles == 0:
-        return np.zeros((tile_px, tile_px, 4), np.float32), np.zeros((tile_px, tile_px, 3), np.float32)
+def _render_slab(prepared: Prepared, eye, forward, up, width: float, height: float, tile_px: int, samples: int,
+                 thickness: float = math.inf):
+    """(straight RGB + alpha, normal) of the part of the plant within
+    `thickness` of the eye's plane, seen orthographically along `forward`.
+    One BVH serves every slab: the rays start on the slab's near face (so
+    nothing in front of it is seen) and a sample whose nearest hit lies
+    beyond the far face counts as uncovered. Samples are rendered one per
+    pixel at samples x the tile's side and box-filtered, so each sample is
+    kept or dropped on its own (the n x n supersampling of a tile render)."""
+    n = tile_px * samples
     cam = Camera(tuple(eye), tuple(forward), tuple(up), ortho_height_m=height, ortho_width_m=width)
-    img = Prepared(scene).render(cam, Settings(tile_px, tile_px, samples=samples))
-    rgb = img.albedo / np.maximum(img.alpha, 1e-6)[..., None]
-    return np.concatenate([rgb, img.alpha[..., None]], -1), img.normal
+    img = prepared.render(cam, Settings(n, n, samples=1))
+    keep = ((img.alpha > 0) & (img.depth <= thickness)).astype(np.float32)
+
+    def box(a):
+        return a.reshape(tile_px, samples, tile_px, samples, *a.shape[2:]).mean((1, 3))
+
+    alpha = box(keep)
+    albedo = box(img.albedo * keep[..., None])
+    normal = box(img.normal * keep[..., None]) / np.maximum(alpha, 1e-6)[..., None]
+    rgb = albedo / np.maximum(alpha, 1e-6)[..., None]
+    return np.concatenate([rgb, alpha[..., None]], -1).astype(np.float32), normal.astype(np.float32)
 
 
 def _pad(rgba: np.ndarray, normal: np.ndarray) -> None:
@@ -104,13 +115,10 @@ def _place(sheet: Sheet, row: int, col: int, rgba, normal, corners: np.ndarray, 
     sheet.tiles.append((row, col))
 
 
-def _slabbed(scene: Scene, direction: np.ndarray, slabs: int):
-    """(edges of the slabs along direction, slab index of every triangle)."""
+def _slab_edges(scene: Scene, direction: np.ndarray, slabs: int) -> np.ndarray:
+    """The edges of N equal slabs along direction spanning the plant."""
     depth = scene.positions.astype(np.float64) @ direction
-    lo, hi = float(depth.min()), float(depth.max())
-    centroid = depth[scene.triangles].mean(1)
-    which = np.clip(((centroid - lo) / max(hi - lo, 1e-9) * slabs).astype(int), 0, slabs - 1)
-    return np.linspace(lo, hi, slabs + 1), which
+    return np.linspace(float(depth.min()), float(depth.max()), slabs + 1)
 
 
 def _quad(origin_along: float, direction, right, up, a0, a1, b0, b1) -> np.ndarray:
@@ -119,12 +127,13 @@ def _quad(origin_along: float, direction, right, up, a0, a1, b0, b1) -> np.ndarr
                      base + a1 * right + b1 * up, base + a0 * right + b1 * up])
 
 
-def tree_slices(scene: Scene, slabs: int, tile_px: int, samples: int, orientations=(0.0, 120.0, 240.0)) -> Sheet:
+def tree_slices(prepared: Prepared, slabs: int, tile_px: int, samples: int, orientations=(0.0, 120.0, 240.0)) -> Sheet:
+    scene = prepared.scene
     sheet = _sheet("slices", 2 * len(orientations), slabs, tile_px)
     p = scene.positions.astype(np.float64)
     for k, theta in enumerate(orientations):
         d = octahedral.view_direction(theta, 0.0)
-        edges, which = _slabbed(scene, d, slabs)
+        edges = _slab_edges(scene, d, slabs)
         for side, sign in ((0, 1.0), (1, -1.0)):
             view = sign * d  # toward this side's viewer
             right, up = octahedral.frame_basis(view)
@@ -132,31 +141,31 @@ def tree_slices(scene: Scene, slabs: int, tile_px: int, samples: int, orientatio
             a0, a1, b0, b1 = float(a.min()), float(a.max()), float(b.min()), float(b.max())
             mid_a, mid_b = 0.5 * (a0 + a1), 0.5 * (b0 + b1)
             for i in range(slabs):
-                sub = _subscene(scene, which == i)
-                eye = (edges[-1] + 1.0) * d if sign > 0 else (edges[0] - 1.0) * d
-                eye = eye + mid_a * right + mid_b * up
-                rgba, nrm = _render_tile(sub, eye, -view, up, a1 - a0, b1 - b0, tile_px, samples)
+                near = edges[i + 1] if sign > 0 else edges[i]  # the slab's face toward this side's viewer
+                eye = near * d + mid_a * right + mid_b * up
+                rgba, nrm = _render_slab(prepared, eye, -view, up, a1 - a0, b1 - b0, tile_px, samples,
+                                         edges[i + 1] - edges[i])
                 plane = 0.5 * (edges[i] + edges[i + 1]) + sign * 0.5 * GAP_M
                 corners = _quad(plane, d, right, up, a0, a1, b0, b1)
                 _place(sheet, 2 * k + side, i, rgba, nrm, corners, right, up, view)
     return sheet
 
 
-def grass_slices(scene: Scene, tile_px: int, samples: int) -> tuple[Sheet, Sheet]:
+def grass_slices(prepared: Prepared, tile_px: int, samples: int) -> tuple[Sheet, Sheet]:
     """(the 4:1 strip of vertical plates, the top sheet)."""
+    scene = prepared.scene
     strip = _sheet("tuft", 1, 4, tile_px)
     p = scene.positions.astype(np.float64)
     col = 0
     for theta in (90.0, 0.0):  # the front view looks along -z, the side view along -x
         d = octahedral.view_direction(theta, 0.0)
-        edges, which = _slabbed(scene, d, 2)
+        edges = _slab_edges(scene, d, 2)
         right, up = octahedral.frame_basis(d)
         a, b = p @ right, p @ up
         a0, a1, b0, b1 = float(a.min()), float(a.max()), float(b.min()), float(b.max())
         for i in (1, 0):  # the front plate (nearer the viewer) first
-            sub = _subscene(scene, which == i)
-            eye = (edges[-1] + 1.0) * d + 0.5 * (a0 + a1) * right + 0.5 * (b0 + b1) * up
-            rgba, nrm = _render_tile(sub, eye, -d, up, a1 - a0, b1 - b0, tile_px, samples)
+            eye = edges[i + 1] * d + 0.5 * (a0 + a1) * right + 0.5 * (b0 + b1) * up
+            rgba, nrm = _render_slab(prepared, eye, -d, up, a1 - a0, b1 - b0, tile_px, samples, edges[i + 1] - edges[i])
             _place(strip, 0, col, rgba, nrm, _quad(0.5 * (edges[i] + edges[i + 1]), d, right, up, a0, a1, b0, b1), right, up, d)
             col += 1
     top = _sheet("tuft_top", 1, 1, tile_px)
@@ -166,7 +175,7 @@ def grass_slices(scene: Scene, tile_px: int, samples: int) -> tuple[Sheet, Sheet
     a0, a1, b0, b1 = float(a.min()), float(a.max()), float(b.min()), float(b.max())
     half = 0.5 * (float(p[:, 1].min()) + float(p[:, 1].max()))
     eye = (float(p[:, 1].max()) + 1.0) * d + 0.5 * (a0 + a1) * right + 0.5 * (b0 + b1) * up
-    rgba, nrm = _render_tile(scene, eye, -d, up, a1 - a0, b1 - b0, tile_px, samples)
+    rgba, nrm = _render_slab(prepared, eye, -d, up, a1 - a0, b1 - b0, tile_px, samples)
     _place(top, 0, 0, rgba, nrm, _quad(half, d, right, up, a0, a1, b0, b1), right, up, d)
     return strip, top
 

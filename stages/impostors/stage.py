@@ -21,7 +21,17 @@ impostors.usda (usd_layer.py): overs on the plants layer's /Plants/<species>
   beside Geom (purpose render), the cards textures, and customData
   worldbake:impostor (atlas, error) and worldbake:lod_switch_m.
 
-Steps (run): read the asset's LOD0 into a render scene; bake the atlas;
+Frame size: an impostor is drawn where the plant is small on screen, so
+its frames need no more texels than the plant has pixels there: each
+plant's frames are its bounding sphere's diameter in pixels at
+impostor_distance_m on the reference screen (plant_frame_px; 16 x 16 frames
+of 64 px for the default conifer, 48 for the broadleaf, 32 for the shrub),
+in the smallest power-of-two atlas that holds them. The held-out views are
+that size too (one texel per pixel: the nearest the impostor is used), and
+the measured error then sets the switch distances as before.
+
+Steps (run): read the asset's LOD0 into a render scene
+(pipeline.render.usd_asset, the reader every USD picture shares); bake the atlas;
 measure it from held-out views (heldout.py, sampler.py); bake the slices and
 measure them the same way; render the cards; derive the switch distances;
 write the layer.
@@ -37,23 +47,32 @@ import numpy as np
 import pydantic
 
 from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, RunContext, Stage
-from pipeline.errors import StageError
+from pipeline.errors import InputError, StageError
 from pipeline.render import Prepared, Settings
+from pipeline.render.usd_asset import load_plant
 from stages.common import PLANTS_ROOT, plant_asset_prim
 
-from . import asset_scene, atlas, heldout, images, octahedral, sampler, slices, usd_layer
+from . import atlas, heldout, images, octahedral, sampler, slices, usd_layer
 
 Layout = Literal["hemi", "octahedral"]
 
 
 class ImpostorsParams(Params):
     frames: int = Param(16, units="frames per side", description="N x N frames of the view atlas", ge=3, le=64)
-    atlas_px: int = Param(2048, units="texels", description="side of the view atlas (a power of two); frames are "
-                          "the largest size m 2^L that fits, so their mip levels stay inside them", ge=64, le=8192)
-    small_plant_m: float = Param(1.0, units="m", description="plants lower than this (grass, flowers) are baked into "
-                                 "small_atlas_px: they cover few pixels wherever an impostor is used", ge=0.0, le=1000.0)
-    small_atlas_px: int = Param(512, units="texels", description="side of the view atlas of plants lower than "
-                                "small_plant_m (a power of two)", ge=64, le=8192)
+    atlas_px: int = Param(2048, units="texels", description="side of the largest view atlas (a power of two): frames "
+                          "are at most atlas_px / frames texels", ge=64, le=8192)
+    impostor_distance_m: float = Param(120.0, units="m", description="the distance from which impostors are meant to "
+                                       "be drawn: each plant's frames get the texels that keep one texel per screen "
+                                       "pixel there (screen_px, screen_fov_deg), sized 2^k or 3 2^k so their mip "
+                                       "levels halve exactly, in the smallest power-of-two atlas that holds them; a "
+                                       "plant 20 px tall at that distance gets no 128 px frames", gt=0.0, le=100000.0)
+    min_frame_px: int = Param(32, units="texels", description="the smallest frame side", ge=4, le=4096)
+    small_plant_m: float = Param(1.0, units="m", description="plants lower than this (grass, flowers) get frames of at "
+                                 "least small_plant_frame_px: their stalks and blades are a fraction of a texel at "
+                                 "their screen size, and a 3-frame blend of sub-texel features loses them", ge=0.0,
+                                 le=1000.0)
+    small_plant_frame_px: int = Param(64, units="texels", description="the smallest frame side of plants lower than "
+                                      "small_plant_m", ge=4, le=4096)
     layout: Layout = Param("hemi", description="hemi: views from above the horizon only (plants on the ground); "
                            "octahedral: the whole sphere")
     layouts: dict[str, Layout] = Param({}, description="per-species layout overriding `layout`")
@@ -69,24 +88,30 @@ class ImpostorsParams(Params):
                              ge=0, le=16)
     slice_slabs: int = Param(3, units="slabs", description="slabs per orientation of the tree slice billboards (seed 002: "
                              "1, 3 or 5)", ge=1, le=16)
-    slice_px: int = Param(128, units="texels", description="texels per side of a tree slice tile", ge=8, le=2048)
+    slice_px: int = Param(128, units="texels", description="largest side of a tree slice tile: a tile has half the side "
+                          "of the plant's atlas frames (slices are the LOD beyond the atlas), at most this",
+                          ge=8, le=2048)
     grass_slice_px: int = Param(256, units="texels", description="texels per side of a grass tuft slice (seed 001: 256)",
                                 ge=8, le=2048)
-    card_px: int = Param(256, units="texels", description="texels per side of each cards draw-mode texture", ge=8, le=4096)
-    heldout_px: int = Param(96, units="pixels", description="size of the held-out error views", ge=16, le=1024)
+    card_px: int = Param(256, units="texels", description="largest side of a cards draw-mode texture: the power of two "
+                         "at or above the plant's frame side (cards are its farthest stand-in), at most this",
+                         ge=8, le=4096)
+    heldout_px: int = Param(128, units="pixels", description="largest held-out error view: a view is the size of the "
+                            "plant's frames (one atlas texel per pixel, where the impostor is first used), at most "
+                            "this", ge=16, le=1024)
     heldout_samples: int = Param(3, units="samples per side", description="n x n samples per pixel of the mesh's "
                                  "held-out views (the reference)", ge=1, le=8)
-    heldout_azimuth_every: int = Param(12, units="5-degree steps", description="the bake measures every k-th azimuth of "
-                                       "the 5-degree held-out set (bench/impostors.py measures all)", ge=1, le=72)
-    heldout_elevation_step_deg: float = Param(20.0, units="deg", description="elevation step of the bake's held-out views",
-                                              ge=1.0, le=90.0)
+    heldout_stride: int = Param(18, units="views", description="the bake measures 1/stride of the held-out set "
+                                "(azimuth every 5 deg x elevation every 10 deg; 36 views of 648 for hemi), every "
+                                "elevation equally often, azimuths spread (heldout.lattice; 1: all; "
+                                "bench/impostors.py --agreement compares the two)", ge=1, le=648)
     screen_px: int = Param(1080, units="pixels", description="screen height the LOD switch distances are for", ge=16, le=16384)
     screen_fov_deg: float = Param(60.0, units="deg", description="vertical field of view the LOD switch distances are for",
                                   gt=1.0, lt=179.0)
     error_px: float = Param(1.0, units="pixels", description="an LOD is used from the distance where its measured error "
                             "projects to at most this many screen pixels", gt=0.0, le=100.0)
 
-    @pydantic.field_validator("atlas_px", "small_atlas_px")
+    @pydantic.field_validator("atlas_px")
     @classmethod
     def _power_of_two(cls, v: int) -> int:
         if v & (v - 1):
@@ -105,24 +130,46 @@ def _plant_names(plants_layer: Path, placed: dict | None) -> list[str]:
     return sorted(names)
 
 
-def _measure(prepared: Prepared, ps, views: list[tuple[float, float]], size: int, samples: int, impostor) -> list:
-    """Held-out errors of an impostor: `impostor(direction)` -> (rgba, depth)."""
-    errors = []
-    for az, el in views:
-        d = octahedral.view_direction(az, el)
-        m = heldout.mesh_view(prepared, d, ps.centre, ps.radius, size, samples)
-        rgba, depth = impostor(d)
-        mesh_rgba = np.concatenate([m.albedo, m.alpha[..., None]], -1)
-        errors.append(heldout.ViewError(az, el, *heldout.compare(mesh_rgba, m.depth, rgba, depth)))
-    return errors
+def pixel_at_1m(params: "ImpostorsParams") -> float:
+    """Metres one screen pixel covers at 1 m (pinhole: 2 tan(fov / 2) / screen_px)."""
+    return 2.0 * math.tan(math.radians(0.5 * params.screen_fov_deg)) / params.screen_px
+
+
+def plant_frame_px(radius: float, height_m: float, params: "ImpostorsParams") -> int:
+    """The frame side of a plant: its bounding sphere's diameter in screen
+    pixels at impostor_distance_m (one texel per pixel there), as
+    atlas.frame_size rounds it, between min_frame_px (small_plant_frame_px
+    for plants lower than small_plant_m) and atlas_px / frames."""
+    target = 2.0 * radius / (params.impostor_distance_m * pixel_at_1m(params))
+    smallest = params.small_plant_frame_px if height_m < params.small_plant_m else params.min_frame_px
+    return atlas.frame_size(target, params.frames, params.atlas_px, smallest)
+
+
+class References:
+    """The mesh's held-out views, rendered once and compared with every
+    impostor of the plant (the atlas, the slices)."""
+
+    def __init__(self, prepared: Prepared, ps, views: list[tuple[float, float]], size: int, samples: int):
+        self.views, self.size = views, size
+        self.images = []
+        for az, el in views:
+            m = heldout.mesh_view(prepared, octahedral.view_direction(az, el), ps.centre, ps.radius, size, samples)
+            self.images.append((np.concatenate([m.albedo, m.alpha[..., None]], -1), m.depth))
+
+    def measure(self, impostor) -> list:
+        """Held-out errors of an impostor: `impostor(direction)` -> (rgba, depth)."""
+        errors = []
+        for (az, el), (mesh_rgba, mesh_depth) in zip(self.views, self.images):
+            rgba, depth = impostor(octahedral.view_direction(az, el))
+            errors.append(heldout.ViewError(az, el, *heldout.compare(mesh_rgba, mesh_depth, rgba, depth)))
+        return errors
 
 
 def switch_distance_m(error_m: float, params: ImpostorsParams) -> float:
     """The distance beyond which `error_m` of geometric error projects to at
     most error_px pixels on the reference screen (pinhole: one pixel covers
     2 d tan(fov / 2) / screen_px metres at distance d)."""
-    pixel_at_1m = 2.0 * math.tan(math.radians(0.5 * params.screen_fov_deg)) / params.screen_px
-    return error_m / (params.error_px * pixel_at_1m)
+    return error_m / (params.error_px * pixel_at_1m(params))
 
 
 def _silhouette_error_m(summary: dict, ps, size: int) -> float:
@@ -139,7 +186,10 @@ def _silhouette_error_m(summary: dict, ps, size: int) -> float:
 
 def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: ImpostorsParams, tex_dir: Path) -> dict:
     t0 = time.perf_counter()
-    ps = asset_scene.load(plants_layer, plant_asset_prim(name))
+    try:
+        ps = load_plant(plants_layer, plant_asset_prim(name))
+    except (LookupError, FileNotFoundError) as e:
+        raise InputError(f"impostors: {e}") from e
     prepared = Prepared(ps.scene)
     layout = params.layouts.get(name, params.layout)
     grass = "Blades" in ps.parts
@@ -147,64 +197,68 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
     timings: dict[str, float] = {"load_s": time.perf_counter() - t0}
 
     t = time.perf_counter()
-    atlas_px = params.small_atlas_px if float(ps.hi[1] - ps.lo[1]) < params.small_plant_m else params.atlas_px
-    at = atlas.build(prepared, ps.centre, ps.radius, params.frames, atlas_px, layout, params.samples,
-                     params.ao_rays, params.padding_px, seed, ao_radius=params.ao_radius)
+    frame_px = plant_frame_px(ps.radius, float(ps.hi[1] - ps.lo[1]), params)
+    at = atlas.build(prepared, ps.centre, ps.radius, params.frames, params.atlas_px, layout, params.samples,
+                     params.ao_rays, params.padding_px, seed, ao_radius=params.ao_radius, frame_px=frame_px)
     timings["atlas_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    views = heldout.held_out(heldout.directions(layout, elevation_step_deg=params.heldout_elevation_step_deg,
-                                                subsample=params.heldout_azimuth_every, offset=1), at.directions)
+    views = heldout.held_out(heldout.lattice(layout, params.heldout_stride), at.directions)
+    view_px = min(at.frame_px, params.heldout_px)
+    references = References(prepared, ps, views, view_px, params.heldout_samples)
+    timings["references_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
 
     def atlas_view(d):
-        v = sampler.render_view(at, d, params.heldout_px, params.depth_steps)
+        v = sampler.render_view(at, d, view_px, params.depth_steps)
         return v.rgba, v.depth
 
     height = float(ps.hi[1] - ps.lo[1])
-    atlas_errors = heldout.summarize(_measure(prepared, ps, views, params.heldout_px, params.heldout_samples, atlas_view),
-                                     height)
+    atlas_errors = heldout.summarize(references.measure(atlas_view), height)
     timings["atlas_error_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    sheets = ([*slices.grass_slices(ps.scene, params.grass_slice_px, params.samples)] if grass
-              else [slices.tree_slices(ps.scene, params.slice_slabs, params.slice_px, params.samples)])
+    slice_px = min(params.slice_px, max(at.frame_px // 2, 8))  # used beyond the atlas: at most half its texels
+    sheets = ([*slices.grass_slices(prepared, params.grass_slice_px, params.samples)] if grass
+              else [slices.tree_slices(prepared, params.slice_slabs, slice_px, params.samples)])
     if grass:  # seed 001: the tuft's five quads are drawn together
         billboards = {None: Prepared(slices.sheet_scene(sheets))}
     else:  # seed 002 / Jakulin: the two slicings nearest the view, blended
         billboards = {r: Prepared(slices.sheet_scene(sheets, rows=(r,))) for r in range(sheets[0].rows)}
     timings["slices_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    view_settings = Settings(params.heldout_px, params.heldout_px, samples=params.heldout_samples)
+    view_settings = Settings(view_px, view_px, samples=params.heldout_samples)
 
     def slice_view(d):
         cam, _ = heldout.view_camera(d, ps.centre, ps.radius)
         blend = [(None, 1.0)] if grass else slices.slicing_weights(d)
-        rgba = np.zeros((params.heldout_px, params.heldout_px, 4))
-        depth = np.zeros((params.heldout_px, params.heldout_px))
+        rgba = np.zeros((view_px, view_px, 4))
+        depth = np.zeros((view_px, view_px))
         for row, w in blend:
             img = billboards[row].render(cam, view_settings)
             rgba += w * np.concatenate([img.albedo, img.alpha[..., None]], -1)
             depth += w * img.alpha * np.where(np.isfinite(img.depth), img.depth, 0.0)
         return rgba, np.where(rgba[..., 3] > 0, depth / np.maximum(rgba[..., 3], 1e-12), np.inf)
 
-    slice_errors = heldout.summarize(_measure(prepared, ps, views, params.heldout_px, params.heldout_samples, slice_view),
-                                     height)
+    slice_errors = heldout.summarize(references.measure(slice_view), height)
     timings["slices_error_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    cards = usd_layer.card_views(prepared, ps.lo, ps.hi, params.card_px, params.samples)
+    card_px = min(params.card_px, atlas.atlas_side(1, at.frame_px))
+    cards = usd_layer.card_views(prepared, ps.lo, ps.hi, card_px, params.samples)
     timings["cards_s"] = time.perf_counter() - t
 
     for summary in (atlas_errors, slice_errors):
         for key in ("psnr_db", "alpha_iou"):
             if summary.get("views") and not math.isfinite(summary[key]["median"]):
                 raise StageError(f"impostors: {name}: the held-out {key} is not finite")
-    atlas_error_m = _silhouette_error_m(atlas_errors, ps, params.heldout_px) if atlas_errors.get("views") else 0.0
-    slice_error_m = _silhouette_error_m(slice_errors, ps, params.heldout_px) if slice_errors.get("views") else 0.0
+    atlas_error_m = _silhouette_error_m(atlas_errors, ps, view_px) if atlas_errors.get("views") else 0.0
+    slice_error_m = _silhouette_error_m(slice_errors, ps, view_px) if slice_errors.get("views") else 0.0
     texel_m = 2.0 * ps.radius / at.frame_px
     # an impostor is no sharper than its texels: it is used where they are at most a pixel too
     atlas_switch = switch_distance_m(max(atlas_error_m, texel_m), params)
-    slice_switch = max(atlas_switch, switch_distance_m(max(slice_error_m, (ps.hi - ps.lo).max() / params.slice_px), params))
+    slice_switch = max(atlas_switch, switch_distance_m(max(slice_error_m, float((ps.hi - ps.lo).max()) / slice_px), params))
     info = {
         "layout": layout, "frames": params.frames, "frame_px": at.frame_px, "atlas_px": at.atlas_px,
         "frame_mip_levels": at.frame_levels, "mip_levels": len(at.levels),
@@ -212,9 +266,13 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
         "channels": list(atlas.CHANNELS), "grid": "vertex-centred: frame (i, j) looks from octahedral decode(i/(N-1), j/(N-1))",
         "sampling": "3 frames of the grid triangle, barycentric weights, premultiplied blend, frame-clamped bilinear",
         "depth": "metres from the frame's plane through the sphere centre toward the viewer",
-        "held_out": {"views": len(views), "size_px": params.heldout_px, "reference_samples": params.heldout_samples,
-                     "azimuth_step_deg": 5.0 * params.heldout_azimuth_every,
-                     "elevation_step_deg": params.heldout_elevation_step_deg},
+        "held_out": {"views": len(views), "size_px": view_px, "reference_samples": params.heldout_samples,
+                     "set": "azimuth every 5 deg x elevation every 10 deg (0..80 hemi, -80..80 octahedral)",
+                     "stride": params.heldout_stride,
+                     "kept": "view (azimuth index i, elevation index e) where (i + 4 e) mod stride = 0"},
+        "slice_px": slice_px, "card_px": card_px,
+        "frame_px_from": f"the bounding sphere's diameter in pixels at {params.impostor_distance_m} m on a "
+                         f"{params.screen_px} px, {params.screen_fov_deg} deg screen",
         "error": atlas_errors, "slices_error": slice_errors,
         "slices": {"kind": "grass tuft (seed 001)" if grass else "3 orientations x front/back x slabs (seed 002)",
                    "slabs": None if grass else params.slice_slabs,
@@ -281,11 +339,10 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ImpostorsParams) -> dic
 def check(params: ImpostorsParams, ctx: CheckContext) -> Check:
     """The atlas levels held at once: 9 float32 channels, 4/3 for the mips,
     about 3x for the padding's distance transform; per species, one at a time."""
-    for key in ("atlas_px", "small_atlas_px"):
-        side = getattr(params, key)
-        if side // params.frames < 4:
-            raise ParamError("frames", f"{params.frames} frames leave {side // params.frames} texels per frame in "
-                             f"{key} = {side}; at least 4 are needed")
+    side = params.atlas_px
+    if side // params.frames < 4:
+        raise ParamError("frames", f"{params.frames} frames leave {side // params.frames} texels per frame in "
+                         f"atlas_px = {side}; at least 4 are needed")
     texels = params.atlas_px ** 2
     return Check(memory_bytes=texels * 9 * 4 * 4.0, memory_how=f"atlas_px = {params.atlas_px}: {texels:,} texels x "
                  "9 channels x 4 B x (mips and padding)")

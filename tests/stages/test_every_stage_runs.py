@@ -26,10 +26,10 @@ TINY = ["heightmap.resolution=64", "world.texture_size=64", "shared.mesh_max_ver
         "world.ground_texel_m=16", "world.ground_tile_texels=256",
         'plants.build=["grass", "shrub"]', "erosion.geological_years=20000", "erosion.geological_step_years=10000",
         "volumes.voxels=32", "volumes.mip_levels=3", "volumes.error_view_pixels=32",
-        "impostors.frames=4", "impostors.atlas_px=64", "impostors.small_atlas_px=64", "impostors.samples=1",
+        "impostors.frames=4", "impostors.atlas_px=64", "impostors.min_frame_px=8", "impostors.small_plant_frame_px=8",
+        "impostors.samples=1",
         "impostors.ao_rays=1", "impostors.slice_px=16", "impostors.grass_slice_px=16", "impostors.card_px=16",
-        "impostors.heldout_px=24", "impostors.heldout_samples=1", "impostors.heldout_azimuth_every=36",
-        "impostors.heldout_elevation_step_deg=40"]
+        "impostors.heldout_px=24", "impostors.heldout_samples=1", "impostors.heldout_stride=108"]
 
 
 @pytest.fixture(scope="module")

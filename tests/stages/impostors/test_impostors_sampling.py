@@ -156,3 +156,38 @@ def test_slicing_blend_weights_and_slab_spacing():
     for d in rng.normal(size=(50, 3)):  # seed 002's sanity check: spacing = extent / N along any direction, > 0
         proj = pts @ (d / np.linalg.norm(d))
         assert slices.slab_spacing(pts, d, 5) == pytest.approx((proj.max() - proj.min()) / 5) and np.ptp(proj) > 0
+
+
+def test_frame_sizes_halve_exactly_and_fit_their_atlas():
+    for target in (1.0, 14.4, 41.0, 53.9, 64.7, 200.0, 5000.0):
+        f = atlas.frame_size(target, 16, 2048, 32)
+        assert f >= min(max(target, 32), 128) and f <= 128
+        assert f in {32, 48, 64, 96, 128}  # 2^k or 3 2^k: per-frame mips halve to integers
+        side = atlas.atlas_side(16, f)
+        assert side & (side - 1) == 0 and 16 * f <= side < 2 * 16 * f
+
+
+def test_the_frame_follows_the_plants_screen_size():
+    from stages.impostors.stage import ImpostorsParams, plant_frame_px
+
+    p = ImpostorsParams()
+    # 1080 px over 60 degrees: a pixel is 1.07 mm at 1 m, 12.8 cm at 120 m
+    assert plant_frame_px(3.46, 8.0, p) == 64  # a 6.9 m crown is 54 px there
+    assert plant_frame_px(0.9, 1.5, p) == p.min_frame_px  # a shrub: 14 px
+    assert plant_frame_px(0.3, 0.5, p) == p.small_plant_frame_px  # a flower under small_plant_m
+    assert plant_frame_px(50.0, 90.0, p) == p.atlas_px // p.frames  # a giant: the largest frame
+
+
+def test_the_held_out_lattice_is_stratified():
+    from collections import Counter
+
+    from stages.impostors import heldout
+
+    full = heldout.lattice("hemi", 1)
+    assert len(full) == 72 * 9
+    nine = heldout.lattice("hemi", 9)
+    assert sorted({a for a, _ in nine}) == sorted({a for a, _ in full})  # every azimuth once
+    assert len(nine) == 72 and set(Counter(e for _, e in nine).values()) == {8}
+    eighteen = heldout.lattice("hemi", 18)
+    assert len(eighteen) == 36 and set(Counter(e for _, e in eighteen).values()) == {4}
+    assert set(eighteen) <= set(full)

@@ -15,9 +15,8 @@ from stages.impostors.stage import ImpostorsParams
 
 from .helpers import make_plants
 
-SMALL = {"frames": 6, "atlas_px": 256, "small_atlas_px": 128, "samples": 1, "ao_rays": 1, "slice_px": 32,
-         "grass_slice_px": 32, "card_px": 32, "heldout_px": 48, "heldout_samples": 2, "heldout_azimuth_every": 18,
-         "heldout_elevation_step_deg": 40.0}
+SMALL = {"frames": 6, "atlas_px": 256, "min_frame_px": 32, "small_plant_frame_px": 32, "samples": 1, "ao_rays": 1,
+         "slice_px": 32, "grass_slice_px": 32, "card_px": 32, "heldout_px": 48, "heldout_samples": 2, "heldout_stride": 54}
 
 
 def _run(folder: Path, plants: Path, placed, params=SMALL):
@@ -60,7 +59,7 @@ def test_every_placed_species_has_its_textures(baked):
 def test_unplaced_species_get_nothing(tmp_path, baked):
     root, plants, _, _ = baked
     out, ctx = _run(tmp_path / "only_grass", plants, ["grass", "oak"],
-                    {**SMALL, "frames": 3, "atlas_px": 64, "small_atlas_px": 64, "heldout_azimuth_every": 72})
+                    {**SMALL, "frames": 3, "atlas_px": 64, "min_frame_px": 8, "small_plant_frame_px": 8, "heldout_stride": 648})
     assert ctx.metrics["built"] == ["grass"]
     assert not list((tmp_path / "only_grass" / "textures").glob("tree_*"))
 
