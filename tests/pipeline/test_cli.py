@@ -19,10 +19,10 @@ from pipeline import usdio
 
 REPO = Path(__file__).resolve().parents[2]
 # A small world: 96^2 cells, and only the grass asset (the tree presets take seconds each; tests/stages/plants covers them)
-# the impostors at a few texels (their defaults bake 2048^2 atlases): these tests are about the command line
-IMPOSTORS_SMALL = [a for kv in ("frames=4", "atlas_px=64", "small_atlas_px=64", "samples=1", "heldout_px=24",
-                                "heldout_samples=1", "heldout_azimuth_every=36", "card_px=16", "slice_px=16",
-                                "grass_slice_px=16") for a in ("--set", f"impostors.{kv}")]
+# the impostors at a few texels: these tests are about the command line
+IMPOSTORS_SMALL = [a for kv in ("frames=4", "atlas_px=64", "min_frame_px=8", "small_plant_frame_px=8", "samples=1",
+                                "heldout_px=24", "heldout_samples=1", "heldout_stride=108", "card_px=16",
+                                "slice_px=16", "grass_slice_px=16") for a in ("--set", f"impostors.{kv}")]
 SMALL = ["--set", "heightmap.resolution=96", "--set", "world.texture_size=64", "--set", "shared.mesh_max_vertices=49",
          *IMPOSTORS_SMALL, "--set", 'plants.build=["grass"]', "--set", "world.ground_texel_m=16",
          "--set", "world.ground_tile_texels=256"]
