@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -258,8 +259,12 @@ def test_dask_bake_gives_the_same_keys_and_pixels_as_local(project, device):
     proc = worldbake(project, "bake", "configs/default.toml", *SMALL, "--json", "--executor", "dask",
                      build="build_dask", env=env)
     assert proc.returncode == 0
+    # distributed logs (with a traceback) a worker heartbeat that finds the scheduler already closed, a race of
+    # the cluster's shutdown on a loaded machine after every result is in: not the native crash looked for here
+    records = re.split(r"(?m)^(?=\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+ - )", proc.stderr)
+    stderr = "".join(r for r in records if "Failed to communicate with scheduler during heartbeat" not in r)
     for text in ("malloc", "PLEASE submit a bug report", "Traceback"):
-        assert text not in proc.stderr, proc.stderr[-3000:]
+        assert text not in stderr, stderr[-3000:]
     dask = {s["stage"]: s for s in json.loads(proc.stdout)[0]["steps"]}
     assert {s: v["key"] for s, v in local.items()} == {s: v["key"] for s, v in dask.items()}
     assert {v["status"] for v in dask.values()} == {"ran"}
