@@ -225,7 +225,8 @@ def subtree_scene(root, root_to_world_inv: np.ndarray | None, textures: dict, sk
 
     cache = UsdGeom.XformCache()
     out = []
-    it = iter(Usd.PrimRange(root))
+    # into instanceable prims too: the world's instancer prototypes are instances of one asset per species
+    it = iter(Usd.PrimRange(root, Usd.TraverseInstanceProxies()))
     for prim in it:
         img = UsdGeom.Imageable(prim)
         if img and img.ComputeVisibility() == UsdGeom.Tokens.invisible:

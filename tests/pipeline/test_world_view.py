@@ -100,3 +100,23 @@ def test_world_picture_shows_ground_texture_trees_and_tints(tiny_world):
     assert tinted[0] / tinted[1] > 2.5 * plain[0] / plain[1]  # the tint (1.5, 0.5, 0.5) reddens the second
     rgba = world_view.render_world(tiny_world, 80, 40, camera=top, samples=1, ao_rays=0, progress=lambda m: None)
     assert rgba.shape == (40, 80, 4) and rgba.dtype == np.uint8 and (rgba[..., 3] == 255).all()
+
+
+def test_meshes_under_an_instanceable_prim_are_read():
+    """The world's instancer prototypes are instanceable prims of one asset
+    per species: their meshes are instance proxies, read all the same."""
+    from pxr import Usd, UsdGeom
+
+    from pipeline.render.usd_asset import subtree_scene
+
+    stage = Usd.Stage.CreateInMemory()
+    mesh = UsdGeom.Mesh.Define(stage, "/Asset/Geom")
+    mesh.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (0, 1, 0)])
+    mesh.CreateFaceVertexCountsAttr([3])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2])
+    inst = stage.DefinePrim("/Instance")
+    inst.GetReferences().AddInternalReference("/Asset")
+    inst.SetInstanceable(True)
+    assert inst.IsInstance()
+    scenes = subtree_scene(inst, None, {})
+    assert sum(s.n_triangles for s in scenes) == 1
