@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from .volume import CHANNEL_UNITS, CHANNELS, HALF_MAX, VolumeLevel, header_attributes
+from .volume import CHANNEL_UNITS, CHANNELS, HALF_MAX, VolumeLevel, read_channels
 
 RUNS_WIDTH = 256  # pixels a row of the voxels part
 RUN_CHANNELS = ("run.y0", "run.length", "run.offset")
@@ -241,13 +241,8 @@ def read_runs(path: Path | str) -> SparseLevel:
     if inp is None:
         raise InputError(f"{path}: cannot read: {oiio.geterror()}")
     try:
-        spec = inp.spec()
-        names = tuple(spec.channelnames)
-        if sorted(names) != sorted(CHANNELS):
-            raise InputError(f"{path}: channels {names}, a column runs volume has {CHANNELS}")
-        voxels = np.asarray(inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT), np.float32)
-        voxels = voxels.reshape(-1, spec.nchannels)[:, [names.index(c) for c in CHANNELS]]
-        attrs = header_attributes(spec)
+        voxels, attrs = read_channels(inp, path, "a column runs volume")
+        voxels = voxels.reshape(-1, len(CHANNELS))
         if attrs.get("volume_layout") != "column runs" or not inp.seek_subimage(1, 0):
             raise InputError(f"{path}: not a column runs volume (no worldbake:volume_layout or no columns part)")
         tspec = inp.spec()

@@ -240,6 +240,23 @@ def header_attributes(spec) -> dict[str, Any]:
     return attrs
 
 
+def read_channels(inp, path: Path | str, what: str) -> tuple[np.ndarray, dict[str, Any]]:
+    """The open EXR's first part as (rows, cols, CHANNELS) float32, in
+    CHANNELS order (OpenEXR stores channels sorted by name), and its header
+    attributes; `what` names the format in the error for other channels."""
+    import OpenImageIO as oiio
+
+    from .errors import InputError
+
+    spec = inp.spec()
+    names = tuple(spec.channelnames)
+    if sorted(names) != sorted(CHANNELS):
+        raise InputError(f"{path}: channels {names}, {what} has {CHANNELS}")
+    pixels = np.asarray(inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT), np.float32)
+    pixels = pixels.reshape(spec.height, spec.width, spec.nchannels)[..., [names.index(c) for c in CHANNELS]]
+    return pixels, header_attributes(spec)
+
+
 def read_atlas(path: Path | str) -> VolumeLevel:
     """A level written by write_atlas (or by pipeline.sparse_volume.write_runs,
     as a dense level), its header attributes in `attributes`."""
@@ -251,14 +268,7 @@ def read_atlas(path: Path | str) -> VolumeLevel:
     if inp is None:
         raise InputError(f"{path}: cannot read: {oiio.geterror()}")
     try:
-        spec = inp.spec()
-        names = tuple(spec.channelnames)
-        if sorted(names) != sorted(CHANNELS):
-            raise InputError(f"{path}: channels {names}, a volume atlas has {CHANNELS}")
-        pixels = np.asarray(inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT), np.float32)
-        # OpenEXR stores channels sorted by name: put them back in CHANNELS order
-        pixels = pixels.reshape(spec.height, spec.width, spec.nchannels)[..., [names.index(c) for c in CHANNELS]]
-        attrs = header_attributes(spec)
+        pixels, attrs = read_channels(inp, path, "a volume atlas")
     finally:
         inp.close()
     if "volume_grid" not in attrs:
