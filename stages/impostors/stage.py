@@ -76,7 +76,9 @@ class ImpostorsParams(Params):
     layout: Layout = Param("hemi", description="hemi: views from above the horizon only (plants on the ground); "
                            "octahedral: the whole sphere")
     layouts: dict[str, Layout] = Param({}, description="per-species layout overriding `layout`")
-    samples: int = Param(2, units="samples per side", description="n x n samples per atlas texel", ge=1, le=8)
+    samples: int = Param(3, units="samples per side", description="n x n samples per atlas texel: 2 x 2 gives alpha "
+                         "in quarters, and a 0.5 threshold then keeps every half-covered needle (conifer held-out IoU "
+                         "0.917 at 2, 0.928 at 3, 0.932 at 4)", ge=1, le=8)
     ao_rays: int = Param(1, units="rays", description="ambient-occlusion rays per sample", ge=0, le=64)
     ao_radius: float = Param(0.08, units="bounding-sphere radii", description="occluders farther than this do not "
                              "darken the ao channel (a whole crown's radius would make every inner leaf black)",
@@ -99,8 +101,10 @@ class ImpostorsParams(Params):
     heldout_px: int = Param(128, units="pixels", description="largest held-out error view: a view is the size of the "
                             "plant's frames (one atlas texel per pixel, where the impostor is first used), at most "
                             "this", ge=16, le=1024)
-    heldout_samples: int = Param(3, units="samples per side", description="n x n samples per pixel of the mesh's "
-                                 "held-out views (the reference)", ge=1, le=8)
+    heldout_samples: int = Param(6, units="samples per side", description="n x n samples per pixel of the mesh's "
+                                 "held-out views (the reference): its alpha must be the true coverage, not a coarse "
+                                 "estimate of it (conifer median IoU 0.915 against 3 x 3, 0.928 against 6 x 6, 0.932 "
+                                 "against 12 x 12)", ge=1, le=16)
     heldout_stride: int = Param(18, units="views", description="the bake measures 1/stride of the held-out set "
                                 "(azimuth every 5 deg x elevation every 10 deg; 36 views of 648 for hemi), every "
                                 "elevation equally often, azimuths spread (heldout.lattice; 1: all; "
