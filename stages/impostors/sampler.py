@@ -45,11 +45,38 @@ def ortho_rays(direction, centre, radius: float, size: int):
     return o, back
 
 
-def render_view(at: "atlas_mod.Atlas", direction, size: int, depth_steps: int = 2, level: int = 0) -> View:
+def mip_lod(frame_px: int, size: int, frame_levels: int) -> float:
+    """The level of detail a GPU's trilinear filter uses when a frame of
+    frame_px texels covers a view of size pixels (log2 of texels per pixel,
+    clamped to the per-frame levels: later levels mix frames)."""
+    return float(np.clip(np.log2(frame_px / size), 0.0, frame_levels - 1))
+
+
+def render_view(at: "atlas_mod.Atlas", direction, size: int, depth_steps: int = 2, lod: float | None = None) -> View:
     """The impostor seen from `direction` in a size x size orthographic view
-    framed like the atlas's frames (the held-out camera)."""
+    framed like the atlas's frames (the held-out camera), filtered as a GPU
+    does: trilinear between the two per-frame mip levels around lod (None:
+    mip_lod for this view size, so a 512-texel frame seen in 64 pixels reads
+    level 3, not level 0 point-sampled)."""
     v = np.asarray(direction, np.float64)
     v = v / np.linalg.norm(v)
+    if lod is None:
+        lod = mip_lod(at.frame_px, size, at.frame_levels)
+    lo = int(np.floor(lod))
+    frac = lod - lo
+    rgba, normal, depth_sum = _blend(at, v, size, depth_steps, lo)
+    if frac > 1e-6:
+        upper = _blend(at, v, size, depth_steps, lo + 1)
+        rgba, normal, depth_sum = ((1.0 - frac) * a + frac * b for a, b in zip((rgba, normal, depth_sum), upper))
+    a = rgba[..., 3]
+    depth = np.where(a > 0, depth_sum / np.maximum(a, 1e-12), np.inf)
+    n = normal / np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-9)
+    return View(rgba.astype(np.float32), n.astype(np.float32), depth.astype(np.float32))
+
+
+def _blend(at: "atlas_mod.Atlas", v: np.ndarray, size: int, depth_steps: int, level: int):
+    """The 3-frame blend at one mip level: premultiplied colour and alpha,
+    alpha-weighted normal, alpha-weighted depth (sums, not yet divided)."""
     origins, _ = ortho_rays(v, at.centre, at.radius, size)
     idx, w = octahedral.select_frames(v, at.frames, at.layout)
     f = at.frame_px >> level
@@ -81,7 +108,4 @@ def render_view(at: "atlas_mod.Atlas", direction, size: int, depth_steps: int = 
         rgba += w[k] * s[..., 0:4]
         normal += w[k] * s[..., 3:4] * s[..., 4:7]
         depth_sum += w[k] * s[..., 3] * t
-    a = rgba[..., 3]
-    depth = np.where(a > 0, depth_sum / np.maximum(a, 1e-12), np.inf)
-    n = normal / np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-9)
-    return View(rgba.astype(np.float32), n.astype(np.float32), depth.astype(np.float32))
+    return rgba, normal, depth_sum

@@ -140,6 +140,28 @@ def test_the_sampler_at_a_frame_direction_reproduces_that_frame():
         np.testing.assert_allclose(view.rgba, frame[..., 0:4], atol=1e-5)
 
 
+def test_the_sampler_reads_the_mip_level_of_its_view_size():
+    """A view smaller than the frames reads the per-frame mip level a GPU's
+    trilinear filter would (half size: level 1 exactly; 3/4 size: between
+    levels 0 and 1), never level 0 point-sampled."""
+    rng = np.random.default_rng(5)
+    frames, f = 4, 32
+    tiles = rng.uniform(0.1, 0.9, (frames * frames, f, f, len(atlas.CHANNELS))).astype(np.float32)
+    levels = atlas.mip_chain(tiles, frames, frames * f, 4)
+    dirs = octahedral.frame_directions(frames, "hemi")
+    at = atlas.Atlas("hemi", frames, f, frames * f, np.array([0.0, 1.0, 0.0]), 1.5, levels, 4, None, dirs)
+    assert sampler.mip_lod(f, f // 2, 4) == 1.0 and sampler.mip_lod(f, 2 * f, 4) == 0.0
+    assert sampler.mip_lod(f, 1, 4) == 3.0  # clamped to the per-frame levels
+    i, j = 2, 1
+    half = sampler.render_view(at, dirs[j, i], f // 2, depth_steps=0)
+    np.testing.assert_allclose(half.rgba, at.frame(i, j, 1)[..., 0:4], atol=1e-5)
+    between = sampler.render_view(at, dirs[j, i], 24, depth_steps=0)
+    level0 = sampler.render_view(at, dirs[j, i], 24, depth_steps=0, lod=0.0)
+    level1 = sampler.render_view(at, dirs[j, i], 24, depth_steps=0, lod=1.0)
+    frac = float(np.log2(f / 24))
+    np.testing.assert_allclose(between.rgba, (1 - frac) * level0.rgba + frac * level1.rgba, atol=1e-5)
+
+
 def test_slicing_blend_weights_and_slab_spacing():
     from stages.impostors import slices
 
