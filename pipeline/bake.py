@@ -31,6 +31,7 @@ from .graph import Graph, Step, plan
 from .grid import Grid
 from .sources import stage_source_hash
 from .store import MANIFEST, Store, sha256_file, write_json
+from .units import Units
 
 # Bump when the engine changes how artifacts are written (file formats,
 # provenance layout), so that old keys stop matching.
@@ -291,11 +292,14 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
             terrain_shape = inputs[role].shape
     provenance = {"stage": stage.name, "version": stage.version, "key": ps.key,
                   "params": ps.params_json, "seed": config.seed if stage.uses_seed else "none"}
+    # a unit's key: the stage's code and the unit's own material (its inputs' content, the params it uses)
+    code_material = {k: ps.key_material[k] for k in ("stage", "version", "source", "files", "seed", "libraries")}
     with store.writing(stage.name, ps.key) as work:
         ctx = RunContext(stage=stage, key=ps.key, out_dir=work, seed=config.seed, provenance=provenance,
                          project_root=config.project_root, progress=progress,
                          final_dir=store.folder(stage.name, ps.key),
-                         input_artifacts={role: art for role, (art, _, _) in ps.inputs.items() if role in inputs})
+                         input_artifacts={role: art for role, (art, _, _) in ps.inputs.items() if role in inputs},
+                         units=Units(store.units, store.tmp, stage.name, code_material))
         t0 = time.perf_counter()
         try:
             outputs = stage.run(ctx, inputs, config.params[stage.name])
@@ -344,7 +348,7 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
             "params": json.loads(ps.params_json), "seed": provenance["seed"],
             "inputs": {role: {"artifact": a, "stage": s, "key": k, "content": ps.key_material["inputs"][role][1]}
                        for role, (a, s, k) in ps.inputs.items()},
-            "outputs": out_meta, "files": files,
+            "outputs": out_meta, "files": files, "units": dict(sorted(ctx.units.used.items())),
             "exr_channels": {f: exr.channel_names(work / f) for f in files if f.lower().endswith(".exr")},
             "timings": {"run_s": round(t_run, 4), "write_s": round(time.perf_counter() - t1, 4)},
             "metrics": _finite_metrics(ctx.metrics),

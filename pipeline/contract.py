@@ -227,6 +227,17 @@ class CheckContext:
     project_root: Path
     inputs: dict[str, GridInfo]  # role -> size of each grid input the plan gives it
 
+    def unit(self, name: str, material: Any):
+        """A part of this run that later runs may reuse (pipeline.units):
+        `material` is everything the part depends on besides the stage's
+        code (a content digest of what it reads, the params it uses)."""
+        from .units import Units
+
+        if self.units is None:
+            self.units = Units(None, None, self.stage.name, {"stage": self.stage.name, "version": self.stage.version,
+                                                             "seed": self.seed if self.stage.uses_seed else None})
+        return self.units.unit(name, material)
+
     def resolve(self, project_path: str) -> Path:
         return self.project_root / project_path
 
@@ -245,6 +256,7 @@ class RunContext:
     metrics: dict[str, Any] = field(default_factory=dict)
     final_dir: Path | None = None  # where out_dir will be renamed to once the run is whole
     input_artifacts: dict[str, str] = field(default_factory=dict)  # role -> the artifact the plan chose for it
+    units: Any = None  # pipeline.units.Units of this run (the engine's; None: nothing is reused)
 
     def path(self, artifact_name: str) -> Path:
         """Where an output artifact's file goes."""
@@ -257,6 +269,17 @@ class RunContext:
         from .usdio import relative_asset_path
 
         return relative_asset_path(target, (self.final_dir or self.out_dir) / "layer.usda")
+
+    def unit(self, name: str, material: Any):
+        """A part of this run that later runs may reuse (pipeline.units):
+        `material` is everything the part depends on besides the stage's
+        code (a content digest of what it reads, the params it uses)."""
+        from .units import Units
+
+        if self.units is None:
+            self.units = Units(None, None, self.stage.name, {"stage": self.stage.name, "version": self.stage.version,
+                                                             "seed": self.seed if self.stage.uses_seed else None})
+        return self.units.unit(name, material)
 
     def resolve(self, project_path: str) -> Path:
         """The absolute path of a ProjectPath parameter (checked by the engine)."""

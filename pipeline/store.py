@@ -3,6 +3,7 @@
     build/artifacts/<stage>/<key>/   the files and manifest.json (written last)
     build/tmp/<stage>-<key>-<pid>/   a run in progress; renamed into place when whole
     build/worlds/<world>/            world.usda and manifest.json naming every key used
+    build/units/<stage>/<key>/       parts of runs a later run of the stage may reuse (pipeline.units)
 
 A folder under artifacts/ exists only once it is complete: runs write into
 build/tmp/ (same file system) and rename, so a killed run leaves nothing in
@@ -61,6 +62,7 @@ class Store:
         self.artifacts = self.build / "artifacts"
         self.tmp = self.build / "tmp"
         self.worlds = self.build / "worlds"
+        self.units = self.build / "units"  # pipeline.units: parts of runs that later runs reuse
         self.lock_path = self.build / "store.lock"
 
     @contextlib.contextmanager
@@ -187,17 +189,21 @@ class Store:
 
     def _gc(self, dry_run: bool = False) -> list[Path]:
         keep = self.referenced_keys()
+        # the units the kept runs used (a unit no kept run names is only a cache)
+        keep_units = {(stage, key) for stage, run_key in keep if self.has(stage, run_key)
+                      for key in self.manifest(stage, run_key).get("units", {}).values()}
         removed = []
-        if not self.artifacts.is_dir():
-            return removed
-        for stage_dir in sorted(self.artifacts.iterdir()):
-            for key_dir in sorted(stage_dir.iterdir()):
-                if (stage_dir.name, key_dir.name) not in keep:
-                    if not dry_run:
-                        shutil.rmtree(key_dir)
-                    removed.append(key_dir)
-            if not dry_run and not any(stage_dir.iterdir()):
-                stage_dir.rmdir()
+        for root, kept in ((self.artifacts, keep), (self.units, keep_units)):
+            if not root.is_dir():
+                continue
+            for stage_dir in sorted(root.iterdir()):
+                for key_dir in sorted(stage_dir.iterdir()):
+                    if (stage_dir.name, key_dir.name) not in kept:
+                        if not dry_run:
+                            shutil.rmtree(key_dir)
+                        removed.append(key_dir)
+                if not dry_run and not any(stage_dir.iterdir()):
+                    stage_dir.rmdir()
         if not dry_run:
             self.clean_stale()
         return removed

@@ -91,6 +91,17 @@ class Scene:
     texture: np.ndarray
     textures: np.ndarray = field(default_factory=lambda: np.ones((1, 1, 1, 4), np.float32))
 
+    def digest(self) -> str:
+        """sha256 of everything a render of the scene reads (what a cache of
+        its renders is keyed by)."""
+        import hashlib
+
+        h = hashlib.sha256()
+        for a in (self.positions, self.normals, self.uv, self.triangles, self.tint, self.texture, self.textures):
+            h.update(repr((a.dtype.str, a.shape)).encode())
+            h.update(np.ascontiguousarray(a).tobytes())
+        return h.hexdigest()
+
     def __post_init__(self):
         self.positions = np.ascontiguousarray(self.positions, np.float32).reshape(-1, 3)
         self.normals = np.ascontiguousarray(self.normals, np.float32).reshape(-1, 3)

@@ -38,6 +38,7 @@ write the layer.
 """
 from __future__ import annotations
 
+import json
 import math
 import time
 from pathlib import Path
@@ -194,8 +195,17 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
         ps = load_plant(plants_layer, plant_asset_prim(name))
     except (LookupError, FileNotFoundError) as e:
         raise InputError(f"impostors: {e}") from e
-    prepared = Prepared(ps.scene)
     layout = params.layouts.get(name, params.layout)
+    # everything this species' impostors depend on: a plant that did not change is not baked again when
+    # another species' did (the stage's key changes with the whole plants layer)
+    unit = ctx.unit(name, {"plant": ps.scene.digest(), "bounds": [ps.lo.tolist(), ps.hi.tolist()],
+                           "parts": ps.parts, "layout": layout,
+                           "params": {k: v for k, v in params.model_dump(mode="json").items()
+                                      if k not in ("layouts", "enabled")}})
+    saved = unit.restore(tex_dir)
+    if saved is not None:
+        return _from_saved(saved, {"load_s": time.perf_counter() - t0, "total_s": time.perf_counter() - t0})
+    prepared = Prepared(ps.scene)
     grass = "Blades" in ps.parts
     seed = (ctx.seed * 1_000_003 + sum(map(ord, name))) & 0xFFFFFFFF
     timings: dict[str, float] = {"load_s": time.perf_counter() - t0}
@@ -284,7 +294,7 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
                    "Jakulin's blend of the two slicings nearest the view's azimuth (w = 1 - |delta| / 60 deg)"},
     }
     files = {"atlas": f"{name}_atlas.exr", "atlas_png": f"{name}_atlas_albedo.png"}
-    attrs = {**ctx.provenance, "species": name, "impostor": info}
+    attrs = {**unit.provenance, "species": name, "impostor": info}
     images.write_exr(tex_dir / files["atlas"], at.levels, atlas.CHANNELS, attrs, float_channels=("depth.Z",))
     images.write_png(tex_dir / files["atlas_png"], at.straight_rgb, at.levels[0][..., 3])
     sheet_files = {}
@@ -292,23 +302,49 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
         stem = f"{name}_{sheet.name}"
         images.write_exr(tex_dir / f"{stem}.exr", [np.concatenate([sheet.rgba, sheet.normal], -1)],
                          ("albedo.R", "albedo.G", "albedo.B", "albedo.A", "normal.X", "normal.Y", "normal.Z"),
-                         {**ctx.provenance, "species": name, "tiles": {"rows": sheet.rows, "cols": sheet.cols,
+                         {**unit.provenance, "species": name, "tiles": {"rows": sheet.rows, "cols": sheet.cols,
                                                                          "tile_px": sheet.tile_px}})
         images.write_png(tex_dir / f"{stem}.png", sheet.rgba[..., :3], sheet.rgba[..., 3])
         # the material's normal input reads R, G, B: the normal alone, not the layered file's first channels
         images.write_exr(tex_dir / f"{stem}_normal.exr", [sheet.normal], ("R", "G", "B"),
-                         {**ctx.provenance, "species": name})
+                         {**unit.provenance, "species": name})
         sheet_files[sheet.name] = {"albedo": f"{stem}.png", "exr": f"{stem}.exr", "normal": f"{stem}_normal.exr"}
     card_files = {}
     for axis, (rgb, alpha) in cards.items():
         card_files[axis] = f"{name}_card_{axis}.png"
         images.write_png(tex_dir / card_files[axis], rgb, alpha)
     timings["total_s"] = time.perf_counter() - t0
-    return {"name": name, "info": info, "files": files, "sheets": sheets, "sheet_files": sheet_files,
-            "card_files": card_files, "lo": ps.lo, "hi": ps.hi, "grass": grass,
-            "switch_m": {"impostor": atlas_switch, "slices": slice_switch},
-            "error_m": {"impostor": atlas_error_m, "slices": slice_error_m, "atlas_texel": texel_m},
-            "timings": timings, "triangles": int(ps.scene.n_triangles)}
+    baked = {"name": name, "info": info, "files": files, "sheets": sheets, "sheet_files": sheet_files,
+             "card_files": card_files, "lo": ps.lo, "hi": ps.hi, "grass": grass,
+             "switch_m": {"impostor": atlas_switch, "slices": slice_switch},
+             "error_m": {"impostor": atlas_error_m, "slices": slice_error_m, "atlas_texel": texel_m},
+             "timings": timings, "triangles": int(ps.scene.n_triangles), "reused": False}
+    written = [*files.values(), *(f for v in sheet_files.values() for f in v.values()), *card_files.values()]
+    unit.save(tex_dir, written, _to_saved(baked))
+    return baked
+
+
+def _to_saved(baked: dict) -> dict:
+    """A species' bake as JSON (what the layer and the stats need of it; the
+    sheets' quads without their texels, which are in the files)."""
+    out = {k: v for k, v in baked.items() if k not in ("sheets", "lo", "hi", "timings", "reused")}
+    out["lo"], out["hi"] = [float(v) for v in baked["lo"]], [float(v) for v in baked["hi"]]
+    out["sheets"] = [{"name": sh.name, "rows": sh.rows, "cols": sh.cols, "tile_px": sh.tile_px,
+                      "positions": [np.asarray(q, np.float64).tolist() for q in sh.positions],
+                      "uvs": [np.asarray(q, np.float64).tolist() for q in sh.uvs], "tiles": [list(t) for t in sh.tiles]}
+                     for sh in baked["sheets"]]
+    return json.loads(json.dumps(out))  # plain JSON types only
+
+
+def _from_saved(saved: dict, timings: dict) -> dict:
+    baked = dict(saved)
+    baked["lo"], baked["hi"] = np.array(saved["lo"]), np.array(saved["hi"])
+    baked["sheets"] = [slices.Sheet(sh["name"], sh["rows"], sh["cols"], sh["tile_px"], np.zeros((0, 0, 4), np.float32),
+                                    np.zeros((0, 0, 3), np.float32), [np.array(q) for q in sh["positions"]],
+                                    [np.array(q) for q in sh["uvs"]], [tuple(t) for t in sh["tiles"]])
+                       for sh in saved["sheets"]]
+    baked["timings"], baked["reused"] = timings, True
+    return baked
 
 
 def run(ctx: RunContext, inputs: dict[str, Any], params: ImpostorsParams) -> dict[str, Path]:
@@ -322,6 +358,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ImpostorsParams) -> dic
     for k, name in enumerate(names):
         ctx.progress(k / max(len(names), 1), f"impostors: {name}")
         baked.append(_bake_species(ctx, name, plants_layer, params, tex_dir))
+        if baked[-1]["reused"]:
+            ctx.progress((k + 1) / max(len(names), 1), f"impostors: {name} unchanged, its impostors reused")
     stats = usd_layer.write(layer_path, ctx.provenance, baked, plants_layer, params)
     errors = []
     if baked:
@@ -333,7 +371,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ImpostorsParams) -> dic
     species = {b["name"]: {"error": b["info"]["error"], "slices_error": b["info"]["slices_error"],
                            "switch_m": b["switch_m"], "lod_switch_m": stats["lod_switch_m"].get(b["name"]),
                            "error_m": b["error_m"], "seconds": b["timings"], "triangles": b["triangles"],
-                           "frame_px": b["info"]["frame_px"], "layout": b["info"]["layout"]} for b in baked}
+                           "frame_px": b["info"]["frame_px"], "layout": b["info"]["layout"],
+                           "reused": b["reused"]} for b in baked}
     ctx.metrics.update({"species": species, "built": names,
                         "seconds": float(sum(b["timings"]["total_s"] for b in baked))})
     ctx.progress(1.0, "impostors: done")

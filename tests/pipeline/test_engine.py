@@ -188,8 +188,46 @@ def test_gc_keeps_referenced_artifacts(project):
     do_bake(project, path, sets=["assemble.label=two"])  # world w now points at the new assemble key
     store = Store(project / "build")
     assert len(list((store.artifacts / "assemble").iterdir())) == 2
-    removed = store.gc()
-    assert len(removed) == 1 and len(list((store.artifacts / "assemble").iterdir())) == 1
+    removed = store.gc()  # the first assemble run and the unit only it used
+    assert [p.parent.parent.name for p in removed] == ["artifacts", "units"]
+    assert len(list((store.artifacts / "assemble").iterdir())) == 1
+
+
+def test_a_unit_is_reused_across_runs_trusted_only_whole_and_collected_with_its_runs(project):
+    """A stage part whose material did not change is linked from the run
+    that made it, though the stage's key changed; a damaged unit is made
+    again; gc removes the units no kept run names."""
+    path = write(project, BASE)
+    store = Store(project / "build")
+    do_bake(project, path)
+    assert toy_stages.CALLS.count("assemble.label") == 1
+    first = json.loads((store.worlds / "w" / "manifest.json").read_text())
+
+    toy_stages.CALLS.clear()
+    statuses, _, _ = do_bake(project, path, sets=["source.size=9"])  # new terrain, same label
+    assert statuses["assemble"] == "ran" and "assemble" in toy_stages.CALLS
+    assert "assemble.label" not in toy_stages.CALLS
+    keys = {e["stage"]: e["key"] for e in json.loads((store.worlds / "w" / "manifest.json").read_text())["artifacts"]}
+    old_keys = {e["stage"]: e["key"] for e in first["artifacts"]}
+    assert keys["assemble"] != old_keys["assemble"]
+    units = store.manifest("assemble", keys["assemble"])["units"]
+    assert units == store.manifest("assemble", old_keys["assemble"])["units"]
+    assert (store.folder("assemble", keys["assemble"]) / "label.txt").read_text() == \
+        (store.folder("assemble", old_keys["assemble"]) / "label.txt").read_text()
+
+    unit_dir = store.units / "assemble" / units["label"]
+    (unit_dir / "label.txt").write_text("tampered\n")
+    toy_stages.CALLS.clear()
+    do_bake(project, path, sets=["source.size=10"])
+    assert "assemble.label" in toy_stages.CALLS  # not trusted: made again
+    assert (unit_dir / "label.txt").read_text().startswith("x ")
+
+    do_bake(project, path, sets=["assemble.label=two"])
+    assert len(list((store.units / "assemble").iterdir())) == 2
+    store.gc()
+    assert [p.name for p in (store.units / "assemble").iterdir()] == \
+        [store.manifest("assemble", e["key"])["units"]["label"]
+         for e in json.loads((store.worlds / "w" / "manifest.json").read_text())["artifacts"] if e["stage"] == "assemble"]
 
 
 def test_gc_refuses_or_waits_while_a_bake_holds_the_store(project):
@@ -201,7 +239,7 @@ def test_gc_refuses_or_waits_while_a_bake_holds_the_store(project):
         with pytest.raises(StoreBusy):
             store.gc(wait=False)
         assert len(list((store.artifacts / "assemble").iterdir())) == 2
-    assert len(store.gc(wait=False)) == 1
+    assert len([p for p in store.gc(wait=False) if p.parent.parent.name == "artifacts"]) == 1
 
 
 def test_gc_during_a_bake_leaves_the_bakes_result_intact(project, monkeypatch):

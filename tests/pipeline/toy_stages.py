@@ -63,6 +63,12 @@ def run_assemble(ctx, inputs, params):
         HOOKS["assemble"]()
     stage, _ = usdio.create_stage(ctx.path("assemble.root"), ctx.provenance)
     stage.GetRootLayer().Save()
+    # a part that depends on the label alone: reused while the terrain changes (pipeline.units)
+    unit = ctx.unit("label", {"label": params.label})
+    if unit.restore(ctx.out_dir) is None:
+        CALLS.append("assemble.label")
+        (ctx.out_dir / "label.txt").write_text(f"{params.label} {unit.provenance['unit_key']}\n")
+        unit.save(ctx.out_dir, ["label.txt"], {"label": params.label})
     return {"assemble.root": ctx.path("assemble.root"),
             "assemble.stats": {"mean": float(inputs["terrain"].data.mean()), "label": params.label}}
 
@@ -73,7 +79,7 @@ TOY = {
     "shift": Stage("shift", 1, "toy refinement", (Input("terrain", ("source.height",)),),
                    (Artifact("shift.height", "grid", "height.exr", channels=("height",), units="m"),), ShiftParams, run_shift, HERE),
     "assemble": Stage("assemble", 1, "toy world", (Input("terrain", ("shift.height", "source.height")),),
-                      (Artifact("assemble.root", "usd", "world.usda", shape="any", publish=True),
+                      (Artifact("assemble.root", "usd", "world.usda", shape="any", publish=True, beside=("label.txt",)),
                        Artifact("assemble.stats", "json", "stats.json", shape="any")),
                       AssembleParams, run_assemble, HERE),
 }

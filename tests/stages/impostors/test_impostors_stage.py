@@ -19,12 +19,12 @@ SMALL = {"frames": 6, "atlas_px": 256, "min_frame_px": 32, "small_plant_frame_px
          "slice_px": 32, "grass_slice_px": 32, "card_px": 32, "heldout_px": 48, "heldout_samples": 2, "heldout_stride": 54}
 
 
-def _run(folder: Path, plants: Path, placed, params=SMALL):
+def _run(folder: Path, plants: Path, placed, params=SMALL, units=None):
     folder.mkdir(parents=True, exist_ok=True)
     p = ImpostorsParams.model_validate(params)
     ctx = RunContext(stage=STAGE, key="test", out_dir=folder, seed=7,
                      provenance={"stage": "impostors", "version": 1, "key": "test", "params": canonical_params(p),
-                                 "seed": 7}, project_root=Path("."))
+                                 "seed": 7}, project_root=Path("."), units=units)
     inputs = {"plants": plants}
     if placed is not None:
         inputs["placed"] = {"placed": placed}
@@ -62,6 +62,41 @@ def test_unplaced_species_get_nothing(tmp_path, baked):
                     {**SMALL, "frames": 3, "atlas_px": 64, "min_frame_px": 8, "small_plant_frame_px": 8, "heldout_stride": 648})
     assert ctx.metrics["built"] == ["grass"]
     assert not list((tmp_path / "only_grass" / "textures").glob("tree_*"))
+
+
+def test_an_unchanged_plant_is_not_baked_again(tmp_path):
+    """The stage runs again when any plant changed (its key hashes the whole
+    plants layer), but a species whose plant did not change has its
+    impostors linked from its earlier bake: the same bytes a clean bake
+    writes, not baked again; a unit with an altered file is baked again."""
+    from pipeline.store import Store
+    from pipeline.units import Units
+
+    def run(folder, plants, build):
+        store = Store(build)
+        units = Units(store.units, store.tmp, "impostors", {"stage": "impostors", "version": 1, "seed": 7})
+        _, ctx = _run(folder, plants, ["tree", "grass"], units=units)
+        return ctx
+
+    def files(folder):
+        return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+    before, after = make_plants(tmp_path / "p1"), make_plants(tmp_path / "p2", leaves=240)  # the tree changed
+    reused = {n: s["reused"] for n, s in run(tmp_path / "r1", before, tmp_path / "build").metrics["species"].items()}
+    assert reused == {"grass": False, "tree": False}
+    ctx = run(tmp_path / "r2", after, tmp_path / "build")
+    assert {n: s["reused"] for n, s in ctx.metrics["species"].items()} == {"grass": True, "tree": False}
+    grass = {f: b for f, b in files(tmp_path / "r1").items() if "grass_" in f}
+    assert grass and all(files(tmp_path / "r2")[f] == b for f, b in grass.items())
+    clean = run(tmp_path / "clean", after, tmp_path / "clean_build")
+    assert all(not s["reused"] for s in clean.metrics["species"].values())
+    assert files(tmp_path / "r2") == files(tmp_path / "clean")  # layer, stats, textures: history leaves no trace
+
+    unit = tmp_path / "build" / "units" / "impostors" / ctx.units.used["grass"]
+    (unit / "grass_atlas.exr").write_bytes(b"not an exr")
+    again = run(tmp_path / "r3", after, tmp_path / "build")
+    assert {n: s["reused"] for n, s in again.metrics["species"].items()} == {"grass": False, "tree": True}
+    assert files(tmp_path / "r3") == files(tmp_path / "clean")
 
 
 def test_held_out_error_is_measured_and_plausible(baked):

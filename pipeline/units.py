@@ -1,0 +1,130 @@
+"""Parts of a stage run that a later run of the same stage may reuse
+(trimesh-style content-hash caching, one level below the stage's key).
+
+A stage's key changes when any of its inputs does: a plants layer with one
+species changed gives the impostors stage a new key, yet the other species'
+impostors depend only on their own plant. A stage names such a part a unit
+and describes what it depends on (`material`: the content digest of what
+it reads, the params it uses); the engine keys it with the stage's code
+(name, version, source digest, libraries, seed) and keeps its files in
+
+    build/units/<stage>/<unit key>/   the files and unit.json (written last)
+
+so a run whose unit key exists links the files instead of making them.
+
+Trust: unit.json lists every file's sha256 and is checked on restore; a
+unit with a missing or altered file is made again, never used. Files made
+in a unit must carry only `Unit.provenance` (the unit's key, not the run's),
+so a run that reuses a unit writes the same bytes as a clean run. The run's
+manifest names the units it used; gc keeps those and removes the rest.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import sys
+from pathlib import Path
+from typing import Any
+
+UNIT_MANIFEST = "unit.json"
+UNIT_KEY_LENGTH = 20
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    """A hard link (artifacts are never modified in place), a copy across
+    file systems."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    dst.unlink(missing_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
+
+
+class Unit:
+    """One reusable part of a run. Without a store (a stage run outside a
+    bake, as in the stage tests) it is never cached and save() keeps nothing."""
+
+    def __init__(self, name: str, key: str, provenance: dict[str, Any], folder: Path | None, tmp: Path | None):
+        self.name, self.key, self.provenance = name, key, provenance
+        self.folder, self._tmp = folder, tmp
+        self.reused = False
+
+    def restore(self, dest: Path) -> Any | None:
+        """Link the unit's files into dest and return the result it saved;
+        None when there is no whole, unaltered unit of this key."""
+        if self.folder is None or not (self.folder / UNIT_MANIFEST).is_file():
+            return None
+        try:
+            saved = json.loads((self.folder / UNIT_MANIFEST).read_text())
+            files = saved["files"]
+            for rel, digest in files.items():
+                if _sha256(self.folder / rel) != digest:
+                    raise ValueError(f"{rel} does not match its digest")
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            print(f"worldbake: unit {self.folder} is damaged ({e}); making it again", file=sys.stderr, flush=True)
+            shutil.rmtree(self.folder, ignore_errors=True)
+            return None
+        for rel in files:
+            _link_or_copy(self.folder / rel, dest / rel)
+        self.reused = True
+        return saved["result"]
+
+    def save(self, src: Path, files: list[str], result: Any) -> None:
+        """Keep `files` (paths relative to src) and the JSON-able result
+        under the unit's key: written to a temporary folder, renamed when whole."""
+        if self.folder is None or (self.folder / UNIT_MANIFEST).is_file():
+            return
+        work = self._tmp / f"unit-{self.folder.parent.name}-{self.key}-{os.getpid()}"
+        shutil.rmtree(work, ignore_errors=True)
+        work.mkdir(parents=True)
+        try:
+            digests = {}
+            for rel in sorted(files):
+                _link_or_copy(src / rel, work / rel)
+                digests[rel] = _sha256(work / rel)
+            (work / UNIT_MANIFEST).write_text(json.dumps(
+                {"unit": self.name, "key": self.key, "provenance": self.provenance, "files": digests,
+                 "result": result}, indent=1, sort_keys=True) + "\n")
+            self.folder.parent.mkdir(parents=True, exist_ok=True)
+            shutil.rmtree(self.folder, ignore_errors=True)  # a damaged one restore() did not remove
+            try:
+                os.rename(work, self.folder)
+            except OSError:
+                if not (self.folder / UNIT_MANIFEST).is_file():  # not a concurrent twin that won the race
+                    raise
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+
+
+class Units:
+    """The units of one stage run: keys from the stage's code material and
+    each unit's own; `used` names every unit the run asked for (its manifest
+    keeps them from gc)."""
+
+    def __init__(self, root: Path | None, tmp: Path | None, stage: str, code_material: dict[str, Any]):
+        self.root, self.tmp, self.stage = root, tmp, stage
+        self.code_material = code_material
+        self.used: dict[str, str] = {}
+
+    def unit(self, name: str, material: Any) -> Unit:
+        if name in self.used:
+            raise ValueError(f"stage {self.stage}: unit {name!r} asked for twice in one run")
+        text = json.dumps({"code": self.code_material, "unit": name, "material": material}, sort_keys=True,
+                          separators=(",", ":"))
+        key = hashlib.sha256(text.encode()).hexdigest()[:UNIT_KEY_LENGTH]
+        self.used[name] = key
+        provenance = {"stage": self.stage, "version": self.code_material.get("version"), "unit": name, "unit_key": key,
+                      "seed": self.code_material.get("seed")}
+        folder = self.root / self.stage / key if self.root is not None else None
+        return Unit(name, key, provenance, folder, self.tmp)
