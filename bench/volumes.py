@@ -39,7 +39,7 @@ def _picture(path: Path, images: list[tuple[np.ndarray, np.ndarray]]) -> None:
 def main(argv=None) -> None:
     from pipeline.render.usd_asset import load_asset
     from stages.volumes import error
-    from stages.volumes.stage import VolumesParams, volume_species
+    from stages.volumes.stage import VolumesParams, load_species, volume_species
     from stages.volumes.voxelize import backend
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -62,7 +62,8 @@ def main(argv=None) -> None:
                                    error_views=4, samples_per_voxel=a.samples_per_voxel)
             with tempfile.TemporaryDirectory() as tmp:
                 t = time.perf_counter()
-                rep, chain = volume_species(name, folder / f"{name}.usdc", params, Path(tmp), {"stage": "bench"})
+                rep, chain = volume_species(name, load_species(name, folder / f"{name}.usdc", params), params, Path(tmp),
+                                            {"stage": "bench"})
                 wall = time.perf_counter() - t
             w = rep["wood"]["relative_error"]
             for e in rep["levels"]:

@@ -16,7 +16,9 @@ the woody solid's checks, each LOD's triangles, Hausdorff error and times.
 from __future__ import annotations
 
 import functools
+import json
 import os
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -294,10 +296,34 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: PlantsParams) -> dict[s
         names = [n for n in names if n in placed["placed"]]
         metrics["not_placed"] = [n for n in params.build if n not in placed["placed"]]
         metrics["placed_without_shape"] = [n for n in placed["placed"] if n not in params.build]
-    costs = {n: _species_cost(n, params.species[n], ctx.seed, params.max_modules) for n in names}
-    job = functools.partial(_job_by_name, species=params.species, seed=ctx.seed, cfg=cfg, out_dir=out_dir, top=top,
-                            provenance=dict(ctx.provenance), params=params)
-    done = _run_jobs(names, job, costs, ctx.progress)
+    # A species is a unit (pipeline.units): one whose shape and the stage's settings did not change is linked
+    # from its earlier build when another species' change re-runs the stage.
+    shared = {k: v for k, v in params.model_dump(mode="json").items() if k not in ("species", "build", "enabled")}
+    units = {n: ctx.unit(n, {"species": params.species[n].model_dump(mode="json"), "params": shared}) for n in names}
+    done: dict[str, tuple] = {}
+    for name in names:
+        saved = units[name].restore(out_dir)
+        if saved is not None:
+            done[name] = (name, {**saved["metrics"], "reused": True}, saved["file"], saved["lods"])
+            ctx.progress(len(done) / max(len(names), 1), f"plants: {name} unchanged, reused")
+    todo = [n for n in names if n not in done]
+    costs = {n: _species_cost(n, params.species[n], ctx.seed, params.max_modules) for n in todo}
+    # each species is made in a folder of its own (the same layout as out_dir), so its files are known
+    staging = out_dir / ".species"
+    job = functools.partial(_job_by_name, species=params.species, seed=ctx.seed, cfg=cfg, staging=staging,
+                            provenances={n: units[n].provenance for n in todo}, params=params)
+    made = _run_jobs(todo, job, costs, ctx.progress)
+    for name in todo:
+        folder = staging / name
+        made_files = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file())
+        for rel in made_files:
+            (out_dir / rel).parent.mkdir(parents=True, exist_ok=True)
+            os.replace(folder / rel, out_dir / rel)
+        _, species_metrics, file, lods = made[name]
+        units[name].save(out_dir, made_files, json.loads(json.dumps(
+            {"metrics": species_metrics, "file": file, "lods": lods}, default=_json_scalar)))
+        done[name] = (name, {**species_metrics, "reused": False}, file, lods)
+    shutil.rmtree(staging, ignore_errors=True)
     for name in names:  # in the build order, whichever process made them
         _, species_metrics, file, lods = done[name]
         files[name] = file
@@ -314,8 +340,18 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: PlantsParams) -> dict[s
     return {"plants.assets": top}
 
 
-def _job_by_name(name: str, species: dict, **kw) -> tuple:
-    return _species_job(name, species[name], **kw)
+def _job_by_name(name: str, species: dict, staging: Path, provenances: dict, **kw) -> tuple:
+    folder = staging / name
+    folder.mkdir(parents=True, exist_ok=True)
+    return _species_job(name, species[name], out_dir=folder, top=folder / "plants.usda", provenance=provenances[name],
+                        **kw)
+
+
+def _json_scalar(value):
+    """numpy scalars in a species' metrics as JSON numbers."""
+    if hasattr(value, "item"):
+        return value.item()
+    raise TypeError(f"{type(value).__name__} is not JSON")
 
 
 def check(params: PlantsParams, ctx: CheckContext) -> Check:

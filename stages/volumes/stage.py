@@ -82,15 +82,19 @@ def _manifold_volume(scene, wood: np.ndarray) -> float | None:
     return float(solid.volume())
 
 
-def volume_species(name: str, usdc: Path, params: VolumesParams, out_dir: Path,
-                   provenance: dict) -> tuple[dict, list[volume.VolumeLevel]]:
-    """One species: its levels written beside the layer; returns its report and levels."""
-    t0 = time.perf_counter()
+def load_species(name: str, usdc: Path, params: VolumesParams):
+    """The asset level that is voxelized (LOD `lod`, else LOD0)."""
     levels = load_asset(usdc, levels=[params.lod]) or load_asset(usdc, levels=[0])
     asset = levels[0]
     if asset.scene.n_triangles == 0:
         raise StageError(f"volumes: the asset of {name} has no triangles")
-    t_load = time.perf_counter() - t0
+    return asset
+
+
+def volume_species(name: str, asset, params: VolumesParams, out_dir: Path,
+                   provenance: dict, t_load: float = 0.0) -> tuple[dict, list[volume.VolumeLevel]]:
+    """One species: its levels written beside the layer; returns its report and levels."""
+    t0 = time.perf_counter() - t_load
     t = time.perf_counter()
     vox = voxelize(asset.scene, asset.parts, params.voxels, params.mip_levels, params.samples_per_voxel,
                    use_opencl=params.use_opencl, solid_sub=params.solid_columns)
@@ -170,7 +174,22 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VolumesParams) -> dict[
     reports, chains = {}, {}
     for i, name in enumerate(names):
         ctx.progress(i / max(len(names), 1), f"volumes: {name}")
-        reports[name], chains[name] = volume_species(name, folder / f"{name}.usdc", params, ctx.out_dir, ctx.provenance)
+        t0 = time.perf_counter()
+        asset = load_species(name, folder / f"{name}.usdc", params)
+        # a species is a unit (pipeline.units): an asset that did not change is not voxelized again when
+        # another species' did
+        unit = ctx.unit(name, {"asset": asset.scene.digest(), "parts": "\n".join(map(str, asset.parts)),
+                               "params": {k: v for k, v in params.model_dump(mode="json").items() if k != "enabled"}})
+        saved = unit.restore(ctx.out_dir)
+        if saved is not None:
+            reports[name] = {**saved, "reused": True}
+            chains[name] = [volume.read_atlas(ctx.out_dir / e["file"]) for e in saved["levels"]]
+            continue
+        reports[name], chains[name] = volume_species(name, asset, params, ctx.out_dir, unit.provenance,
+                                                     time.perf_counter() - t0)
+        unit.save(ctx.out_dir, [f for e in reports[name]["levels"] for f in (e["file"], e.get("vdb")) if f],
+                  json.loads(json.dumps(reports[name])))
+        reports[name]["reused"] = False
         drift = max(e["mean_density_drift"] for e in reports[name]["levels"])
         if drift > 1e-6:
             raise StageError(f"volumes: {name}: the mips change the mean coverage by {drift:.2e} (relative)")

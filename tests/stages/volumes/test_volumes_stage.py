@@ -26,11 +26,12 @@ BUSH = {"build": ["bush"], "hausdorff_samples": 1000, "lod_count": 1,
         "species": {"bush": {"preset": "shrub", "lsystem": {"iterations": 3}}}}
 
 
-def _run(stage, params, inputs, out: Path):
+def _run(stage, params, inputs, out: Path, units=None):
     out.mkdir(parents=True, exist_ok=True)
     ctx = RunContext(stage=stage, key="test", out_dir=out, seed=1,
                      provenance={"stage": stage.name, "version": stage.version, "key": "test",
-                                 "params": canonical_params(params), "seed": "none"}, project_root=Path("."))
+                                 "params": canonical_params(params), "seed": "none"}, project_root=Path("."),
+                     units=units)
     return stage.run(ctx, inputs, params), ctx
 
 
@@ -46,6 +47,29 @@ def volumes(plants, tmp_path_factory):
     out, ctx = _run(STAGE, params, {"plants": plants, "placed": {"placed": ["bush", "oak"]}},
                     tmp_path_factory.mktemp("volumes"))
     return out, ctx
+
+
+def test_an_unchanged_asset_is_not_voxelized_again(plants, tmp_path):
+    """A later run (another species changed) links the volumes of an asset
+    that did not change: the same bytes a clean run writes."""
+    from pipeline.store import Store
+    from pipeline.units import Units
+
+    params = VolumesParams(voxels=16, mip_levels=2, error_view_pixels=32)
+    inputs = {"plants": plants, "placed": {"placed": ["bush"]}}
+
+    def run(out, build):
+        store = Store(build)
+        return _run(STAGE, params, inputs, out, Units(store.units, store.tmp, "volumes", {"stage": "volumes"}))[0]
+
+    def files(folder):
+        return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
+
+    first = run(tmp_path / "a", tmp_path / "build")
+    second = run(tmp_path / "b", tmp_path / "build")
+    assert not first["volumes.stats"]["species"]["bush"]["reused"]
+    assert second["volumes.stats"]["species"]["bush"]["reused"]
+    assert files(tmp_path / "a") == files(tmp_path / "b")
 
 
 def test_only_placed_species_with_an_asset_get_volumes(plants, volumes, tmp_path):
