@@ -4,6 +4,7 @@ part of `make test`).
     python -m bench.impostors                      # every placed species of the newest plants artifact, the full sweep
     python -m bench.impostors --species conifer --frames 16 --atlas 1024 --out bench/out/impostors.png
     python -m bench.impostors --agreement          # the bake's cheap held-out measure against the whole 5-degree set
+    python -m bench.impostors --pictures bench/out/impostors   # mesh, impostor, slices side by side per species
 
 Sweep: for each species of a plants layer (the newest build/artifacts/plants
 run, or --plants PATH; --species to choose) and every combination of frames
@@ -18,7 +19,7 @@ One size for every setting, so the rows compare. The settings run cheapest
 first (atlas side, then frames, then species), so a sweep stopped early
 still covers every species. It prints one row per species and setting
 (bake seconds wall and CPU: the machine may be shared, frame size, median and worst PSNR and IoU, median depth
-RMSE, worst view) and plots bake seconds against median IoU and PSNR (PNG,
+RMSE, worst view) and plots bake CPU seconds against median IoU and PSNR (PNG,
 --out, redrawn after every row).
 
 --agreement: per species, the stage's default atlas (its frame size,
@@ -128,6 +129,68 @@ def agreement(plants: list, args, defaults) -> None:
                   f"{time.perf_counter() - t0:7.1f}", flush=True)
 
 
+PICTURE_VIEWS = ((35.0, 0.0), (35.0, 30.0), (215.0, 55.0), (125.0, 80.0))  # held-out (azimuth, elevation)
+BACKGROUND = np.array([0.78, 0.83, 0.9])
+
+
+def pictures(plants: list, out_dir: Path, defaults, scale: int) -> None:
+    """Per species a PNG: one row per view of PICTURE_VIEWS, columns the mesh
+    (6x6 samples), the impostor (the stage's default atlas, 3-frame blend),
+    the slices blended as seed 002's shader does, the slices as a USD viewer
+    draws them (every quad, alpha-tested), and the alpha masks at 0.5 of
+    mesh and impostor (white both, red the mesh only, blue the impostor
+    only); every view at the frame's size, enlarged `scale` times."""
+    from pipeline import exr
+    from pipeline.render import Prepared, Settings
+    from stages.impostors import atlas, heldout, octahedral, sampler, slices
+    from stages.impostors.stage import plant_frame_px
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for plant in plants:
+        layout = defaults.layouts.get(plant.name, defaults.layout)
+        px = plant_frame_px(plant.ps.radius, plant.height, defaults)
+        at = atlas.build(plant.prepared, plant.ps.centre, plant.ps.radius, defaults.frames, defaults.atlas_px, layout,
+                         defaults.samples, defaults.ao_rays, defaults.padding_px, seed=1, ao_radius=defaults.ao_radius,
+                         frame_px=px)
+        grass = "Blades" in plant.ps.parts
+        slice_px = min(defaults.slice_px, max(px // 2, 8))
+        sheets = ([*slices.grass_slices(plant.prepared, defaults.grass_slice_px, defaults.samples)] if grass
+                  else [slices.tree_slices(plant.prepared, defaults.slice_slabs, slice_px, defaults.samples)])
+        drawn = Prepared(slices.sheet_scene(sheets))
+        rows_of = {} if grass else {r: Prepared(slices.sheet_scene(sheets, rows=(r,))) for r in range(sheets[0].rows)}
+        settings = Settings(px, px, samples=defaults.heldout_samples)
+
+        def over(rgba):
+            return rgba[..., :3] + (1.0 - rgba[..., 3:4]) * BACKGROUND
+
+        def rgba_of(img):
+            return np.concatenate([img.albedo, img.alpha[..., None]], -1)
+
+        grid = []
+        for az, el in PICTURE_VIEWS:
+            d = octahedral.view_direction(az, el)
+            mesh, _ = plant.reference(az, el, px, defaults.heldout_samples)
+            imp = sampler.render_view(at, d, px, defaults.depth_steps).rgba
+            cam, _ = heldout.view_camera(d, plant.ps.centre, plant.ps.radius)
+            drawn_rgba = rgba_of(drawn.render(cam, settings))
+            blend = drawn_rgba if grass else sum(w * rgba_of(rows_of[r].render(cam, settings))
+                                                 for r, w in slices.slicing_weights(d))
+            ma, ia = mesh[..., 3] >= 0.5, imp[..., 3] >= 0.5
+            mask = np.zeros((px, px, 3))
+            mask[ma & ia] = 1.0
+            mask[ma & ~ia] = (1.0, 0.15, 0.1)
+            mask[~ma & ia] = (0.1, 0.3, 1.0)
+            grid.append(np.concatenate([over(mesh), over(imp), over(blend), over(drawn_rgba), mask], 1))
+        img = np.concatenate(grid, 0)
+        img = np.repeat(np.repeat(img, scale, 0), scale, 1)
+        srgb = np.where(img <= 0.0031308, 12.92 * img, 1.055 * np.clip(img, 0, 1) ** (1 / 2.4) - 0.055)
+        path = out_dir / f"{plant.name}_mesh_impostor_slices.png"
+        exr.write_png(path, np.round(np.clip(srgb, 0, 1) * 255).astype(np.uint8))
+        print(f"{path}: rows (azimuth, elevation) {', '.join(f'({a:.0f}, {e:.0f})' for a, e in PICTURE_VIEWS)}; "
+              f"columns mesh, impostor ({defaults.frames}x{defaults.frames} {layout}, {px} px frames), slices "
+              f"blended, slices as drawn, masks (white both, red mesh only, blue impostor only)", flush=True)
+
+
 def main() -> None:
     from stages.impostors import atlas, heldout
     from stages.impostors.stage import ImpostorsParams
@@ -146,6 +209,8 @@ def main() -> None:
     ap.add_argument("--full-px", type=int, default=0, help="--agreement: size of the full set's views (0: the frame's)")
     ap.add_argument("--full-samples", type=int, default=4)
     ap.add_argument("--out", type=Path, default=Path("bench/out/impostors.png"))
+    ap.add_argument("--pictures", type=Path, default=None, help="write mesh / impostor / slices pictures here instead")
+    ap.add_argument("--scale", type=int, default=3, help="--pictures: enlargement of the frame-sized views")
     args = ap.parse_args()
     layer = args.plants or newest_plants_layer()
     from pxr import Sdf
@@ -157,6 +222,9 @@ def main() -> None:
     plants = {n: Plant(layer, n) for n in names}
     if args.agreement:
         agreement(list(plants.values()), args, defaults)
+        return
+    if args.pictures:
+        pictures(list(plants.values()), args.pictures, defaults, args.scale)
         return
     print(f"plants layer {layer}; species {', '.join(names)}; samples {defaults.samples}^2, "
           f"AO rays {defaults.ao_rays}; "
@@ -175,17 +243,19 @@ def main() -> None:
         s = plant.measure(at, heldout.lattice(layout, args.stride), args.view_px, args.reference_samples,
                           defaults.depth_steps)
         print(_row(name, layout, frames, atlas_px, at.frame_px, bake_s, bake_cpu_s, s), flush=True)
-        rows.append((name, layout, frames, atlas_px, bake_s, s))
-        _plot(rows, args.out)  # after every row: a long sweep stopped early still leaves its picture
+        rows.append((name, layout, frames, atlas_px, bake_cpu_s, s))
+        caption = _plot(rows, args.out)  # after every row: a long sweep stopped early still leaves its picture
+    if rows:
+        print(caption)
 
 
 COLOURS = [(0.85, 0.3, 0.2), (0.2, 0.55, 0.85), (0.25, 0.7, 0.3), (0.8, 0.6, 0.1), (0.6, 0.3, 0.75)]
 
 
-def _plot(rows, out: Path) -> None:
+def _plot(rows, out: Path) -> str:
     """Two panels drawn with numpy (no plotting library in the project):
     left median IoU (0.5 .. 1), right median PSNR (15 .. 45 dB), both against
-    log10 bake seconds (the printed range); one colour per species, squares
+    log10 bake CPU seconds (the printed range); one colour per species, squares
     for octahedral, crosses for hemi, bigger marks for bigger atlases; grey
     lines at IoU 0.9 and 25 dB."""
     from pipeline import exr
@@ -214,8 +284,8 @@ def _plot(rows, out: Path) -> None:
                     img[np.clip(y - d, 0, H - 1), np.clip(x + d, 0, 2 * W - 1)] = c
     out.parent.mkdir(parents=True, exist_ok=True)
     exr.write_png(out, np.round(img * 255).astype(np.uint8))
-    print(f"plot: {out} (x: log10 bake s from {t0:.2f} to {t1:.2f}; left median IoU 0.5..1, right median PSNR "
-          f"15..45 dB; colours {', '.join(species)}; squares octahedral, crosses hemi, size ~ atlas)")
+    return (f"plot: {out} (x: log10 bake CPU s from {t0:.2f} to {t1:.2f}; left median IoU 0.5..1, right median PSNR "
+            f"15..45 dB; colours {', '.join(species)}; squares octahedral, crosses hemi, size ~ atlas)")
 
 
 if __name__ == "__main__":

@@ -11,8 +11,9 @@ Per species, in the artifact's textures/:
                              bounding sphere, the held-out error
   <species>_atlas_albedo.png sRGB copy of the albedo (straight alpha, padded)
   <species>_slices.exr/.png  slice billboards (slices.py): seed 002's 3
-                             orientations x front/back x N slabs for trees and
-                             shrubs; for grass seed 001's 4 vertical plates
+                             vertical orientations and a horizontal one (the
+                             views from above) x front/back x N slabs for trees
+                             and shrubs; for grass seed 001's 4 vertical plates
                              (<species>_tuft) and the top slice (<species>_tuft_top)
   <species>_card_{x,y,z}{pos,neg}.png  the six axis views of USD's cards draw mode
 impostors.usda (usd_layer.py): overs on the plants layer's /Plants/<species>
@@ -33,7 +34,9 @@ the measured error then sets the switch distances as before.
 Steps (run): read the asset's LOD0 into a render scene
 (pipeline.render.usd_asset, the reader every USD picture shares); bake the atlas;
 measure it from held-out views (heldout.py, sampler.py); bake the slices and
-measure them the same way; render the cards; derive the switch distances;
+measure them the same way, blended as seed 002's shader does and all at once
+as a USD viewer draws the Impostor prim (the slices' switch distance holds
+for the worse of the two); render the cards; derive the switch distances;
 write the layer.
 """
 from __future__ import annotations
@@ -256,6 +259,16 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
         return rgba, np.where(rgba[..., 3] > 0, depth / np.maximum(rgba[..., 3], 1e-12), np.inf)
 
     slice_errors = heldout.summarize(references.measure(slice_view), height)
+    # What a USD viewer draws of the Impostor prim: every quad at once, alpha-tested at 0.5 (the
+    # material's opacityThreshold), the nearest wins (so each slab pair shows its viewer's side); no blend.
+    drawn = billboards[None] if grass else Prepared(slices.sheet_scene(sheets))
+
+    def drawn_view(d):
+        cam, _ = heldout.view_camera(d, ps.centre, ps.radius)
+        img = drawn.render(cam, view_settings)
+        return np.concatenate([img.albedo, img.alpha[..., None]], -1), img.depth
+
+    drawn_errors = slice_errors if grass else heldout.summarize(references.measure(drawn_view), height)
     timings["slices_error_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -263,12 +276,14 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
     cards = usd_layer.card_views(prepared, ps.lo, ps.hi, card_px, params.samples)
     timings["cards_s"] = time.perf_counter() - t
 
-    for summary in (atlas_errors, slice_errors):
+    for summary in (atlas_errors, slice_errors, drawn_errors):
         for key in ("psnr_db", "alpha_iou"):
             if summary.get("views") and not math.isfinite(summary[key]["median"]):
                 raise StageError(f"impostors: {name}: the held-out {key} is not finite")
     atlas_error_m = _silhouette_error_m(atlas_errors, ps, view_px) if atlas_errors.get("views") else 0.0
-    slice_error_m = _silhouette_error_m(slice_errors, ps, view_px) if slice_errors.get("views") else 0.0
+    # the slices' distance holds for both ways of drawing them: the worse of the two
+    slice_error_m = max((_silhouette_error_m(e, ps, view_px) for e in (slice_errors, drawn_errors) if e.get("views")),
+                        default=0.0)
     texel_m = 2.0 * ps.radius / at.frame_px
     # an impostor is no sharper than its texels: it is used where they are at most a pixel too
     atlas_switch = switch_distance_m(max(atlas_error_m, texel_m), params)
@@ -287,11 +302,14 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
         "slice_px": slice_px, "card_px": card_px,
         "frame_px_from": f"the bounding sphere's diameter in pixels at {params.impostor_distance_m} m on a "
                          f"{params.screen_px} px, {params.screen_fov_deg} deg screen",
-        "error": atlas_errors, "slices_error": slice_errors,
-        "slices": {"kind": "grass tuft (seed 001)" if grass else "3 orientations x front/back x slabs (seed 002)",
+        "error": atlas_errors, "slices_error": slice_errors, "slices_drawn_error": drawn_errors,
+        "slices": {"kind": "grass tuft (seed 001)" if grass else "3 vertical orientations (seed 002) and 1 horizontal x front/back x slabs",
                    "slabs": None if grass else params.slice_slabs,
                    "error_measured_as": "the five quads together" if grass else
-                   "Jakulin's blend of the two slicings nearest the view's azimuth (w = 1 - |delta| / 60 deg)"},
+                   "Jakulin's blend of the two vertical slicings nearest the view's azimuth (w = 1 - |delta| / 60 "
+                   "deg), handing over to the horizontal slicing from 30 to 60 deg of elevation (smoothstep)",
+                   "drawn_error_measured_as": "every quad at once, alpha-tested at 0.5, nearest first: what a USD "
+                   "viewer draws of the Impostor prim"},
     }
     files = {"atlas": f"{name}_atlas.exr", "atlas_png": f"{name}_atlas_albedo.png"}
     attrs = {**unit.provenance, "species": name, "impostor": info}
@@ -369,6 +387,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ImpostorsParams) -> dic
     if errors:
         raise StageError("impostors: the layer fails USD validation: " + "; ".join(errors[:10]))
     species = {b["name"]: {"error": b["info"]["error"], "slices_error": b["info"]["slices_error"],
+                           "slices_drawn_error": b["info"]["slices_drawn_error"],
                            "switch_m": b["switch_m"], "lod_switch_m": stats["lod_switch_m"].get(b["name"]),
                            "error_m": b["error_m"], "seconds": b["timings"], "triangles": b["triangles"],
                            "frame_px": b["info"]["frame_px"], "layout": b["info"]["layout"],

@@ -173,6 +173,14 @@ def test_slicing_blend_weights_and_slab_spacing():
     assert max(facing, key=lambda rw: rw[1]) == (2, pytest.approx(1.0))  # orientation 1, front
     back = slices.slicing_weights(octahedral.view_direction(300.0, 0.0))
     assert max(back, key=lambda rw: rw[1]) == (3, pytest.approx(1.0))  # orientation 1, back
+    # from above the horizontal slicing seen from above (row 6), from below the one seen from below
+    assert slices.slicing_weights(octahedral.view_direction(10.0, 80.0)) == [(6, 1.0)]
+    assert slices.slicing_weights(octahedral.view_direction(10.0, -80.0)) == [(7, 1.0)]
+    between = dict(slices.slicing_weights(octahedral.view_direction(120.0, 45.0)))
+    assert between[6] == pytest.approx(0.5) and between[2] == pytest.approx(0.5)
+    for el in np.arange(-90.0, 90.1, 5.0):
+        w = slices.slicing_weights(octahedral.view_direction(37.0, el))
+        assert sum(x for _, x in w) == pytest.approx(1.0) and all(x >= 0.0 for _, x in w)
     rng = np.random.default_rng(4)
     pts = rng.normal(size=(200, 3))
     for d in rng.normal(size=(50, 3)):  # seed 002's sanity check: spacing = extent / N along any direction, > 0

@@ -102,7 +102,7 @@ def test_an_unchanged_plant_is_not_baked_again(tmp_path):
 def test_held_out_error_is_measured_and_plausible(baked):
     _, _, out, ctx = baked
     for name, s in ctx.metrics["species"].items():
-        for which in ("error", "slices_error"):
+        for which in ("error", "slices_error", "slices_drawn_error"):
             e = s[which]
             assert 0.0 <= e["alpha_iou"]["min"] <= e["alpha_iou"]["median"] <= 1.0
             assert e["psnr_db"]["median"] > 15.0, (name, which, e)
