@@ -5,6 +5,7 @@ part of `make test`).
     python -m bench.impostors --species conifer --frames 16 --atlas 1024 --out bench/out/impostors.png
     python -m bench.impostors --agreement          # the bake's cheap held-out measure against the whole 5-degree set
     python -m bench.impostors --pictures bench/out/impostors   # mesh, impostor, slices side by side per species
+    python -m bench.impostors --popping            # how much the impostor jumps between 1-degree steps, against the mesh
 
 Sweep: for each species of a plants layer (the newest build/artifacts/plants
 run, or --plants PATH; --species to choose) and every combination of frames
@@ -191,6 +192,40 @@ def pictures(plants: list, out_dir: Path, defaults, scale: int) -> None:
               f"blended, slices as drawn, masks (white both, red mesh only, blue impostor only)", flush=True)
 
 
+def popping(plants: list, defaults, elevations=(10.0, 40.0, 70.0), span_deg: int = 60) -> None:
+    """Seams and popping between blended frames (seed 002's temporal measure):
+    the stage's default atlas seen along a sweep of 1-degree azimuth steps at
+    a few elevations, each step's mean absolute change of premultiplied RGBA
+    per pixel, for the impostor and for the mesh (6x6 samples), at the
+    frame's size. mean ratio: impostor / mesh over the sweep (1: the
+    impostor changes as smoothly as the mesh); worst jump: the largest
+    single step of the impostor over the mesh's mean step (a frame switch
+    that pops shows here)."""
+    from stages.impostors import atlas, octahedral, sampler
+    from stages.impostors.stage import plant_frame_px
+
+    print(f"popping: 1-degree azimuth steps over {span_deg} deg at elevations {', '.join(f'{e:.0f}' for e in elevations)}; "
+          f"views at the frame's size, the mesh with {defaults.heldout_samples}^2 samples")
+    print(f"{'species':14s} {'el':>4s} {'mesh step':>9s} {'imp step':>9s} {'mean ratio':>10s} {'worst jump':>10s}")
+    for plant in plants:
+        layout = defaults.layouts.get(plant.name, defaults.layout)
+        px = plant_frame_px(plant.ps.radius, plant.height, defaults)
+        at = atlas.build(plant.prepared, plant.ps.centre, plant.ps.radius, defaults.frames, defaults.atlas_px, layout,
+                         defaults.samples, defaults.ao_rays, defaults.padding_px, seed=1, ao_radius=defaults.ao_radius,
+                         frame_px=px)
+        for el in elevations:
+            mesh, imp = [], []
+            for az in range(span_deg + 1):
+                rgba, _ = plant.reference(float(az), el, px, defaults.heldout_samples)
+                mesh.append(rgba.astype(np.float64))
+                imp.append(sampler.render_view(at, octahedral.view_direction(float(az), el), px,
+                                               defaults.depth_steps).rgba.astype(np.float64))
+            dm = np.array([np.abs(b - a).mean() for a, b in zip(mesh, mesh[1:])])
+            di = np.array([np.abs(b - a).mean() for a, b in zip(imp, imp[1:])])
+            print(f"{plant.name:14s} {el:4.0f} {dm.mean():9.5f} {di.mean():9.5f} {di.mean() / dm.mean():10.3f} "
+                  f"{di.max() / dm.mean():10.3f}", flush=True)
+
+
 def main() -> None:
     from stages.impostors import atlas, heldout
     from stages.impostors.stage import ImpostorsParams
@@ -211,6 +246,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("bench/out/impostors.png"))
     ap.add_argument("--pictures", type=Path, default=None, help="write mesh / impostor / slices pictures here instead")
     ap.add_argument("--scale", type=int, default=3, help="--pictures: enlargement of the frame-sized views")
+    ap.add_argument("--popping", action="store_true", help="measure seams and popping between frames instead")
     args = ap.parse_args()
     layer = args.plants or newest_plants_layer()
     from pxr import Sdf
@@ -222,6 +258,9 @@ def main() -> None:
     plants = {n: Plant(layer, n) for n in names}
     if args.agreement:
         agreement(list(plants.values()), args, defaults)
+        return
+    if args.popping:
+        popping(list(plants.values()), defaults)
         return
     if args.pictures:
         pictures(list(plants.values()), args.pictures, defaults, args.scale)
