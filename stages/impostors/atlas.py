@@ -243,3 +243,55 @@ def sample_frame(level_img: np.ndarray, frame_px: int, i, j, x, y) -> np.ndarray
     t01 = level_img[oy + y1, ox + x0]
     t11 = level_img[oy + y1, ox + x1]
     return (t00 * (1 - fx) + t10 * fx) * (1 - fy) + (t01 * (1 - fx) + t11 * fx) * fy
+
+
+def cutout_polygon(alpha: np.ndarray, vertices: int = 8) -> np.ndarray:
+    """The cut-out polygon of the frames (Amplify's 8-vertex billboard
+    shape): a convex polygon of at most `vertices` corners, in frame uv
+    (0..1, v down like the frame's rows), that contains every texel any
+    frame covers (alpha (n, F, F) > 0) and the texels next to them, so an engine drawing the impostor
+    on it instead of the square discards no covered texel and shades fewer
+    empty ones. From the convex hull of the covered texels' corners, the
+    edge whose removal adds the least area (its neighbours extended to meet)
+    is removed while more than `vertices` corners remain and the meeting
+    point stays inside the frame. Counter-clockwise in (u, v)."""
+    from scipy.spatial import ConvexHull
+
+    from scipy import ndimage
+
+    n, f, _ = alpha.shape
+    # one texel of margin: a bilinear fetch half a texel outside a covered texel still reads it
+    covered = ndimage.binary_dilation((alpha > 0).any(0), iterations=1)
+    if not covered.any():
+        return np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    rows, cols = np.nonzero(covered)
+    corners = np.concatenate([np.stack([cols + dx, rows + dy], 1) for dx in (0, 1) for dy in (0, 1)]).astype(np.float64)
+    hull = ConvexHull(corners)
+    poly = [p for p in corners[hull.vertices] / f]  # counter-clockwise (scipy's order in 2-D)
+
+    def meet(i: int):
+        """Where the edges before and after edge (i, i+1) meet, and the area that adds."""
+        m = len(poly)
+        a, b, c, d = poly[(i - 1) % m], poly[i], poly[(i + 1) % m], poly[(i + 2) % m]
+        r, s = b - a, d - c
+        den = r[0] * s[1] - r[1] * s[0]
+        if abs(den) < 1e-12:
+            return None, math.inf
+        t = ((c - a)[0] * s[1] - (c - a)[1] * s[0]) / den
+        if t < 1.0 - 1e-9:  # the extended edges meet behind: removing the edge would cut into the hull
+            return None, math.inf
+        x = a + t * r
+        if (x < -1e-9).any() or (x > 1.0 + 1e-9).any():
+            return None, math.inf
+        area = 0.5 * abs((c - b)[0] * (x - b)[1] - (c - b)[1] * (x - b)[0])
+        return x, area
+
+    while len(poly) > vertices:
+        best = min(range(len(poly)), key=lambda i: meet(i)[1])
+        x, area = meet(best)
+        if x is None:
+            break
+        m = len(poly)
+        poly[best] = x
+        del poly[(best + 1) % m]
+    return np.asarray(poly)

@@ -180,6 +180,11 @@ def switch_distance_m(error_m: float, params: ImpostorsParams) -> float:
     return error_m / (params.error_px * pixel_at_1m(params))
 
 
+def _polygon_area(poly: np.ndarray) -> float:
+    x, y = poly[:, 0], poly[:, 1]
+    return float(0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y)))
+
+
 def _silhouette_error_m(summary: dict, ps, size: int) -> float:
     """The median silhouette displacement of a held-out set, in metres: the
     mismatched share of the view (1 - IoU) over the plant's outline, taken as
@@ -217,6 +222,7 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
     frame_px = plant_frame_px(ps.radius, float(ps.hi[1] - ps.lo[1]), params)
     at = atlas.build(prepared, ps.centre, ps.radius, params.frames, params.atlas_px, layout, params.samples,
                      params.ao_rays, params.padding_px, seed, ao_radius=params.ao_radius, frame_px=frame_px)
+    cutout = atlas.cutout_polygon(atlas._frames_view(at.levels[0], params.frames, at.frame_px)[..., 3])
     timings["atlas_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -299,6 +305,11 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
                      "set": "azimuth every 5 deg x elevation every 10 deg (0..80 hemi, -80..80 octahedral)",
                      "stride": params.heldout_stride,
                      "kept": "view (azimuth index i, elevation index e) where (i + 4 e) mod stride = 0"},
+        "cutout": {"uv": [[round(float(u), 6), round(float(v), 6)] for u, v in cutout],
+                   "area_fraction": round(_polygon_area(cutout), 6),
+                   "space": "frame uv, u to the right and v down over one frame (0..1), counter-clockwise in (u, v)",
+                   "what": "a convex polygon of at most 8 corners holding every covered texel of every frame (and "
+                           "the texels next to them): draw the billboard on it instead of the square"},
         "slice_px": slice_px, "card_px": card_px,
         "frame_px_from": f"the bounding sphere's diameter in pixels at {params.impostor_distance_m} m on a "
                          f"{params.screen_px} px, {params.screen_fov_deg} deg screen",

@@ -162,6 +162,28 @@ def test_the_sampler_reads_the_mip_level_of_its_view_size():
     np.testing.assert_allclose(between.rgba, (1 - frac) * level0.rgba + frac * level1.rgba, atol=1e-5)
 
 
+def test_the_cutout_polygon_holds_every_covered_texel_in_at_most_8_corners():
+    rng = np.random.default_rng(11)
+    f = 48
+    yy, xx = np.mgrid[0:f, 0:f]
+    crown = ((xx - 22) ** 2 / 300.0 + (yy - 20) ** 2 / 380.0 < 1.0)
+    trunk = (np.abs(xx - 22) <= 1) & (yy > 30)
+    frames = np.stack([crown | trunk, rng.random((f, f)) < 0.003, np.zeros((f, f), bool)]).astype(np.float32)
+    poly = atlas.cutout_polygon(frames)
+    assert 3 <= len(poly) <= 8 and (poly >= -1e-9).all() and (poly <= 1 + 1e-9).all()
+    rows, cols = np.nonzero((frames > 0).any(0))
+    corners = np.concatenate([np.stack([cols + dx, rows + dy], 1) for dx in (0, 1) for dy in (0, 1)]) / f
+    for a, b in zip(poly, np.roll(poly, -1, 0)):  # every corner on the inner side of every edge
+        cross = (b[0] - a[0]) * (corners[:, 1] - a[1]) - (b[1] - a[1]) * (corners[:, 0] - a[0])
+        assert (cross >= -1e-9).all()
+    area = 0.5 * abs(np.dot(poly[:, 0], np.roll(poly[:, 1], -1)) - np.dot(np.roll(poly[:, 0], -1), poly[:, 1]))
+    assert area < 1.0
+    only_crown = atlas.cutout_polygon(crown[None].astype(np.float32))
+    area = 0.5 * abs(np.dot(only_crown[:, 0], np.roll(only_crown[:, 1], -1)) -
+                     np.dot(np.roll(only_crown[:, 0], -1), only_crown[:, 1]))
+    assert area < 0.75  # an ellipse in its frame: a quarter or more of the square is not drawn
+
+
 def test_slicing_blend_weights_and_slab_spacing():
     from stages.impostors import slices
 
