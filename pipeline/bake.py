@@ -118,16 +118,6 @@ def plan_bake(graph: Graph, config: WorldConfig) -> list[PlannedStep]:
     return planned
 
 
-def grid_content_hash(grid: Grid) -> str:
-    """The values a grid holds, without the file's provenance header (which
-    names the producer's key, so equal pixels would never compare equal)."""
-    h = hashlib.sha256()
-    h.update(json.dumps([list(grid.channels), list(grid.data.shape), grid.data.dtype.str, grid.cell_size_m,
-                         list(grid.origin_m)]).encode())
-    h.update(np.ascontiguousarray(grid.data).tobytes())
-    return h.hexdigest()
-
-
 def artifact_content_hash(manifest: dict, artifact: Artifact, producer: Stage) -> str:
     """What a consumer of `artifact` reads, as one hash: the content hash the
     engine recorded when writing it (grids: the values; json: the canonical
@@ -328,7 +318,7 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
                 exr.write_grid(target, grid, {**provenance, "units": units})
                 # the file's order (OpenEXR sorts channels by name), not the order the stage made them in
                 meta.update(channels=exr.channel_names(target), channel_units=units, shape=list(grid.shape),
-                            cell_size_m=grid.cell_size_m, content=grid_content_hash(grid))
+                            cell_size_m=grid.cell_size_m, content=grid.content_hash())
             elif art.kind == "image":
                 exr.write_png(target, value)
             elif art.kind == "json":

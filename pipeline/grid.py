@@ -33,6 +33,19 @@ class Grid:
     def shape(self) -> tuple[int, int]:
         return self.data.shape[0], self.data.shape[1]
 
+    def content_hash(self) -> str:
+        """sha256 of the values the grid holds and its geometry (not of a
+        file's header, which names the producer's key: equal pixels would
+        never compare equal)."""
+        import hashlib
+        import json
+
+        h = hashlib.sha256()
+        h.update(json.dumps([list(self.channels), list(self.data.shape), self.data.dtype.str, self.cell_size_m,
+                             list(self.origin_m)]).encode())
+        h.update(np.ascontiguousarray(self.data).tobytes())
+        return h.hexdigest()
+
     @property
     def size_m(self) -> tuple[float, float]:
         """(width east-west, depth north-south) in metres."""

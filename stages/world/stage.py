@@ -164,8 +164,12 @@ def write_terrain_layer(path: Path, height: Grid, texture: str, params: WorldPar
 GROUND_TILE_THREADS = 2  # UDIM tiles baked at once (each holds about 40 B a texel at its peak)
 
 
+# what the ground textures read of the params (the unit's key; the rest shapes the layers only)
+GROUND_PARAMS = ("texture_size", "ground_texel_m", "ground_tile_texels", "mesh_max_vertices")
+
+
 def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, params: WorldParams, albedo_path: Path,
-                          folder: Path) -> tuple[tuple[str, int], str]:
+                          folder: Path, provenance: dict) -> tuple[tuple[str, int], str]:
     """The ground from the splat weights (ground.py): albedo.exr (the whole
     world at texture_size, for overviews), UDIM albedo tiles ground.<UDIM>.exr
     at ground_texel_m and normal.exr from the height, beside the terrain layer."""
@@ -187,13 +191,13 @@ def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, param
     texel_m = size_m / (tiles * texels)
     n = params.texture_size
     overview = GroundAlbedo(splat, ground.detail_tables(ctx.seed, size_m / n))
-    exr.write_mipmapped_texture(albedo_path, overview.tile(dx, height.origin_m, 1, n, 0, 0, size_m / n), ctx.provenance)
+    exr.write_mipmapped_texture(albedo_path, overview.tile(dx, height.origin_m, 1, n, 0, 0, size_m / n), provenance)
     del overview
     baker = GroundAlbedo(splat, ground.detail_tables(ctx.seed, texel_m))
 
     def write_tile(udim: int, tile: np.ndarray) -> int:
         # zip level 1: 20 % less CPU than the default level for 5 % more bytes (the write is the tile's cost)
-        exr.write_mipmapped_texture(folder / f"ground.{udim}.exr", tile, ctx.provenance, compression="zip:1")
+        exr.write_mipmapped_texture(folder / f"ground.{udim}.exr", tile, provenance, compression="zip:1")
         return udim
 
     # the device bakes a tile in a fraction of its write (box mips, half floats, zip): writes overlap in threads,
@@ -220,7 +224,7 @@ def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, param
     ri = np.interp(np.arange(rows), lattice_coordinates(rows, nr), np.arange(nr))
     ci = np.interp(np.arange(cols), lattice_coordinates(cols, nc), np.arange(nc))
     mesh_h = bilinear(lattice, ri, ci)
-    exr.write_mipmapped_texture(folder / "normal.exr", ground.normal_map(h, mesh_h, dx), ctx.provenance)
+    exr.write_mipmapped_texture(folder / "normal.exr", ground.normal_map(h, mesh_h, dx), provenance)
     ctx.metrics.update(ground_udim_tiles=tiles * tiles, ground_texel_m=texel_m, ground_tile_texels=texels)
     return ("./ground.<UDIM>.exr", tiles), "./normal.exr"
 
@@ -265,7 +269,24 @@ def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
     if splat_grid is None:
         exr.write_texture(albedo_path, ground_colour(height, params.texture_size, params), ctx.provenance)
     else:
-        udim, normal_file = write_ground_textures(ctx, height, splat_grid, params, albedo_path, terrain_path.parent)
+        # the ground textures (most of this stage's time and bytes) are a unit (pipeline.units): a world
+        # re-made for its plants, impostors or volumes links them from the run that baked them
+        unit = ctx.unit("ground", {"height": height.content_hash(), "splat": splat_grid.content_hash(), "seed": ctx.seed,
+                                   "params": {k: getattr(params, k) for k in GROUND_PARAMS}})
+        saved = unit.restore(terrain_path.parent)
+        if saved is not None:
+            udim, normal_file = (saved["udim"][0], saved["udim"][1]), saved["normal"]
+            ctx.metrics.update(saved["metrics"], ground_reused=True)
+        else:
+            metrics_before = set(ctx.metrics)
+            udim, normal_file = write_ground_textures(ctx, height, splat_grid, params, albedo_path,
+                                                      terrain_path.parent, unit.provenance)
+            folder = terrain_path.parent
+            files = [albedo_path.name, normal_file.removeprefix("./")] + sorted(
+                p.name for p in folder.glob("ground.*.exr"))
+            unit.save(folder, files, {"udim": list(udim), "normal": normal_file,
+                                      "metrics": {k: v for k, v in ctx.metrics.items() if k not in metrics_before}})
+            ctx.metrics["ground_reused"] = False
 
     ctx.progress(0.8, "terrain mesh")
     ctx.metrics.update(write_terrain_layer(terrain_path, height, "./" + albedo_path.name, params, ctx.provenance,
@@ -328,4 +349,5 @@ STAGE = Stage(
     source_dir=Path(__file__).parent,
     shared_params=("mesh_max_vertices",),
     uses_opencl=True,  # the ground albedo tiles (ground.cl)
+    uses_seed=True,  # the ground's detail noise (ground.detail_tables)
 )

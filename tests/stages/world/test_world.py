@@ -153,6 +153,33 @@ def test_ground_material_udim_tiles_and_normal_map(tmp_path):
     assert (ramp[..., 0] < 0.5).all() and np.allclose(ramp[..., 1], 0.5)
 
 
+def test_the_ground_textures_are_reused_while_terrain_and_splat_do_not_change(tmp_path):
+    """A world re-made for its plants (another layer changed, same terrain
+    and splat) links the ground textures from the run that baked them: the
+    same bytes as a clean run; a new splat bakes them again."""
+    from pipeline.store import Store
+    from pipeline.units import Units
+
+    terrain, splat = _terrain(), _splat(*_terrain().shape)
+    params = STAGE.params(mesh_max_vertices=17, texture_size=32, ground_texel_m=2.0, ground_tile_texels=256)
+
+    def run(out, build, splat_grid, roughness=0.9):
+        store = Store(build)
+        ctx = RunContext(stage=STAGE, key="k", out_dir=out, seed=0, provenance={"stage": "world", "key": "k"},
+                         project_root=tmp_path, units=Units(store.units, store.tmp, "world", {"stage": "world"}))
+        out.mkdir(parents=True)
+        STAGE.run(ctx, {"terrain": terrain, "splat": splat_grid}, params.model_copy(update={"roughness": roughness}))
+        return ctx.metrics["ground_reused"], {p.name: p.read_bytes() for p in sorted(out.glob("*.exr"))}
+
+    first = run(tmp_path / "a", tmp_path / "build", splat)
+    again = run(tmp_path / "b", tmp_path / "build", splat, roughness=0.5)  # only the layer changes
+    clean = run(tmp_path / "c", tmp_path / "clean", splat, roughness=0.5)
+    assert (first[0], again[0], clean[0]) == (False, True, False)
+    assert again[1] == clean[1] == first[1] and len(first[1]) == 6  # overview, normal map, 4 UDIM tiles
+    other = run(tmp_path / "d", tmp_path / "build", _splat(*terrain.shape, seed=4))
+    assert other[0] is False and other[1]["ground.1001.exr"] != first[1]["ground.1001.exr"]
+
+
 def test_mipmapped_texture_levels_are_box_means(tmp_path):
     import OpenImageIO as oiio
 
