@@ -150,8 +150,9 @@ def _cmd_gc(args) -> int:
     verb = "would remove" if args.dry_run else "removed"
     for p in removed:
         print(f"{verb} {p}")
-    print(f"{len(removed)} unreferenced artifact folders " + ("would be removed (dry run: nothing removed)"
-                                                              if args.dry_run else "removed"))
+    units = sum(1 for p in removed if p.parent.parent == store.units)
+    print(f"{len(removed) - units} unreferenced artifact folders and {units} unused units "
+          + ("would be removed (dry run: nothing removed)" if args.dry_run else "removed"))
     return 0
 
 

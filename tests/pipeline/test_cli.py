@@ -186,7 +186,7 @@ def test_gc_removes_only_unreferenced(project):
     bake_json(project)
     bake_json(project, "--set", "world.roughness=0.3", "--replace")
     out = worldbake(project, "gc")
-    assert "1 unreferenced artifact folders removed" in out.stdout
+    assert "1 unreferenced artifact folders and 0 unused units removed" in out.stdout  # the ground unit serves both
     assert set(plan_json(project, "--set", "world.roughness=0.3").values()) == {"cached"}
 
 
