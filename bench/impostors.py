@@ -77,6 +77,17 @@ class Plant:
             self.references[key] = (np.concatenate([m.albedo, m.alpha[..., None]], -1), m.depth)
         return self.references[key]
 
+    def default_atlas(self, defaults):
+        """The atlas the stage bakes of this plant at `defaults` (its layout, its frame size)."""
+        from stages.impostors import atlas
+        from stages.impostors.stage import plant_frame_px
+
+        layout = defaults.layouts.get(self.name, defaults.layout)
+        px = plant_frame_px(self.ps.radius, self.height, defaults)
+        return atlas.build(self.prepared, self.ps.centre, self.ps.radius, defaults.frames, defaults.atlas_px, layout,
+                           defaults.samples, defaults.ao_rays, defaults.padding_px, seed=1,
+                           ao_radius=defaults.ao_radius, frame_px=px)
+
     def measure(self, at, views, px: int, samples: int, depth_steps: int) -> dict:
         from stages.impostors import heldout, octahedral, sampler
 
@@ -104,8 +115,7 @@ HEADER = (f"{'species':14s} {'layout':10s} {'frames':>6s} {'atlas':>5s} {'frame'
 
 def agreement(plants: list, args, defaults) -> None:
     """The bake's measure (lattice at the frame's size) against the whole set."""
-    from stages.impostors import atlas, heldout
-    from stages.impostors.stage import plant_frame_px
+    from stages.impostors import heldout
 
     full = f"{args.full_px} px" if args.full_px else "the frame's size"
     print(f"agreement: the stage's default atlas of each species; cheap = lattice 1/{defaults.heldout_stride} at the "
@@ -115,11 +125,8 @@ def agreement(plants: list, args, defaults) -> None:
           f"{'PSNR min':>8s} {'seconds':>7s}")
     for plant in plants:
         layout = defaults.layouts.get(plant.name, defaults.layout)
-        frame_px = plant_frame_px(plant.ps.radius, plant.height, defaults)
-        at = atlas.build(plant.prepared, plant.ps.centre, plant.ps.radius, defaults.frames, defaults.atlas_px, layout,
-                         defaults.samples, defaults.ao_rays, defaults.padding_px, seed=1, ao_radius=defaults.ao_radius,
-                         frame_px=frame_px)
-        view_px = min(frame_px, defaults.heldout_px)
+        at = plant.default_atlas(defaults)
+        view_px = min(at.frame_px, defaults.heldout_px)
         for label, views, px, samples in (
                 ("cheap", heldout.lattice(layout, defaults.heldout_stride), view_px, defaults.heldout_samples),
                 ("full", heldout.lattice(layout, 1), args.full_px or view_px, args.full_samples)):
@@ -143,16 +150,13 @@ def pictures(plants: list, out_dir: Path, defaults, scale: int) -> None:
     only); every view at the frame's size, enlarged `scale` times."""
     from pipeline import exr
     from pipeline.render import Prepared, Settings
-    from stages.impostors import atlas, heldout, octahedral, sampler, slices
-    from stages.impostors.stage import plant_frame_px
+    from stages.impostors import heldout, octahedral, sampler, slices
 
     out_dir.mkdir(parents=True, exist_ok=True)
     for plant in plants:
         layout = defaults.layouts.get(plant.name, defaults.layout)
-        px = plant_frame_px(plant.ps.radius, plant.height, defaults)
-        at = atlas.build(plant.prepared, plant.ps.centre, plant.ps.radius, defaults.frames, defaults.atlas_px, layout,
-                         defaults.samples, defaults.ao_rays, defaults.padding_px, seed=1, ao_radius=defaults.ao_radius,
-                         frame_px=px)
+        at = plant.default_atlas(defaults)
+        px = at.frame_px
         grass = "Blades" in plant.ps.parts
         slice_px = min(defaults.slice_px, max(px // 2, 8))
         sheets = ([*slices.grass_slices(plant.prepared, defaults.grass_slice_px, defaults.samples)] if grass
@@ -201,18 +205,14 @@ def popping(plants: list, defaults, elevations=(10.0, 40.0, 70.0), span_deg: int
     impostor changes as smoothly as the mesh); worst jump: the largest
     single step of the impostor over the mesh's mean step (a frame switch
     that pops shows here)."""
-    from stages.impostors import atlas, octahedral, sampler
-    from stages.impostors.stage import plant_frame_px
+    from stages.impostors import octahedral, sampler
 
     print(f"popping: 1-degree azimuth steps over {span_deg} deg at elevations {', '.join(f'{e:.0f}' for e in elevations)}; "
           f"views at the frame's size, the mesh with {defaults.heldout_samples}^2 samples")
     print(f"{'species':14s} {'el':>4s} {'mesh step':>9s} {'imp step':>9s} {'mean ratio':>10s} {'worst jump':>10s}")
     for plant in plants:
-        layout = defaults.layouts.get(plant.name, defaults.layout)
-        px = plant_frame_px(plant.ps.radius, plant.height, defaults)
-        at = atlas.build(plant.prepared, plant.ps.centre, plant.ps.radius, defaults.frames, defaults.atlas_px, layout,
-                         defaults.samples, defaults.ao_rays, defaults.padding_px, seed=1, ao_radius=defaults.ao_radius,
-                         frame_px=px)
+        at = plant.default_atlas(defaults)
+        px = at.frame_px
         for el in elevations:
             mesh, imp = [], []
             for az in range(span_deg + 1):

@@ -227,17 +227,6 @@ class CheckContext:
     project_root: Path
     inputs: dict[str, GridInfo]  # role -> size of each grid input the plan gives it
 
-    def unit(self, name: str, material: Any):
-        """A part of this run that later runs may reuse (pipeline.units):
-        `material` is everything the part depends on besides the stage's
-        code (a content digest of what it reads, the params it uses)."""
-        from .units import Units
-
-        if self.units is None:
-            self.units = Units(None, None, self.stage.name, {"stage": self.stage.name, "version": self.stage.version,
-                                                             "seed": self.seed if self.stage.uses_seed else None})
-        return self.units.unit(name, material)
-
     def resolve(self, project_path: str) -> Path:
         return self.project_root / project_path
 

@@ -28,16 +28,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from .store import sha256_file
+
 UNIT_MANIFEST = "unit.json"
 UNIT_KEY_LENGTH = 20
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _link_or_copy(src: Path, dst: Path) -> None:
@@ -69,7 +63,7 @@ class Unit:
             saved = json.loads((self.folder / UNIT_MANIFEST).read_text())
             files = saved["files"]
             for rel, digest in files.items():
-                if _sha256(self.folder / rel) != digest:
+                if sha256_file(self.folder / rel) != digest:
                     raise ValueError(f"{rel} does not match its digest")
         except (OSError, ValueError, KeyError, TypeError) as e:
             print(f"worldbake: unit {self.folder} is damaged ({e}); making it again", file=sys.stderr, flush=True)
@@ -92,7 +86,7 @@ class Unit:
             digests = {}
             for rel in sorted(files):
                 _link_or_copy(src / rel, work / rel)
-                digests[rel] = _sha256(work / rel)
+                digests[rel] = sha256_file(work / rel)
             (work / UNIT_MANIFEST).write_text(json.dumps(
                 {"unit": self.name, "key": self.key, "provenance": self.provenance, "files": digests,
                  "result": result}, indent=1, sort_keys=True) + "\n")
