@@ -69,8 +69,13 @@ class Unit:
             print(f"worldbake: unit {self.folder} is damaged ({e}); making it again", file=sys.stderr, flush=True)
             shutil.rmtree(self.folder, ignore_errors=True)
             return None
-        for rel in files:
-            _link_or_copy(self.folder / rel, dest / rel)
+        try:
+            for rel in files:
+                _link_or_copy(self.folder / rel, dest / rel)
+        except OSError:  # gone meanwhile (gc, or a concurrent bake replacing a damaged unit): make it
+            for rel in files:  # links to the unit's files must not be written through
+                (dest / rel).unlink(missing_ok=True)
+            return None
         self.reused = True
         return saved["result"]
 
@@ -91,7 +96,9 @@ class Unit:
                 {"unit": self.name, "key": self.key, "provenance": self.provenance, "files": digests,
                  "result": result}, indent=1, sort_keys=True) + "\n")
             self.folder.parent.mkdir(parents=True, exist_ok=True)
-            shutil.rmtree(self.folder, ignore_errors=True)  # a damaged one restore() did not remove
+            if (self.folder / UNIT_MANIFEST).is_file():  # a concurrent bake made it meanwhile: keep theirs
+                return
+            shutil.rmtree(self.folder, ignore_errors=True)  # a half folder no one completes
             try:
                 os.rename(work, self.folder)
             except OSError:
