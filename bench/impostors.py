@@ -292,27 +292,49 @@ COLOURS = [(0.85, 0.3, 0.2), (0.2, 0.55, 0.85), (0.25, 0.7, 0.3), (0.8, 0.6, 0.1
 
 
 def _plot(rows, out: Path) -> str:
-    """Two panels drawn with numpy (no plotting library in the project):
-    left median IoU (0.5 .. 1), right median PSNR (15 .. 45 dB), both against
-    log10 bake CPU seconds (the printed range); one colour per species, squares
-    for octahedral, crosses for hemi, bigger marks for bigger atlases; grey
-    lines at IoU 0.9 and 25 dB."""
-    from pipeline import exr
+    """Two panels drawn with numpy and OpenImageIO's text (no plotting
+    library in the project): left median IoU (0.5 .. 1), right median PSNR
+    (15 .. 45 dB), both against bake CPU seconds on a log axis; one colour
+    per species, squares for octahedral, crosses for hemi, bigger marks for
+    bigger atlases; grey lines at IoU 0.9 and 25 dB; labelled axes and a
+    legend."""
+    import OpenImageIO as oiio
 
-    W, H, pad = 420, 320, 30
-    img = np.ones((H, 2 * W, 3))
+    W, H, left, right, top, bottom = 460, 360, 52, 12, 28, 44
+    img = np.ones((H + 40, 2 * W, 3))
     t = np.log10([max(r[4], 1e-3) for r in rows])
     t0, t1 = float(t.min()) - 0.1, float(t.max()) + 0.1
     species = sorted({r[0] for r in rows})
-    for panel, (key, lo, hi, line) in enumerate((("alpha_iou", 0.5, 1.0, 0.9), ("psnr_db", 15.0, 45.0, 25.0))):
+    texts = []  # (x, y, text, size, colour)
+
+    def xpix(x0, tr):
+        return int(x0 + left + (tr - t0) / (t1 - t0) * (W - left - right))
+
+    for panel, (key, lo, hi, line, label, ticks) in enumerate((
+            ("alpha_iou", 0.5, 1.0, 0.9, "median held-out IoU", (0.5, 0.6, 0.7, 0.8, 0.9, 1.0)),
+            ("psnr_db", 15.0, 45.0, 25.0, "median held-out PSNR, dB", (15, 20, 25, 30, 35, 40, 45)))):
         x0 = panel * W
-        img[pad:H - pad, x0 + pad] = 0.0
-        img[H - pad, x0 + pad:x0 + W - pad] = 0.0
-        ly = int(H - pad - (line - lo) / (hi - lo) * (H - 2 * pad))
-        img[ly, x0 + pad:x0 + W - pad] = 0.6
+
+        def ypix(v):
+            return int(H - bottom - (np.clip(v, lo, hi) - lo) / (hi - lo) * (H - top - bottom))
+
+        img[top:H - bottom + 1, x0 + left] = 0.0
+        img[H - bottom, x0 + left:x0 + W - right] = 0.0
+        img[ypix(line), x0 + left + 1:x0 + W - right] = 0.6
+        for v in ticks:
+            img[ypix(v), x0 + left - 4:x0 + left] = 0.0
+            texts.append((x0 + 4, ypix(v) + 5, f"{v:g}", 13, (0, 0, 0)))
+        for dec in range(int(np.floor(t0)), int(np.ceil(t1)) + 1):
+            for m in (1, 2, 5):
+                tr = dec + np.log10(m)
+                if t0 <= tr <= t1:
+                    img[H - bottom:H - bottom + (5 if m == 1 else 3), xpix(x0, tr)] = 0.0
+                    if m in (1, 2, 5):
+                        texts.append((xpix(x0, tr) - 6, H - bottom + 18, f"{10 ** tr:g}", 13, (0, 0, 0)))
+        texts.append((x0 + left + 4, top - 10, label, 15, (0, 0, 0)))
+        texts.append((x0 + left + 90, H - 8, "bake CPU seconds (log)", 14, (0, 0, 0)))
         for r, tr in zip(rows, t):
-            x = int(x0 + pad + (tr - t0) / (t1 - t0) * (W - 2 * pad))
-            y = int(H - pad - (np.clip(r[5][key]["median"], lo, hi) - lo) / (hi - lo) * (H - 2 * pad))
+            x, y = xpix(x0, tr), ypix(r[5][key]["median"])
             c = COLOURS[species.index(r[0]) % len(COLOURS)]
             k = 1 + r[3] // 1024
             if r[1] == "octahedral":
@@ -321,10 +343,24 @@ def _plot(rows, out: Path) -> str:
                 for d in range(-k - 1, k + 2):
                     img[np.clip(y + d, 0, H - 1), np.clip(x + d, 0, 2 * W - 1)] = c
                     img[np.clip(y - d, 0, H - 1), np.clip(x + d, 0, 2 * W - 1)] = c
+    lx = left
+    for i, name in enumerate(species):
+        c = COLOURS[i % len(COLOURS)]
+        img[H + 14:H + 24, lx:lx + 10] = c
+        texts.append((lx + 14, H + 24, name, 14, c))
+        lx += 30 + 8 * len(name)
+    texts.append((lx + 10, H + 24, "square: octahedral, cross: hemi; mark size: atlas 1024 / 2048 / 4096", 13,
+                  (0, 0, 0)))
+    buf = oiio.ImageBuf(np.ascontiguousarray(img, np.float32))
+    for x, y, text, size, colour in texts:
+        oiio.ImageBufAlgo.render_text(buf, int(x), int(y), text, int(size), "", tuple(float(v) for v in colour))
     out.parent.mkdir(parents=True, exist_ok=True)
-    exr.write_png(out, np.round(img * 255).astype(np.uint8))
-    return (f"plot: {out} (x: log10 bake CPU s from {t0:.2f} to {t1:.2f}; left median IoU 0.5..1, right median PSNR "
-            f"15..45 dB; colours {', '.join(species)}; squares octahedral, crosses hemi, size ~ atlas)")
+    pixels = np.round(np.clip(np.asarray(buf.get_pixels(oiio.FLOAT)), 0, 1) * 255).astype(np.uint8)
+    from pipeline import exr
+
+    exr.write_png(out, pixels)
+    return (f"plot: {out} (x: bake CPU s, log, {10 ** t0:.3g} to {10 ** t1:.3g}; left median IoU 0.5..1, right "
+            f"median PSNR 15..45 dB; colours {', '.join(species)}; squares octahedral, crosses hemi, size ~ atlas)")
 
 
 if __name__ == "__main__":
