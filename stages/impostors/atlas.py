@@ -81,6 +81,10 @@ class Atlas:
     straight_rgb: np.ndarray  # (atlas_px, atlas_px, 3) straight linear albedo, padded (the PNG copy)
     directions: np.ndarray  # (frames, frames, 3) [row j, column i]
 
+    def frame_alpha(self) -> np.ndarray:
+        """(frames * frames, F, F) level-0 coverage of every frame."""
+        return _frames_view(self.levels[0], self.frames, self.frame_px)[..., 3]
+
     def frame(self, i: int, j: int, level: int = 0) -> np.ndarray:
         f = self.frame_px >> level
         return self.levels[level][j * f:(j + 1) * f, i * f:(i + 1) * f]

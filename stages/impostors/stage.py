@@ -222,7 +222,7 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
     frame_px = plant_frame_px(ps.radius, float(ps.hi[1] - ps.lo[1]), params)
     at = atlas.build(prepared, ps.centre, ps.radius, params.frames, params.atlas_px, layout, params.samples,
                      params.ao_rays, params.padding_px, seed, ao_radius=params.ao_radius, frame_px=frame_px)
-    cutout = atlas.cutout_polygon(atlas._frames_view(at.levels[0], params.frames, at.frame_px)[..., 3])
+    cutout = atlas.cutout_polygon(at.frame_alpha())
     timings["atlas_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
