@@ -49,6 +49,8 @@ def test_every_placed_species_has_its_textures(baked):
         info = json.loads(names["worldbake:impostor"])
         assert info["layout"] == "hemi" and info["frames"] == 6
         assert info["error"]["views"] > 0 and "worst_view" in info["error"]
+        assert 3 <= len(info["cutout"]["uv"]) <= 8 and 0.0 < info["cutout"]["area_fraction"] <= 1.0
+        assert "slices_drawn_error" in info
         for axis in ("xpos", "xneg", "ypos", "yneg", "zpos", "zneg"):
             assert (tex / f"{name}_card_{axis}.png").is_file()
     assert (tex / "tree_slices.exr").is_file() and (tex / "tree_slices.png").is_file()
