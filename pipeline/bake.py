@@ -328,7 +328,10 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
                 if Path(value).resolve() != target.resolve() or not target.is_file():
                     raise StageError(f"stage {stage.name}: output {art.name} must be written to ctx.path({art.name!r})")
             out_meta[art.name] = meta
-        files = {p.relative_to(work).as_posix(): sha256_file(p) for p in sorted(work.rglob("*")) if p.is_file()}
+        written = [p for p in sorted(work.rglob("*")) if p.is_file()]
+        files = {p.relative_to(work).as_posix(): sha256_file(p) for p in written}
+        # size and mtime as written: a later bake notices a file changed since (Store.damaged) without hashing it
+        file_stats = {p.relative_to(work).as_posix(): [p.stat().st_size, p.stat().st_mtime_ns] for p in written}
         undeclared = [f for f in files if not _declared_file(stage, f)]
         if undeclared:
             raise StageError(f"stage {stage.name}: wrote files no output declares: {undeclared[:10]} "
@@ -338,7 +341,8 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
             "params": json.loads(ps.params_json), "seed": provenance["seed"],
             "inputs": {role: {"artifact": a, "stage": s, "key": k, "content": ps.key_material["inputs"][role][1]}
                        for role, (a, s, k) in ps.inputs.items()},
-            "outputs": out_meta, "files": files, "units": dict(sorted(ctx.units.used.items())),
+            "outputs": out_meta, "files": files, "file_stats": file_stats,
+            "units": dict(sorted(ctx.units.used.items())),
             "exr_channels": {f: exr.channel_names(work / f) for f in files if f.lower().endswith(".exr")},
             "timings": {"run_s": round(t_run, 4), "write_s": round(time.perf_counter() - t1, 4)},
             "metrics": _finite_metrics(ctx.metrics),

@@ -29,6 +29,14 @@ def _run_or_reuse(store: Store, ps: PlannedStep, config: WorldConfig, graph: Gra
     """Key the step from its made inputs, then reuse a stored run or run it."""
     ks = key_step(ps, store, graph, keys)
     cached = store.has(ps.stage.name, ks.key)
+    if cached:
+        damaged = store.damaged(ps.stage.name, ks.key)
+        if damaged:  # edited or removed since the run wrote it: never reused, made again under the same key
+            print(f"worldbake: {ps.stage.name} {ks.key}: {', '.join(damaged[:3])}"
+                  f"{f' and {len(damaged) - 3} more' if len(damaged) > 3 else ''} changed since the run wrote "
+                  f"{'them' if len(damaged) > 1 else 'it'}; running the stage again", file=sys.stderr, flush=True)
+            store.discard(ps.stage.name, ks.key)
+            cached = False
     if head is not None:
         print(f"{head} {ks.key} {'cached' if cached else 'running'}", file=log, flush=True)
     if cached:

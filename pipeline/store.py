@@ -95,6 +95,35 @@ class Store:
     def manifest(self, stage: str, key: str) -> dict:
         return json.loads((self.folder(stage, key) / MANIFEST).read_text())
 
+    def damaged(self, stage: str, key: str) -> list[str]:
+        """The files of a stored run that are no longer what it wrote:
+        missing, another size, or another mtime and another sha256 (an
+        edited file; a file only touched keeps its content and is not
+        damaged). Runs whose manifest has no file_stats are not checked."""
+        folder, manifest = self.folder(stage, key), self.manifest(stage, key)
+        bad = []
+        for rel, (size, mtime_ns) in manifest.get("file_stats", {}).items():
+            try:
+                st = (folder / rel).stat()
+            except OSError:
+                bad.append(rel)
+                continue
+            if st.st_size != size or (st.st_mtime_ns != mtime_ns and sha256_file(folder / rel) != manifest["files"][rel]):
+                bad.append(rel)
+        return bad
+
+    def discard(self, stage: str, key: str) -> None:
+        """Take a damaged run out of the store (renamed aside first, so no
+        reader ever finds it half deleted)."""
+        self.tmp.mkdir(parents=True, exist_ok=True)
+        aside = self.tmp / f"discarded-{stage}-{key}-{os.getpid()}"
+        shutil.rmtree(aside, ignore_errors=True)
+        try:
+            os.rename(self.folder(stage, key), aside)
+        except FileNotFoundError:  # a concurrent bake discarded it first
+            return
+        shutil.rmtree(aside, ignore_errors=True)
+
     def clean_stale(self) -> list[Path]:
         """Remove what killed runs left in build/tmp/ (their pid is gone)."""
         removed = []

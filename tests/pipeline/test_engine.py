@@ -230,6 +230,30 @@ def test_a_unit_is_reused_across_runs_trusted_only_whole_and_collected_with_its_
          for e in json.loads((store.worlds / "w" / "manifest.json").read_text())["artifacts"] if e["stage"] == "assemble"]
 
 
+def test_a_stored_run_whose_file_changed_is_made_again_not_reused(project):
+    """A cached run is reused only while its files are what it wrote: an
+    edited file sends the stage to run again (same key, same bytes), and the
+    steps after it stay cached; a file only touched is still reused."""
+    import os
+
+    path = write(project, BASE)
+    statuses, store, _ = do_bake(project, path)
+    keys = baked_keys(project, path)
+    height = store.folder("source", keys["source"]) / "height.exr"
+    original = height.read_bytes()
+    os.utime(height, ns=(height.stat().st_atime_ns, height.stat().st_mtime_ns + 10**9))  # touched, same bytes
+    toy_stages.CALLS.clear()
+    assert set(do_bake(project, path)[0].values()) == {"cached"} and toy_stages.CALLS == []
+    height.write_bytes(original[:-10] + b"x" * 10)  # edited in place
+    toy_stages.CALLS.clear()
+    statuses, _, _ = do_bake(project, path)
+    assert statuses == {"source": "ran", "shift": "cached", "assemble": "cached"}
+    assert height.read_bytes() == original and baked_keys(project, path) == keys
+    (store.folder("shift", keys["shift"]) / "height.exr").unlink()  # removed
+    assert do_bake(project, path)[0]["shift"] == "ran"
+    assert not list(store.tmp.glob("discarded-*"))
+
+
 def test_gc_refuses_or_waits_while_a_bake_holds_the_store(project):
     path = write(project, BASE)
     do_bake(project, path)
