@@ -587,14 +587,28 @@ def lod_counts(world_usda: Path) -> tuple[list[dict], list[dict]]:
         masked = Usd.Stage.OpenMasked(str(world_usda), Usd.StagePopulationMask(with_lods), Usd.Stage.LoadNone)
         masked.SetEditTarget(masked.GetSessionLayer())
         for path in with_lods:
-            vset = masked.GetPrimAtPath(path).GetVariantSets().GetVariantSet("lod")
-            row = {"asset": path.name, "lods": {}}
+            prim = masked.GetPrimAtPath(path)
+            vset = prim.GetVariantSets().GetVariantSet("lod")
+            row = {"asset": path.name, "lods": {}, "from_m": _switch_distances(prim)}
             for name in vset.GetVariantNames():
                 vset.SetVariantSelection(name)
                 row["lods"][name] = _drawn_triangles(masked.GetPrimAtPath(path))
             lods.append(row)
     instances = [{"prototype": k, "instances": v} for k, v in sorted(per_proto.items())]
     return instances, lods
+
+
+def _switch_distances(prim) -> dict[str, float]:
+    """The distance from which each `lod` variant is drawn, as the asset
+    publishes it (customData worldbake:lod_switch_m: variant_m, else
+    ladder_m); {} when it does not."""
+    text = prim.GetCustomDataByKey("worldbake:lod_switch_m")
+    try:
+        data = json.loads(text) if isinstance(text, str) else {}
+        ladder = data["variant_m"] if "variant_m" in data else data["ladder_m"]
+        return {str(k): float(v) for k, v in ladder.items() if isinstance(v, (int, float))}
+    except (ValueError, KeyError, TypeError, AttributeError):
+        return {}
 
 
 def _drawn_triangles(prim) -> int:
@@ -736,9 +750,14 @@ def write_report(store: Store, out: Path, manifest: dict, world_usda: Path | Non
             names = sorted({n for r in lods for n in r["lods"]})
             parts.append("<table><tr><th>asset</th>" + "".join(f"<th>{e(n)} triangles</th>" for n in names) + "</tr>")
             for r in lods:
+                dist = r.get("from_m", {})
                 parts.append(f"<tr><td>{e(r['asset'])}</td>" + "".join(
-                    f"<td class=num>{r['lods'][n]:,}</td>" if n in r["lods"] else "<td>-</td>" for n in names) + "</tr>")
-            parts.append("</table>")
+                    (f"<td class=num>{r['lods'][n]:,}" + (f" <span class=note>from {dist[n]:,.0f} m</span>"
+                                                          if n in dist else "") + "</td>")
+                    if n in r["lods"] else "<td>-</td>" for n in names) + "</tr>")
+            parts.append("</table><p class='note'>from: the distance from which the asset's LOD ladder draws that "
+                         "LOD (customData worldbake:lod_switch_m, from each LOD's measured error at one pixel on "
+                         "the reference screen); a LOD without a distance is not on the ladder.</p>")
     if series:
         parts.append('<h2>Run time against error</h2><div class="maps">' + "".join(svg_plot(s) for s in series) + "</div>")
     parts.append("</body></html>\n")

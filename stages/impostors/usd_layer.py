@@ -11,7 +11,9 @@ over /Plants/<species> (GeomModelAPI)
       bounding sphere, the held-out error), worldbake:lod_switch_m (the
       distance in metres from which each LOD is used, derived from its
       measured error: the mesh LODs' Hausdorff error, the impostors'
-      held-out silhouette error and texel size);
+      held-out silhouette error and texel size; ladder_m for an engine
+      that draws the atlas, variant_m for the `lod` variants a USD
+      consumer switches, whose `impostor` is the slices);
     over Geom (purpose render, proxyPrim -> Impostor): the mesh of every
       LODk variant;
     def Xform Impostor: the slice billboards (Mesh Slices, or Tuft and
@@ -185,12 +187,16 @@ def write(path: Path, provenance: dict, baked: list[dict], plants_layer: Path | 
         own["slices"] = b["switch_m"]["slices"]
         switch = lod_ladder(own)
         switches[name] = switch
+        # what a USD consumer can switch: the mesh LODs and the `impostor` variant, which draws the slices
+        # (the atlas needs an engine's shader), each from its own distance
+        variant_m = lod_ladder({**{k: v for k, v in own.items() if k.startswith("LOD")}, "impostor": own["slices"]})
         info = dict(b["info"])
         info["files"] = {k: f"./textures/{v}" for k, v in b["files"].items()}
         info["slice_files"] = {k: {kk: f"./textures/{vv}" for kk, vv in v.items()} for k, v in b["sheet_files"].items()}
         prim.SetCustomDataByKey("worldbake:impostor", json.dumps(info, sort_keys=True))
         prim.SetCustomDataByKey("worldbake:lod_switch_m", json.dumps(
-            {"ladder_m": switch, "own_distance_m": {k: round(v, 3) for k, v in own.items()}, "screen_px": params.screen_px, "fov_deg": params.screen_fov_deg,
+            {"ladder_m": switch, "variant_m": variant_m, "own_distance_m": {k: round(v, 3) for k, v in own.items()},
+             "screen_px": params.screen_px, "fov_deg": params.screen_fov_deg,
              "error_px": params.error_px, "from": "each LOD's measured error (Hausdorff for meshes, held-out "
              "silhouette displacement and texel size for impostors) projected to error_px pixels; the ladder drops "
              "a mesh LOD that a later, cheaper representation already matches at that distance"}, sort_keys=True))

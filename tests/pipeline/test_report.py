@@ -75,6 +75,7 @@ def test_lod_counts_count_what_a_renderer_draws_on_the_composed_prototype(tmp_pa
         with vset.GetVariantEditContext():
             quads(f"/Protos/tree/Geom_{name}", n, UsdGeom.Tokens.render)
     vset.SetVariantSelection("LOD0")
+    proto.SetCustomDataByKey("worldbake:lod_switch_m", '{"ladder_m": {"LOD0": 0.0, "LOD1": 12.5}}')
     quads("/Protos/tree/Proxy", 7, UsdGeom.Tokens.proxy)  # not drawn by a final render
     quads("/Protos/tree/Off", 5).GetPrim().SetActive(False)
     quads("/Protos/tree/Hidden", 5).CreateVisibilityAttr(UsdGeom.Tokens.invisible)
@@ -87,4 +88,5 @@ def test_lod_counts_count_what_a_renderer_draws_on_the_composed_prototype(tmp_pa
     stage.GetRootLayer().Save()
     instances, lods = lod_counts(path)
     assert instances == [{"prototype": "tree", "instances": 3}]
-    assert lods == [{"asset": "tree", "lods": {"LOD0": 20, "LOD1": 6}}]  # the instance repeats no row
+    assert lods == [{"asset": "tree", "lods": {"LOD0": 20, "LOD1": 6},  # the instance repeats no row
+                     "from_m": {"LOD0": 0.0, "LOD1": 12.5}}]

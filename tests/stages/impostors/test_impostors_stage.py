@@ -192,6 +192,12 @@ def test_prototypes_gain_the_impostor_lod_purposes_and_cards(baked, tmp_path):
     switch = json.loads(proto.GetCustomDataByKey("worldbake:lod_switch_m"))["ladder_m"]
     assert switch["LOD0"] == 0.0 and list(switch.values()) == sorted(switch.values())
     assert list(switch)[-1] in ("impostor", "slices")
+    # for a USD consumer, only variants: the `impostor` variant (the slices) last, from the slices' own distance
+    data = json.loads(proto.GetCustomDataByKey("worldbake:lod_switch_m"))
+    variants = data["variant_m"]
+    assert set(variants) <= set(vset.GetVariantNames()) and list(variants)[-1] == "impostor"
+    assert variants["impostor"] >= data["own_distance_m"]["slices"] - 1e-3
+    assert list(variants.values()) == sorted(variants.values())
     assert json.loads(proto.GetCustomDataByKey("worldbake:impostor"))["error"]["views"] > 0
     vset.SetVariantSelection("impostor")
     assert UsdGeom.Imageable(imp).ComputePurpose() == UsdGeom.Tokens.default_
