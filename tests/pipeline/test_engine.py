@@ -244,7 +244,9 @@ def test_a_stored_run_whose_file_changed_is_made_again_not_reused(project):
     os.utime(height, ns=(height.stat().st_atime_ns, height.stat().st_mtime_ns + 10**9))  # touched, same bytes
     toy_stages.CALLS.clear()
     assert set(do_bake(project, path)[0].values()) == {"cached"} and toy_stages.CALLS == []
-    height.write_bytes(original[:-10] + b"x" * 10)  # edited in place
+    written_ns = height.stat().st_mtime_ns
+    height.write_bytes(original[:-10] + b"x" * 10)  # edited in place: same size, later mtime
+    os.utime(height, ns=(written_ns, written_ns + 2 * 10**9))  # later even on a file system with coarse times
     toy_stages.CALLS.clear()
     statuses, _, _ = do_bake(project, path)
     assert statuses == {"source": "ran", "shift": "cached", "assemble": "cached"}
