@@ -59,6 +59,34 @@ static int sample_at(const double *p, const double *n, const double *w, __global
     return keep;
 }
 
+/* The centroids of a triangle's m^2 sub-triangles (a regular barycentric
+ * grid), in the reference's order: the m (m + 1) / 2 upright ones row by
+ * row, then the m (m - 1) / 2 inverted ones. Start with sub_grid(m); each
+ * sub_next gives the next centroid's barycentric coordinates, 0 after the last. */
+typedef struct { int m, up, i, j; } SubGrid;
+
+static SubGrid sub_grid(const int m)
+{
+    SubGrid g = {m, 1, 0, 0};
+    return g;
+}
+
+static int sub_next(SubGrid *g, double *b0, double *b1, double *b2)
+{
+    for (;;) {
+        if (g->up < 0) return 0;
+        const int rows = g->up ? g->m : g->m - 1;
+        if (g->i >= rows) { --g->up; g->i = 0; g->j = 0; continue; }
+        if (g->j >= rows - g->i) { ++g->i; g->j = 0; continue; }
+        const double shift = g->up ? 1.0 / 3.0 : 2.0 / 3.0;
+        *b1 = ((double)g->i + shift) / (double)g->m;
+        *b2 = ((double)g->j + shift) / (double)g->m;
+        *b0 = 1.0 - *b1 - *b2;
+        ++g->j;
+        return 1;
+    }
+}
+
 /* One work-item per triangle. Triangle t is cut into m[t]^2 equal
  * sub-triangles (a regular barycentric grid); a sample sits at each
  * sub-triangle's centroid and carries area / m^2 (sample_at; a sample the
@@ -81,23 +109,18 @@ __kernel void surface_samples(const int n_tris, __global const double *pos, __gl
     double p[9], n[9], w[6];
     const double weight = load_triangle(pos, nrm, uv, t, m, p, n, w);
     const int k = tex_id[t];
-    for (int up = 1; up >= 0; --up) {
-        const double shift = up ? 1.0 / 3.0 : 2.0 / 3.0;
-        const int rows = up ? m : m - 1;
-        for (int i = 0; i < rows; ++i)
-            for (int j = 0; j < rows - i; ++j) {
-                const double b1 = ((double)i + shift) / (double)m, b2 = ((double)j + shift) / (double)m;
-                const double b0 = 1.0 - b1 - b2;
-                double c[3], q[3];
-                long at;
-                const int keep = sample_at(p, n, w, tint + 3 * t, k, textures, tw, th, alpha_threshold, b0, b1, b2,
-                                           ox, oy, oz, voxel, nx, ny, nz, c, q, &at);
-                s_voxel[o] = keep ? (int)at : -1;
-                s_weight[o] = keep ? weight : 0.0;
-                s_rgb[3 * o] = c[0]; s_rgb[3 * o + 1] = c[1]; s_rgb[3 * o + 2] = c[2];
-                s_normal[3 * o] = q[0]; s_normal[3 * o + 1] = q[1]; s_normal[3 * o + 2] = q[2];
-                ++o;
-            }
+    SubGrid g = sub_grid(m);
+    double b0, b1, b2;
+    while (sub_next(&g, &b0, &b1, &b2)) {
+        double c[3], q[3];
+        long at;
+        const int keep = sample_at(p, n, w, tint + 3 * t, k, textures, tw, th, alpha_threshold, b0, b1, b2,
+                                   ox, oy, oz, voxel, nx, ny, nz, c, q, &at);
+        s_voxel[o] = keep ? (int)at : -1;
+        s_weight[o] = keep ? weight : 0.0;
+        s_rgb[3 * o] = c[0]; s_rgb[3 * o + 1] = c[1]; s_rgb[3 * o + 2] = c[2];
+        s_normal[3 * o] = q[0]; s_normal[3 * o + 1] = q[1]; s_normal[3 * o + 2] = q[2];
+        ++o;
     }
 }
 
@@ -123,28 +146,23 @@ __kernel void surface_sums(const int n_tris, __global const double *pos, __globa
     /* consecutive samples mostly fall in one voxel: their fixed-point values
      * are added here first (integers: the same sums) and flushed per run */
     long run_at = -1, run[7];
-    for (int up = 1; up >= 0; --up) {
-        const double shift = up ? 1.0 / 3.0 : 2.0 / 3.0;
-        const int rows = up ? m : m - 1;
-        for (int i = 0; i < rows; ++i)
-            for (int j = 0; j < rows - i; ++j) {
-                const double b1 = ((double)i + shift) / (double)m, b2 = ((double)j + shift) / (double)m;
-                const double b0 = 1.0 - b1 - b2;
-                double c[3], q[3];
-                long at;
-                if (!sample_at(p, n, w, tint + 3 * t, k, textures, tw, th, alpha_threshold, b0, b1, b2, ox, oy, oz,
-                               voxel, nx, ny, nz, c, q, &at))
-                    continue;
-                if (at != run_at) {  /* flush the run of samples that fell in one voxel */
-                    if (run_at >= 0)
-                        for (int ch = 0; ch < 7; ++ch) atom_add(sums + ch * count + run_at, run[ch]);
-                    run_at = at;
-                    for (int ch = 0; ch < 7; ++ch) run[ch] = 0;
-                }
-                const double val[7] = {weight, weight * c[0], weight * c[1], weight * c[2], weight * q[0], weight * q[1],
-                                      weight * q[2]};
-                for (int ch = 0; ch < 7; ++ch) run[ch] += (long)rint(val[ch] * fixed);
-            }
+    SubGrid g = sub_grid(m);
+    double b0, b1, b2;
+    while (sub_next(&g, &b0, &b1, &b2)) {
+        double c[3], q[3];
+        long at;
+        if (!sample_at(p, n, w, tint + 3 * t, k, textures, tw, th, alpha_threshold, b0, b1, b2, ox, oy, oz,
+                       voxel, nx, ny, nz, c, q, &at))
+            continue;
+        if (at != run_at) {  /* flush the run of samples that fell in one voxel */
+            if (run_at >= 0)
+                for (int ch = 0; ch < 7; ++ch) atom_add(sums + ch * count + run_at, run[ch]);
+            run_at = at;
+            for (int ch = 0; ch < 7; ++ch) run[ch] = 0;
+        }
+        const double val[7] = {weight, weight * c[0], weight * c[1], weight * c[2], weight * q[0], weight * q[1],
+                              weight * q[2]};
+        for (int ch = 0; ch < 7; ++ch) run[ch] += (long)rint(val[ch] * fixed);
     }
     if (run_at >= 0)
         for (int ch = 0; ch < 7; ++ch) atom_add(sums + ch * count + run_at, run[ch]);
