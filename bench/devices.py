@@ -76,8 +76,8 @@ def _current():
 
 def hydrology_case(n: int):
     from stages.erosion.reference import synthetic_world
-    from pipeline.flow import device as dev
-    from pipeline.flow import reference as ref
+    from worldlib.flow import device as dev
+    from worldlib.flow import reference as ref
 
     h = ref.canonical(synthetic_world(n, size_m=8.0 * n, relief_m=1200.0, seed=3))
     kind = ref.cell_kinds(h)

@@ -110,8 +110,8 @@ def main() -> None:
     from pysheds.sview import Raster, ViewFinder
 
     from pipeline.opencl import get_cl
-    from pipeline.flow import device as dev
-    from pipeline.flow import reference as ref
+    from worldlib.flow import device as dev
+    from worldlib.flow import reference as ref
 
     print(f"device: {get_cl().fingerprint}")
     dirmap = np.array([64, 128, 1, 2, 4, 8, 16, 32])

@@ -58,8 +58,8 @@ class Plant:
     """A species' scene, BVH and mesh reference views (rendered once per view set)."""
 
     def __init__(self, layer: Path, name: str):
-        from pipeline.render import Prepared
-        from pipeline.render.usd_asset import load_plant
+        from worldlib.render import Prepared
+        from worldlib.render.usd_asset import load_plant
 
         self.name = name
         self.ps = load_plant(layer, f"/Plants/{name}")
@@ -149,7 +149,7 @@ def pictures(plants: list, out_dir: Path, defaults, scale: int) -> None:
     mesh and impostor (white both, red the mesh only, blue the impostor
     only); every view at the frame's size, enlarged `scale` times."""
     from pipeline import exr
-    from pipeline.render import Prepared, Settings
+    from worldlib.render import Prepared, Settings
     from stages.impostors import heldout, octahedral, sampler, slices
 
     out_dir.mkdir(parents=True, exist_ok=True)

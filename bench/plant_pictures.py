@@ -1,4 +1,4 @@
-"""Pictures of the baked plants, rendered with pipeline.render (not part of
+"""Pictures of the baked plants, rendered with worldlib.render (not part of
 `make test`): what a technical artist sees when opening the assets.
 
     python -m bench.plant_pictures ARTIFACT_FOLDER_OR_PLANTS_USDA OUT_FOLDER
@@ -22,8 +22,8 @@ import numpy as np
 
 
 def load_species(usdc: Path, size: int = 256):
-    """Per LOD a render Scene of the asset (pipeline.render.usd_asset)."""
-    from pipeline.render.usd_asset import load_asset
+    """Per LOD a render Scene of the asset (worldlib.render.usd_asset)."""
+    from worldlib.render.usd_asset import load_asset
 
     return [level.scene for level in load_asset(usdc, size)]
 
@@ -31,13 +31,13 @@ def load_species(usdc: Path, size: int = 256):
 def _write(path: Path, linear: np.ndarray) -> None:
     import OpenImageIO as oiio
 
-    from pipeline.render import srgb8
+    from worldlib.render import srgb8
 
     oiio.ImageBuf(np.ascontiguousarray(srgb8(linear))).write(str(path))
 
 
 def closeup(scene, size=480):
-    from pipeline.render import Camera, Prepared, Settings
+    from worldlib.render import Camera, Prepared, Settings
 
     p = scene.positions.astype(np.float64)
     lo, hi = p.min(0), p.max(0)
@@ -53,7 +53,7 @@ def closeup(scene, size=480):
 
 def stand(species: dict, n_per: int = 30, size=(900, 500), level: int = 2):
     """Many instances on a ground plane, seen in perspective."""
-    from pipeline.render import Camera, Prepared, Scene, Settings
+    from worldlib.render import Camera, Prepared, Scene, Settings
 
     rng = np.random.default_rng(4)
     parts = []

@@ -1,4 +1,4 @@
-"""Speed of the offline renderer (pipeline/render), not part of `make test`.
+"""Speed of the offline renderer (worldlib/render), not part of `make test`.
 
     python -m bench.render [--quick]
 
@@ -45,7 +45,7 @@ def best_of(fn, repeat):
 
 
 def tiny(repeat: int) -> None:
-    from pipeline.render import Camera, Scene, Settings, render
+    from worldlib.render import Camera, Scene, Settings, render
 
     rng = np.random.default_rng(5)
     c = rng.random((300, 3)) * 2 - 1
@@ -77,7 +77,7 @@ def tree_scene(quick: bool):
 
 
 def tree(quick: bool, repeat: int) -> None:
-    from pipeline.render import Prepared, Scene, Settings
+    from worldlib.render import Prepared, Scene, Settings
     from stages.plants import measure
 
     scene, _ = tree_scene(quick)
@@ -119,7 +119,7 @@ def tree(quick: bool, repeat: int) -> None:
 
 
 def bake_quality(quick: bool, repeat: int) -> None:
-    from pipeline.render import Prepared, Settings
+    from worldlib.render import Prepared, Settings
     from stages.plants import measure
 
     scene, _ = tree_scene(quick)
@@ -134,7 +134,7 @@ def bake_quality(quick: bool, repeat: int) -> None:
 
 
 def baseline_renderer(rev: str):
-    """pipeline/render as it was at git revision `rev`, imported as its own
+    """worldlib/render as it was at git revision `rev`, imported as its own
     package from a temporary folder (its kernel file beside it)."""
     import importlib.util
     import subprocess
@@ -146,7 +146,7 @@ def baseline_renderer(rev: str):
     pkg = Path(tempfile.mkdtemp(prefix="render_baseline_")) / "render_baseline"
     pkg.mkdir()
     for name in ("__init__.py", "bvh.py", "scene.py", "reference.py", "kernels.cl"):
-        text = subprocess.run(["git", "show", f"{rev}:pipeline/render/{name}"], cwd=root, check=True,
+        text = subprocess.run(["git", "show", f"{rev}:worldlib/render/{name}"], cwd=root, check=True,
                               capture_output=True, text=True).stdout
         (pkg / name).write_text(text)
     spec = importlib.util.spec_from_file_location("render_baseline", pkg / "__init__.py",
@@ -211,10 +211,10 @@ def image_difference(a, b) -> str:
 
 def assets(plants: str | None, baseline: str | None, repeat: int, species=("conifer", "broadleaf"),
            with_reference: bool = True) -> None:
-    import pipeline.render as current
+    import worldlib.render as current
     from pathlib import Path
 
-    from stages.common import plant_asset_prim
+    from worldlib.plant_asset import plant_asset_prim
     from stages.impostors import asset_scene
 
     layer = Path(plants) if plants else newest_plants_layer()
@@ -276,7 +276,7 @@ def main(argv=None) -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--section", choices=("all", "tiny", "tree", "bake", "assets"), default="all")
     ap.add_argument("--plants", help="a plants artifact's plants.usda (default: the newest under build/artifacts)")
-    ap.add_argument("--baseline", metavar="REV", help="also measure pipeline/render of this git revision")
+    ap.add_argument("--baseline", metavar="REV", help="also measure worldlib/render of this git revision")
     ap.add_argument("--no-reference", action="store_true", help="skip the numpy reference on the conifer (about a minute)")
     a = ap.parse_args(argv)
     from pipeline.opencl import get_cl

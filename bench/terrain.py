@@ -38,9 +38,9 @@ from stages.hydrology.stage import CHANNEL_HEAD_AREA_M2 as CHANNEL_AREA_M2  # th
 
 
 def statistics(h: np.ndarray, dx: float) -> dict:
-    from pipeline.terrain_stats import terrain_statistics
-    from pipeline.flow import device as flow
-    from pipeline.flow import reference as ref
+    from worldlib.terrain.stats import terrain_statistics
+    from worldlib.flow import device as flow
+    from worldlib.flow import reference as ref
 
     h32 = ref.canonical(h.astype(np.float32))
     kind = ref.cell_kinds(h32)

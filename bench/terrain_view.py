@@ -146,7 +146,7 @@ def main() -> None:
     args = ap.parse_args()
     from pipeline.exr import read_grid, write_png
     from pipeline.grid import Grid
-    from pipeline.preview import hillshade
+    from worldlib.terrain.hillshade import hillshade
 
     if args.height.endswith(".npy"):
         h, cell = np.load(args.height), args.cell or 8.0

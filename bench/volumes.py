@@ -30,14 +30,14 @@ def _picture(path: Path, images: list[tuple[np.ndarray, np.ndarray]]) -> None:
     """Premultiplied albedo + alpha over a grey background, side by side."""
     import OpenImageIO as oiio
 
-    from pipeline.render import srgb8
+    from worldlib.render import srgb8
 
     tiles = [rgb + (1 - a[..., None]) * 0.5 for a, rgb in images]
     oiio.ImageBuf(np.ascontiguousarray(srgb8(np.concatenate(tiles, axis=1)))).write(str(path))
 
 
 def main(argv=None) -> None:
-    from pipeline.render.usd_asset import load_asset
+    from worldlib.render.usd_asset import load_asset
     from stages.volumes import error
     from stages.volumes.stage import VolumesParams, load_species, volume_species
     from stages.volumes.voxelize import backend
@@ -104,7 +104,7 @@ def main(argv=None) -> None:
                                                 for k in keys))
             print(f"{'max |.|':<40} " + " ".join(f"{max(abs(e[k]) for e in measured.values()):>8.3g}" for k in keys))
         # the stored levels' mean coverage against the finest stored level's (read back)
-        from pipeline import volume as _volume
+        from worldlib.volumes import dense as _volume
 
         drift = 0.0
         for path, s in list(stats["sectors"].items())[:: max(1, len(stats["sectors"]) // 16)]:
@@ -116,8 +116,8 @@ def main(argv=None) -> None:
               f"{drift:.2e}")
         if a.pictures and stats["sectors"]:
             # the sector with the most instances, from above at 35 degrees, every level
-            from pipeline import volume
-            from pipeline.render import Camera
+            from worldlib.volumes import dense as volume
+            from worldlib.render import Camera
 
             path = max(stats["sectors"], key=lambda p: sum(stats["sectors"][p]["instances"].values()))
             stem = path.rsplit("/", 1)[-1]
@@ -138,7 +138,7 @@ def kernel_speedups(usdc: Path) -> None:
     """Both kernels against their numpy references on the same small work:
     the samples of 300 triangles of the asset, a 48 x 48 composite of its
     32-voxel volume."""
-    from pipeline.render.usd_asset import load_asset
+    from worldlib.render.usd_asset import load_asset
     from stages.volumes import device, error, reference
     from stages.volumes.samples import sample_table
     from stages.volumes.voxelize import plant_grid, voxelize

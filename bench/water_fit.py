@@ -4,7 +4,7 @@
     python -m bench.water_fit --world build/worlds/default
 
 Reads the hydrology stage's water.usda and builds the terrain mesh the world
-stage writes (pipeline/terrain_mesh.py, the same lattice) from the height
+stage writes (worldlib/terrain/mesh.py, the same lattice) from the height
 the hydrology stage read. Prints, over every river vertex: its height above
 the mesh (share within 0.5 m, worst below and above); over every segment:
 the highest ground between its ends (sampled every metre) above the higher
@@ -40,7 +40,7 @@ def curves(path: Path):
 def fit(world: Path, max_vertices: int = 513) -> dict:
     from pipeline.exr import read_grid
     from pipeline.grid import Grid
-    from pipeline.terrain_mesh import build_terrain_mesh, height_on_mesh
+    from worldlib.terrain.mesh import build_terrain_mesh, height_on_mesh
 
     manifest = json.loads((world / "manifest.json").read_text())
     build = world.parent.parent

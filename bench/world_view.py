@@ -1,4 +1,4 @@
-"""A picture of a baked world from its world.usda (pipeline.render.world_view):
+"""A picture of a baked world from its world.usda (worldlib.render.world_view):
 
     python -m bench.world_view build/worlds/default/world.usda out.png [--width 1600 --height 900]
         [--azimuth 200 --elevation 32 --zoom 1 4]
@@ -11,7 +11,7 @@ import argparse
 
 
 def main(argv=None) -> None:
-    from pipeline.render import world_view
+    from worldlib.render import world_view
 
     ap = argparse.ArgumentParser()
     ap.add_argument("world")

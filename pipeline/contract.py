@@ -45,7 +45,7 @@ class Artifact:
       usd    a USD layer (.usda / .usdc) to be composed into the world; the stage
              writes it (and any files beside it) at ctx.path(name)
       texture  a mip-mapped EXR texture for a material, written by the stage
-             (pipeline.exr.write_texture) at ctx.path(name)
+             (worldlib.images.write_texture) at ctx.path(name)
       image  a preview picture for people (PNG), never read by another stage
       json   small structured data (statistics, tables)
     """

@@ -183,7 +183,7 @@ def _exr_to_png(src: Path, dst: Path, colour: bool, signed: bool = False) -> Non
     buf = oiio.ImageBuf(str(src))
     pixels = np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float32)
     if colour:
-        from .render import srgb8
+        from .exr import srgb8
 
         out = srgb8(pixels[..., :3]) if pixels.shape[-1] >= 3 else srgb8(np.repeat(pixels, 3, axis=-1))
         if pixels.shape[-1] == 4:

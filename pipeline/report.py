@@ -88,7 +88,7 @@ def _upscale(rgb: np.ndarray, px: int = MAP_PX) -> np.ndarray:
 
 def _hillshade(h: np.ndarray, cell: float) -> np.ndarray:
     from .grid import Grid
-    from .preview import hillshade
+    from worldlib.terrain.hillshade import hillshade
 
     return hillshade(Grid(np.ascontiguousarray(h, np.float32), cell))[..., 0].astype(np.float64) / 255.0
 
@@ -324,11 +324,11 @@ def _fill_triangle(mask: np.ndarray, a, b, c, ox: float, oz: float, px: float) -
 
 def world_picture(world_usda: Path, out_png: Path, size: tuple[int, int] = VIEW_SIZE) -> str:
     """A perspective view of the world's ground meshes (terrain and water,
-    not the plants) in their ground colours, rendered with pipeline.render;
+    not the plants) in their ground colours, rendered with worldlib.render;
     returns a caption. The one call to switch for a view with plants."""
     from pxr import Usd, UsdGeom
 
-    from .render import Camera, Scene, Settings, render, srgb8
+    from worldlib.render import Camera, Scene, Settings, render, srgb8
 
     stage = Usd.Stage.Open(str(world_usda))
     scenes = []
@@ -376,7 +376,7 @@ def world_picture(world_usda: Path, out_png: Path, size: tuple[int, int] = VIEW_
     camera = Camera(tuple(eye), tuple(forward / np.linalg.norm(forward)), fov_y_deg=40.0)
     img = render(scene, camera, Settings(size[0], size[1], samples=2, ao_rays=0))
     _write_png(out_png, srgb8(img.shaded(sun=(0.5, 0.7, 0.3))))
-    return (f"{scene.n_triangles:,} triangles of the ground and water meshes, pipeline.render "
+    return (f"{scene.n_triangles:,} triangles of the ground and water meshes, worldlib.render "
             f"(perspective, 2x2 samples); plants not drawn")
 
 

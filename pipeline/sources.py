@@ -24,9 +24,12 @@ import hashlib
 import re
 from pathlib import Path
 
-PIPELINE_DIR = Path(__file__).resolve().parent
-CL_INCLUDE_DIR = PIPELINE_DIR / "cl"
-PROJECT_PACKAGES = ("pipeline", "stages")  # top-level packages whose modules are part of a key
+PROJECT_ROOT = Path(__file__).resolve().parent.parent
+# The project's own top-level packages (engine, domain libraries, stages): a
+# module of theirs that a stage imports is part of its key.
+PROJECT_PACKAGES = ("pipeline", "worldlib", "stages")
+# Shared OpenCL headers, passed to every kernel build with -I.
+CL_INCLUDE_DIR = PROJECT_ROOT / "worldlib" / "cl"
 
 _CL_COMMENT = re.compile(r"/\*.*?\*/|//[^\n]*", re.S)
 _CL_INCLUDE = re.compile(r'^\s*#\s*include\s*"([^"]+)"', re.M)
@@ -218,7 +221,7 @@ def stage_source_files(source_dir: Path) -> list[Path]:
             new = imported_modules(root, path)
             new |= {p for p in path.parent.iterdir() if p.suffix == ".cl"}
         else:
-            new = included_headers(path, root / CL_INCLUDE_DIR.relative_to(PIPELINE_DIR.parent))
+            new = included_headers(path, root / CL_INCLUDE_DIR.relative_to(PROJECT_ROOT))
         todo.extend(new - seen)
     return sorted(seen)
 

@@ -20,7 +20,7 @@ import numpy as np
 from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, RunContext, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
-from pipeline.preview import hillshade
+from worldlib.terrain.hillshade import hillshade
 
 from . import simulate
 from .physics import THERMAL_C, Physics

@@ -39,7 +39,7 @@ from typing import Callable
 import numpy as np
 
 from pipeline.errors import StageError
-from pipeline.flow.reference import DC, DR
+from worldlib.flow.reference import DC, DR
 
 KERNELS = Path(__file__).with_name("stream_power.cl")
 NEWTON_TOL = 1e-10
@@ -187,8 +187,8 @@ def routing_surface(h: np.ndarray, kind: np.ndarray, flat_routing: str) -> np.nd
     rather than grid-step distances)."""
     from scipy import ndimage
 
-    from pipeline.flow import device as flow
-    from pipeline.flow import reference as flowref
+    from worldlib.flow import device as flow
+    from worldlib.flow import reference as flowref
 
     h32 = flowref.canonical(np.asarray(h, np.float32))
     if flat_routing == "epsilon":
@@ -431,8 +431,8 @@ def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, 
     breach: carve the closed depressions out first (complete breaching);
     mfd_isotropic: scale the mfd incision so that it is the same on a plane
     of any direction (mfd_isotropy)."""
-    from pipeline.flow import device as flow
-    from pipeline.flow import reference as flowref
+    from worldlib.flow import device as flow
+    from worldlib.flow import reference as flowref
 
     from . import hillslope
 

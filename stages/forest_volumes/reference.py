@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.volume import VolumeLevel
+from worldlib.volumes.dense import VolumeLevel
 
 from .splat import CHANNELS, FIXED, source_voxels
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.volume import VolumeLevel
+from worldlib.volumes.dense import VolumeLevel
 
 FIXED = float(2 ** 40)
 CHANNELS = 8  # extinction, albedo (3), surface, surface x normal (3)

@@ -18,7 +18,7 @@ Volumetric Billboards, Decaudin and Neyret 2009).
    surface, surface x normal) scales with the instance's area (scale^2),
    so the sector keeps the plants' projected area. Sums in 64-bit fixed
    point with integer atomics: the same for any work-group size.
-4. Only the occupied voxels go on (pipeline.sparse_volume: a forest on a
+4. Only the occupied voxels go on (worldlib.volumes.sparse: a forest on a
    slope fills ~4 % of its box): the grid is clipped to them (whole mips
    kept), mips sum the occupied 2 x 2 x 2 blocks, and each level is an EXR
    in the column runs layout (per (x, z) column one run of voxels along y;
@@ -44,7 +44,8 @@ from typing import Any
 
 import numpy as np
 
-from pipeline import sparse_volume, usdio, volume
+from pipeline import usdio
+from worldlib.volumes import dense as volume, sparse as sparse_volume
 from pipeline.contract import Artifact, Check, CheckContext, Input, Param, Params, RunContext, Stage
 from pipeline.errors import InputError, StageError
 
@@ -467,7 +468,7 @@ STAGE = Stage(
     outputs=(Artifact("forest_volumes.sectors", kind="usd", file="sectors.usda", shape="any", beside=("*.mip*.exr",),
                       description="over each forest tile /World/Vegetation/q<path>: FarVolume (purpose proxy) with a "
                       "`mip` variant set of UsdVol.Volume prims; each level q<path>.mip<k>.exr holds the occupied "
-                      "voxels as column runs (pipeline.sparse_volume: part voxels, half floats but density float32; "
+                      "voxels as column runs (worldlib.volumes.sparse: part voxels, half floats but density float32; "
                       "part columns, run.y0/length/offset per (x, z))"),
              Artifact("forest_volumes.stats", kind="json", file="stats.json", shape="any",
                       description="per sector: instances per species, grid, voxel size, memory, occupied voxels, "

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.hashing import mix32
+from worldlib.hashing import mix32
 
 from .noise import TerrainSpec
 

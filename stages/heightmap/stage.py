@@ -19,9 +19,9 @@ import pydantic
 from pipeline.contract import Artifact, Check, CheckContext, GridInfo, Param, ParamError, Params, ProjectPath, RunContext, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
-from pipeline.preview import hillshade
+from worldlib.terrain.hillshade import hillshade
 
-from pipeline import dem
+from worldlib.terrain import dem
 
 from . import noise
 

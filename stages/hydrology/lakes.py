@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.flow import reference as ref
-from pipeline.flow.reference import MergeTree, merge_tree_reference  # noqa: F401 (the lakes' names)
+from worldlib.flow import reference as ref
+from worldlib.flow.reference import MergeTree, merge_tree_reference  # noqa: F401 (the lakes' names)
 
 
 @dataclass
@@ -76,7 +76,7 @@ def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.nd
 
     # 2. lake routing and inflows
     code_lake = np.where(D, code_raw, code_main).astype(np.int8)
-    from pipeline.flow.device import quantize
+    from worldlib.flow.device import quantize
 
     q, scale = quantize(runoff)
     acc = accumulate(code_lake, q).astype(np.float64).ravel() / scale

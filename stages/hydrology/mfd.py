@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.flow import reference as ref
+from worldlib.flow import reference as ref
 
 
 def edges(z: np.ndarray, kind: np.ndarray, dx: float, p: float):

@@ -7,14 +7,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.flow import reference as ref
-from pipeline.terrain_stats import topological_levels
+from worldlib.flow import reference as ref
+from worldlib.terrain.stats import topological_levels
 
 
 def topo_levels(rcv: np.ndarray, cells: np.ndarray | None = None) -> list[np.ndarray]:
     """Topological levels of a receiver forest, sources first (every cell
     after all of its donors); `cells` restricts to a subset closed downstream
-    within itself. pipeline.terrain_stats.topological_levels on a mask."""
+    within itself. worldlib.terrain.stats.topological_levels on a mask."""
     if cells is None:
         return topological_levels(rcv)
     member = np.zeros(rcv.size, bool)

@@ -32,14 +32,14 @@ import numpy as np
 from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, ProjectPath, RunContext, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
-from stages.common import TERRAIN_SOURCES
-from pipeline.preview import hillshade
-from pipeline.terrain_stats import terrain_statistics
+from worldlib.terrain import TERRAIN_SOURCES
+from worldlib.terrain.hillshade import hillshade
+from worldlib.terrain.stats import terrain_statistics
 
-from pipeline.flow import device as dev
+from worldlib.flow import device as dev
 from . import lakes as lakes_mod
 from . import mfd
-from pipeline.flow import reference as ref
+from worldlib.flow import reference as ref
 from . import rivers as rivers_mod
 
 SECONDS_PER_YEAR = 365.25 * 86400.0
@@ -107,7 +107,7 @@ def rain_from_map(path: Path, rows: int, cols: int) -> np.ndarray:
     """Yearly rain (mm/year, float64) from an image file, stretched over the
     rows x cols terrain (cell-centred bilinear); clear errors for a missing,
     corrupt, integer, non-finite or negative map."""
-    from pipeline.dem import read_dem, resample
+    from worldlib.terrain.dem import read_dem, resample
 
     try:
         src = read_dem(path, label="rain map")
@@ -216,7 +216,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
     t0 = time.perf_counter()
     mesh = None
     if rows >= 2 and cols >= 2:
-        from pipeline.terrain_mesh import build_terrain_mesh
+        from worldlib.terrain.mesh import build_terrain_mesh
 
         mesh = build_terrain_mesh(Grid(np.nan_to_num(h, nan=hmin), dx, ("height",), terrain.origin_m), params.mesh_max_vertices)
     ground = np.nan_to_num(h, nan=hmin).astype(np.float64)
@@ -224,7 +224,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
                              params.river_velocity_coefficient_m_s, params.river_velocity_min_m_s,
                              params.river_velocity_max_m_s, params.river_min_slope, params.river_width_depth_ratio,
                              params.river_lift_m)
-    from pipeline.terrain_mesh import height_on_mesh
+    from worldlib.terrain.mesh import height_on_mesh
 
     if mesh is not None and riv.curves:
         used = np.unique(np.concatenate(riv.curves))
@@ -414,7 +414,7 @@ STAGE = Stage(
         Artifact("hydrology.stats", kind="json", file="stats.json", shape="any",
                  description="counts, budgets, Hack's law exponent, terrain statistics (grid anisotropy, share of area "
                  "in closed depressions, Strahler order, Hack exponent, concavity theta, drainage density, "
-                 "hypsometric integral: pipeline/terrain_stats.py), timings"),
+                 "hypsometric integral: worldlib/terrain/stats.py), timings"),
         Artifact("hydrology.preview", kind="image", file="preview.png", dtype="uint8",
                  description="hillshade with lakes and rivers, 8-bit RGB"),
     ),

@@ -1,5 +1,5 @@
 """The view atlas of a plant: N x N orthographic frames rendered with
-pipeline.render, one per direction of the (hemi-)octahedral grid
+worldlib.render, one per direction of the (hemi-)octahedral grid
 (octahedral.py), each looking at the plant's bounding sphere (centre c,
 radius R) so every frame holds the whole plant at the same scale.
 
@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.render import Camera, Prepared, Settings
+from worldlib.render import Camera, Prepared, Settings
 
 from . import octahedral
 

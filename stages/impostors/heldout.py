@@ -1,7 +1,7 @@
 """The impostor's error against the mesh from view directions the bake did
 not use (no impostor tool publishes this; we do).
 
-For each held-out direction, the mesh (pipeline.render) and the impostor
+For each held-out direction, the mesh (worldlib.render) and the impostor
 (sampler.py, or a slice billboard set rendered as geometry) are seen by the
 same orthographic camera, framed on the plant's bounding sphere:
     PSNR      of the premultiplied colour (peak 1) over the union of the two
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.render import Camera, Image, Prepared, Settings
+from worldlib.render import Camera, Image, Prepared, Settings
 
 from . import octahedral
 

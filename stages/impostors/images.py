@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.render import srgb8
+from worldlib.render import srgb8
 
 TILE = 64
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.render import Camera, Prepared, Scene, Settings
+from worldlib.render import Camera, Prepared, Scene, Settings
 
 from . import octahedral
 

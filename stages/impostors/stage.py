@@ -32,7 +32,7 @@ that size too (one texel per pixel: the nearest the impostor is used), and
 the measured error then sets the switch distances as before.
 
 Steps (run): read the asset's LOD0 into a render scene
-(pipeline.render.usd_asset, the reader every USD picture shares); bake the atlas;
+(worldlib.render.usd_asset, the reader every USD picture shares); bake the atlas;
 measure it from held-out views (heldout.py, sampler.py); bake the slices and
 measure them the same way, blended as seed 002's shader does and all at once
 as a USD viewer draws the Impostor prim (the slices' switch distance holds
@@ -52,9 +52,9 @@ import pydantic
 
 from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, RunContext, Stage
 from pipeline.errors import InputError, StageError
-from pipeline.render import Prepared, Settings
-from pipeline.render.usd_asset import load_plant
-from stages.common import PLANTS_ROOT, plant_asset_prim
+from worldlib.render import Prepared, Settings
+from worldlib.render.usd_asset import load_plant
+from worldlib.plant_asset import PLANTS_ROOT, plant_asset_prim
 
 from . import atlas, heldout, images, octahedral, sampler, slices, usd_layer
 

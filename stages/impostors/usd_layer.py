@@ -32,8 +32,9 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import usdio
-from pipeline.render import Camera, Prepared, Settings
-from stages.common import PLANTS_ROOT, plant_asset_prim
+from worldlib import materials
+from worldlib.render import Camera, Prepared, Settings
+from worldlib.plant_asset import PLANTS_ROOT, plant_asset_prim
 
 # the six cards views: (name, view direction toward the viewer, camera up), the
 # orientation UsdImaging's cards draw mode maps each texture with
@@ -73,7 +74,7 @@ def card_views(prepared: Prepared, lo: np.ndarray, hi: np.ndarray, size: int, sa
 def _material(stage, path: str, albedo: str, normal: str | None):
     from pxr import Sdf
 
-    mat, surf, texture_at = usdio.textured_preview_surface(stage, path, roughness=0.8)
+    mat, surf, texture_at = materials.textured_preview_surface(stage, path, roughness=0.8)
 
     def texture(name, file, space):
         return texture_at(name, file, space, "clamp")

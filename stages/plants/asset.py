@@ -38,7 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import usdio
-from stages.common import PLANTS_ROOT, plant_asset_prim
+from worldlib import materials
+from worldlib.plant_asset import PLANTS_ROOT, plant_asset_prim
 
 from .mesh import Part
 
@@ -90,7 +91,7 @@ def _textured_material(stage, path: str, look: dict, roughness: float):
     translucency, thickness (optional data EXRs, see TRANSLUCENCY_SCHEME)."""
     from pxr import Gf, Sdf, UsdShade
 
-    mat, surf, texture_at = usdio.textured_preview_surface(stage, path, roughness)
+    mat, surf, texture_at = materials.textured_preview_surface(stage, path, roughness)
 
     def texture(name: str, file: str, colour_space: str):
         return texture_at(name, file, colour_space, look["wrap"])

@@ -1,7 +1,7 @@
 """Foliage cards (seed 002's hierarchical simplification): per species a
 high-detail cluster (a shoot of needle bundles, a spray of leaves, a stem
 with leaves and a flower head) is built from the species' own leaf model,
-rendered once with pipeline.render looking down the card's normal, and the
+rendered once with worldlib.render looking down the card's normal, and the
 tree's foliage becomes alpha-tested cards carrying that picture.
 
 The cluster lives in the leaf frame of leaves.py: x along L (across), y
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.render import Camera, Scene, Settings, render
+from worldlib.render import Camera, Scene, Settings, render
 
 from . import leaves, textures
 

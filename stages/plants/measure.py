@@ -8,7 +8,7 @@ area index over the crown's footprint, and crown opacity from the side.
     wood area     the woody solid's surface;
     LAI           foliage area / area of the 2-D convex hull of the foliage's
                   ground projection (x-z);
-    crown opacity orthographic side views at 8 azimuths (pipeline.render): of
+    crown opacity orthographic side views at 8 azimuths (worldlib.render): of
                   the pixels inside the 2-D convex hull of the foliage's
                   projection (alpha >= 0.5), the share that foliage or wood
                   covers with alpha >= 0.5; the mean over the azimuths
@@ -21,8 +21,8 @@ import math
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from pipeline.render import Camera, Scene, Settings
-from pipeline.render import Prepared
+from worldlib.render import Camera, Scene, Settings
+from worldlib.render import Prepared
 
 from .mesh import Part
 

@@ -127,7 +127,7 @@ def write_png(path: Path, rgb_linear: np.ndarray, alpha: np.ndarray | None = Non
     it is (data such as normals), alpha linear and straight (not premultiplied)."""
     import OpenImageIO as oiio
 
-    from pipeline.render import srgb8
+    from worldlib.render import srgb8
 
     rgb = srgb8(rgb_linear) if srgb else np.round(np.clip(rgb_linear, 0, 1) * 255).astype(np.uint8)
     if alpha is not None:

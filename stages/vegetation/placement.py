@@ -296,7 +296,7 @@ def keep_allowed(inst: Instances, allowed: np.ndarray, dom: Domain) -> tuple[Ins
 def world_positions(x: np.ndarray, z: np.ndarray, dom: Domain, mesh) -> np.ndarray:
     """float32 world positions on the terrain mesh: x, z rounded to float32
     first, then the height of the mesh triangle under that exact point."""
-    from pipeline.terrain_mesh import height_on_mesh
+    from worldlib.terrain.mesh import height_on_mesh
 
     wx = (dom.x0 + x.astype(np.float64)).astype(F)
     wz = (dom.z0 + z.astype(np.float64)).astype(F)

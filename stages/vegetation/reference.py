@@ -13,7 +13,7 @@ import zlib
 
 import numpy as np
 
-from pipeline.hashing import mix32
+from worldlib.hashing import mix32
 
 # Every function and class here has the signature of its twin in device.py,
 # so a caller picks either module and calls it the same way; `local` (the

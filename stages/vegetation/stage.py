@@ -31,8 +31,10 @@ from pipeline import exr
 from pipeline.contract import Artifact, Check, CheckContext, Input, ParamError, RunContext, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
-from stages.common import SPLAT_CHANNELS, TERRAIN_SOURCES, prototype_prim
-from pipeline.preview import hillshade
+from worldlib.ground import SPLAT_CHANNELS
+from worldlib.plant_asset import prototype_prim
+from worldlib.terrain import TERRAIN_SOURCES
+from worldlib.terrain.hillshade import hillshade
 
 from . import attributes as attrs
 from . import ecosystem, grass, placement, tint, usd_layer
@@ -184,7 +186,7 @@ def _species_report(params: VegetationParams, sets, placed, tuft_stats) -> dict[
 
 
 def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> dict[str, Any]:
-    from pipeline.terrain_mesh import build_terrain_mesh
+    from worldlib.terrain.mesh import build_terrain_mesh
 
     T: dict[str, float] = {}
     T_cpu: dict[str, float] = {}  # process CPU seconds (the OpenCL runtime's threads included) per phase

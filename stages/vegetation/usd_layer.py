@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.common import VEGETATION_PROTOTYPES, plant_asset_prim, prototype_prim
+from worldlib.plant_asset import VEGETATION_PROTOTYPES, plant_asset_prim, prototype_prim
 
 from .placement import Instances
 

@@ -99,7 +99,7 @@ def composite_views(camera_records: list[np.ndarray], width: int, height: int, g
     import pyopencl as cl
 
     from pipeline.opencl import get_cl, global_size
-    from pipeline.volume import LEAF_PROJECTION
+    from worldlib.volumes.dense import LEAF_PROJECTION
 
     env = get_cl()
     nz, ny, nx = grid.shape[:3]

@@ -1,5 +1,5 @@
 """A volume's error against its mesh, from view directions the bake never
-used: the mesh rendered by pipeline/render (alpha-tested cards, n x n
+used: the mesh rendered by worldlib/render (alpha-tested cards, n x n
 samples a pixel) and the volume composited front to back (kernels.cl
 composite) from the same orthographic camera, compared as
 
@@ -13,8 +13,8 @@ import math
 
 import numpy as np
 
-from pipeline.render import Camera, Prepared, Scene, Settings
-from pipeline.volume import VolumeLevel
+from worldlib.render import Camera, Prepared, Scene, Settings
+from worldlib.volumes.dense import VolumeLevel
 
 # (azimuth, elevation) in degrees: between the 45-degree azimuths plants
 # measures its crown from, and at elevations it does not look from; the

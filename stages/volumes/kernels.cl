@@ -23,7 +23,7 @@ static double load_triangle(__global const double *pos, __global const double *n
 
 /* Sample (b0, b1, b2) of a triangle (corners p, normals n, uv w, tint,
  * texture k or -1): its albedo (tint x the texel under it, nearest,
- * wrapping uv, as pipeline/render), its voxel (x fastest, clamped to the
+ * wrapping uv, as worldlib/render), its voxel (x fastest, clamped to the
  * grid) and its interpolated unit normal; 0 where the texel's alpha fails
  * the test (no surface: the alpha test of the cards), else 1. */
 static int sample_at(const double *p, const double *n, const double *w, __global const double *tint, const int k,
@@ -189,7 +189,7 @@ static double trilinear(__global const float *g, const int stride, const int c, 
 }
 
 /* One work-item per pixel: the ray through the pixel centre (camera record
- * of pipeline/render) is marched through the grid's box in steps of `step`
+ * of worldlib/render) is marched through the grid's box in steps of `step`
  * metres from the box entry; each step takes the trilinear channels (grid:
  * 7 floats a voxel: premultiplied albedo, density, surface x normal) and
  * lets exp(-sigma step) through, where the extinction along the ray

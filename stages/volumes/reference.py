@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.volume import LEAF_PROJECTION
+from worldlib.volumes.dense import LEAF_PROJECTION
 
 from .samples import Grid3, Samples, SampleTable
 

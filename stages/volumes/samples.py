@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.render import Scene
+from worldlib.render import Scene
 
 
 @dataclass(frozen=True)

@@ -3,18 +3,18 @@ volume (seed 002's volume method, one grid instead of six; Volumetric
 Billboards' 128^3 colour volume), measured against its mesh.
 
 1. Read each placed species' asset as the plants stage wrote it
-   (pipeline.render.usd_asset: meshes, card and bark textures through the
+   (worldlib.render.usd_asset: meshes, card and bark textures through the
    materials), at LOD `lod`.
 2. Voxelize it (voxelize.py, OpenCL kernel surface_samples with a numpy
    reference): coverage density, premultiplied albedo, mean normal and its
    length, from the alpha-tested card texels and the bark; the woody solid
    by its occupied share of each voxel.
-3. Mips (pipeline.volume): 2x2x2 averages that keep the mean coverage.
+3. Mips (worldlib.volumes.dense): 2x2x2 averages that keep the mean coverage.
 4. Error (error.py): each level composited front to back (OpenCL kernel
-   composite) against the mesh rendered by pipeline/render from held-out
+   composite) against the mesh rendered by worldlib/render from held-out
    views: alpha IoU, PSNR of premultiplied colour; the woody solid's
    occupied volume against manifold3d's volume of the Wood mesh.
-5. Write each level as an EXR Z-slice atlas (pipeline.volume.write_atlas,
+5. Write each level as an EXR Z-slice atlas (worldlib.volumes.dense.write_atlas,
    layout and errors in the header) and volumes.usda: /Volumes/<species>
    with a `mip` variant set whose variants hold a UsdVol.Volume.
 
@@ -30,10 +30,11 @@ from typing import Any
 
 import numpy as np
 
-from pipeline import usdio, volume
+from pipeline import usdio
+from worldlib.volumes import dense as volume
 from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, RunContext, Stage
 from pipeline.errors import StageError
-from pipeline.render.usd_asset import load_asset
+from worldlib.render.usd_asset import load_asset
 
 from . import error
 from .voxelize import backend, voxelize
@@ -132,7 +133,7 @@ def volume_species(name: str, asset, params: VolumesParams, out_dir: Path,
         file = f"{name}.mip{k}.exr"
         entry["file"] = file
         if params.vdb:
-            from pipeline.vdb import write_vdb
+            from worldlib.volumes.vdb import write_vdb
 
             write_vdb(out_dir / f"{name}.mip{k}.vdb", lv)
             entry["vdb"] = f"{name}.mip{k}.vdb"
@@ -215,7 +216,7 @@ def check(params: VolumesParams, ctx: CheckContext) -> Check:
         raise ParamError("voxels", f"{params.voxels} voxels cannot halve {params.mip_levels - 1} times; use a multiple "
                          f"of {step} or fewer mip_levels")
     if params.vdb:
-        from pipeline.vdb import available
+        from worldlib.volumes.vdb import available
 
         why = available()
         if why is not None:

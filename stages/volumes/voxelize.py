@@ -1,7 +1,7 @@
-"""A plant asset into a voxel volume (pipeline.volume.VolumeLevel).
+"""A plant asset into a voxel volume (worldlib.volumes.dense.VolumeLevel).
 
 1. The grid: cubic voxels over the plant's box, `voxels` along its longest
-   side, the other sides padded to whole mips (pipeline.volume.grid_for_box).
+   side, the other sides padded to whole mips (worldlib.volumes.dense.grid_for_box).
 2. Surfaces (every triangle, foliage cards, blades and bark): point samples
    on a barycentric grid about voxel / samples_per_voxel apart, each with
    its share of the triangle's area; a sample where a card's texture alpha
@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.render import Scene
-from pipeline.volume import LEAF_PROJECTION, SOLID_OPTICAL_DEPTH, VolumeLevel, grid_for_box
+from worldlib.render import Scene
+from worldlib.volumes.dense import LEAF_PROJECTION, SOLID_OPTICAL_DEPTH, VolumeLevel, grid_for_box
 
 from .samples import Grid3, SurfaceSums, sample_table
 

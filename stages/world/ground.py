@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from stages.common import SPLAT_CHANNELS
+from worldlib.ground import SPLAT_CHANNELS
 
 SPLAT_ORDER = SPLAT_CHANNELS
 # linear albedo per splat channel (rock, scree, grass, dry_grass, mud, snow): typical measured albedos

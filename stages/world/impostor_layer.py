@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from pipeline.contract import Input, RunContext
-from stages.common import plant_asset_prim
+from worldlib.plant_asset import plant_asset_prim
 
 IMPOSTOR_INPUT = Input("impostors", one_of=("impostors.layer",), optional=True,
                        description="the impostors' overs on the plant assets (impostors.usda)")

@@ -15,12 +15,15 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import exr, usdio
+from pipeline import usdio
+from worldlib import images
 from pipeline.contract import Artifact, Check, CheckContext, Input, Param, Params, RunContext, Stage
 from pipeline.grid import Grid
-from stages.common import SPLAT_CHANNELS, TERRAIN_SOURCES, plant_asset_prim
+from worldlib.ground import SPLAT_CHANNELS
+from worldlib.plant_asset import plant_asset_prim
+from worldlib.terrain import TERRAIN_SOURCES
 
-from pipeline.terrain_mesh import bilinear, build_terrain_mesh
+from worldlib.terrain.mesh import bilinear, build_terrain_mesh
 
 from .impostor_layer import IMPOSTOR_INPUT, bind_impostors
 from .volume_layer import SECTOR_VOLUMES
@@ -191,13 +194,13 @@ def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, param
     texel_m = size_m / (tiles * texels)
     n = params.texture_size
     overview = GroundAlbedo(splat, ground.detail_tables(ctx.seed, size_m / n))
-    exr.write_mipmapped_texture(albedo_path, overview.tile(dx, height.origin_m, 1, n, 0, 0, size_m / n), provenance)
+    images.write_mipmapped_texture(albedo_path, overview.tile(dx, height.origin_m, 1, n, 0, 0, size_m / n), provenance)
     del overview
     baker = GroundAlbedo(splat, ground.detail_tables(ctx.seed, texel_m))
 
     def write_tile(udim: int, tile: np.ndarray) -> int:
         # zip level 1: 20 % less CPU than the default level for 5 % more bytes (the write is the tile's cost)
-        exr.write_mipmapped_texture(folder / f"ground.{udim}.exr", tile, provenance, compression="zip:1")
+        images.write_mipmapped_texture(folder / f"ground.{udim}.exr", tile, provenance, compression="zip:1")
         return udim
 
     # the device bakes a tile in a fraction of its write (box mips, half floats, zip): writes overlap in threads,
@@ -214,7 +217,7 @@ def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, param
             ctx.progress(0.05 + 0.7 * (i + 1) / tiles ** 2, f"ground tile {1001 + u + 10 * v}")
         for p in pending:
             p.result()
-    from pipeline.terrain_mesh import bilinear, lattice_coordinates
+    from worldlib.terrain.mesh import bilinear, lattice_coordinates
 
     h = height.channel(height.channels[0]).astype(np.float64)
     mesh = build_terrain_mesh(height, params.mesh_max_vertices)
@@ -224,7 +227,7 @@ def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, param
     ri = np.interp(np.arange(rows), lattice_coordinates(rows, nr), np.arange(nr))
     ci = np.interp(np.arange(cols), lattice_coordinates(cols, nc), np.arange(nc))
     mesh_h = bilinear(lattice, ri, ci)
-    exr.write_mipmapped_texture(folder / "normal.exr", ground.normal_map(h, mesh_h, dx), provenance)
+    images.write_mipmapped_texture(folder / "normal.exr", ground.normal_map(h, mesh_h, dx), provenance)
     ctx.metrics.update(ground_udim_tiles=tiles * tiles, ground_texel_m=texel_m, ground_tile_texels=texels)
     return ("./ground.<UDIM>.exr", tiles), "./normal.exr"
 
@@ -267,7 +270,7 @@ def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
     splat_grid = inputs.get("splat")
     udim = normal_file = None
     if splat_grid is None:
-        exr.write_texture(albedo_path, ground_colour(height, params.texture_size, params), ctx.provenance)
+        images.write_texture(albedo_path, ground_colour(height, params.texture_size, params), ctx.provenance)
     else:
         # the ground textures (most of this stage's time and bytes) are a unit (pipeline.units): a world
         # re-made for its plants, impostors or volumes links them from the run that baked them

@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.render import Camera, Prepared, Scene, Settings, render
-from pipeline.render import bvh
+from worldlib.render import Camera, Prepared, Scene, Settings, render
+from worldlib.render import bvh
 
 pytestmark = pytest.mark.every_device
 

@@ -136,7 +136,7 @@ def test_dem_is_opened_and_checked_at_validation_naming_the_key(project, capsys)
 def test_a_raster_declaring_too_many_pixels_is_refused_before_reading(project, capsys, monkeypatch):
     import numpy as np
 
-    from pipeline import dem
+    from worldlib.terrain import dem
     monkeypatch.setattr(dem, "MAX_PIXELS", 100)  # a 16x16 file stands for a 32768^2 one
     _raster(project / "dem.exr", np.zeros((16, 16)))
     bad(project, 'extends = "default.toml"\n[heightmap]\ngenerator = "dem"\ndem_path = "dem.exr"\n')

@@ -1,4 +1,4 @@
-"""pipeline.render.world_view on a tiny world.usda written here: a textured
+"""worldlib.render.world_view on a tiny world.usda written here: a textured
 ground (UDIM tiles), one PointInstancer of a prototype (a green textured card
 tree) with per-instance tints; the picture shows the ground's texture, the
 instances as billboards, each in its own tint."""
@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.render import Camera, world_view
+from worldlib.render import Camera, world_view
 
 
 def _write_tile(path, rgb):
@@ -85,7 +85,7 @@ def test_world_scene_holds_ground_and_billboards(tiny_world):
 
 
 def test_world_picture_shows_ground_texture_trees_and_tints(tiny_world):
-    from pipeline.render import Prepared, Settings
+    from worldlib.render import Prepared, Settings
 
     scene, _ = world_view.build_world_scene(tiny_world, min_instance_height_m=1.0, progress=lambda m: None)
     top = Camera((0.0, 50.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0), ortho_height_m=20.0)
@@ -107,7 +107,7 @@ def test_meshes_under_an_instanceable_prim_are_read():
     per species: their meshes are instance proxies, read all the same."""
     from pxr import Usd, UsdGeom
 
-    from pipeline.render.usd_asset import subtree_scene
+    from worldlib.render.usd_asset import subtree_scene
 
     stage = Usd.Stage.CreateInMemory()
     mesh = UsdGeom.Mesh.Define(stage, "/Asset/Geom")

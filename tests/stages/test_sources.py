@@ -28,7 +28,7 @@ def _stage_files(root: Path, name: str) -> list[Path]:
 
 @pytest.mark.parametrize("name", sorted(STAGES))
 def test_no_stage_imports_another_stages_module(name):
-    """Shared code lives in pipeline/ (or stages/common.py, names only)."""
+    """Shared code lives in worldlib/, the domain libraries."""
     for path in _stage_files(ROOT, name):
         for module in imported_modules(ROOT, path):
             rel = module.relative_to(ROOT).parts
@@ -45,7 +45,7 @@ def test_the_key_covers_every_project_module_the_stage_loads(name):
             "print(json.dumps(sorted(getattr(m, '__file__', None) or '' for m in list(sys.modules.values()))))" % name)
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True).stdout
     loaded = {Path(f).resolve() for f in json.loads(out) if f}
-    project = {f for f in loaded if f.is_relative_to(ROOT) and f.parts[len(ROOT.parts)] in ("pipeline", "stages")}
+    project = {f for f in loaded if f.is_relative_to(ROOT) and f.parts[len(ROOT.parts)] in ("pipeline", "worldlib", "stages")}
     stage_dirs = {ROOT / "stages" / other for other in STAGES if other != name}
     covered = set(stage_source_files(STAGES[name].source_dir))
     for f in project:
@@ -56,9 +56,9 @@ def test_the_key_covers_every_project_module_the_stage_loads(name):
 
 @pytest.fixture(scope="module")
 def project_copy(tmp_path_factory):
-    """pipeline/, stages/ and configs/ in a temporary folder, to edit."""
+    """pipeline/, worldlib/, stages/ and configs/ in a temporary folder, to edit."""
     root = tmp_path_factory.mktemp("copy")
-    for folder in ("pipeline", "stages", "configs"):
+    for folder in ("pipeline", "worldlib", "stages", "configs"):
         shutil.copytree(ROOT / folder, root / folder, ignore=shutil.ignore_patterns("__pycache__"))
     return root
 
@@ -81,7 +81,7 @@ def _erosion_key(root: Path) -> str:
 
 
 def test_editing_the_flow_kernels_changes_erosions_key(project_copy):
-    kernels = project_copy / "pipeline" / "flow" / "kernels.cl"
+    kernels = project_copy / "worldlib" / "flow" / "kernels.cl"
     text = kernels.read_text()
     marker = "#define ACC_T uint"
     before = _erosion_key(project_copy)
@@ -114,14 +114,14 @@ def _changed_by(root: Path, rel: str, old: str, new: str) -> set[str]:
 
 
 def test_editing_a_shared_header_changes_the_keys_of_the_stages_including_it(project_copy):
-    changed = _changed_by(project_copy, "pipeline/cl/worldbake_hash.h", "h ^= h >> 15;", "h ^= h >> 14;")
+    changed = _changed_by(project_copy, "worldlib/cl/worldbake_hash.h", "h ^= h >> 15;", "h ^= h >> 14;")
     including = {n for n in STAGES if any('#include "worldbake_hash.h"' in p.read_text()
                                           for p in (project_copy / "stages" / n).glob("*.cl"))}
     assert including == {"heightmap", "vegetation"} and changed == including
 
 
 def test_editing_the_d8_header_changes_the_keys_of_the_stages_routing_flow(project_copy):
-    changed = _changed_by(project_copy, "pipeline/cl/worldbake_d8.h", "{-1, -1, 0, 1, 1, 1, 0, -1}",
+    changed = _changed_by(project_copy, "worldlib/cl/worldbake_d8.h", "{-1, -1, 0, 1, 1, 1, 0, -1}",
                           "{-1, -1, 0, 1, 1, 1, 0, 1}")
     assert changed >= {"erosion", "hydrology"}
 
@@ -140,7 +140,7 @@ def test_comment_only_edits_change_no_key(project_copy):
     before = _hashes(project_copy)
     edited: dict[Path, str] = {}
     try:
-        for folder in ("stages", "pipeline"):
+        for folder in ("stages", "worldlib", "pipeline"):
             for path in (project_copy / folder).rglob("*"):
                 if path.suffix in (".py", ".cl", ".h") and "__pycache__" not in path.parts:
                     edited[path] = path.read_text()

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.terrain_stats import grid_anisotropy
+from worldlib.terrain.stats import grid_anisotropy
 from stages.erosion import hillslope
 from stages.erosion import stream_power as sp
 
@@ -79,7 +79,7 @@ def test_landscape_evolution_keeps_its_budget_and_carves_valleys():
 
 @pytest.mark.parametrize("p_exp, channel_area", [(1.1, 0.0), (4.0, 2000.0)])
 def test_mfd_kernels_equal_reference(p_exp, channel_area):
-    from pipeline.flow import reference as ref
+    from worldlib.flow import reference as ref
 
     rng = np.random.default_rng(11)
     h = rng.random((19, 26)) * 120.0
@@ -98,7 +98,7 @@ def test_distance_routing_drains_every_cell_and_converges_on_the_outlet():
     """A round closed basin: every interior cell has a strictly lower
     neighbour on the routing surface, and the surface over the filled lake
     falls toward the outlet with the Euclidean distance."""
-    from pipeline.flow import reference as ref
+    from worldlib.flow import reference as ref
 
     n = 61
     r, c = np.mgrid[0:n, 0:n].astype(float)
@@ -145,7 +145,7 @@ def test_mfd_isotropy_makes_incision_on_a_plane_the_same_in_every_direction():
     the lower neighbours) is 0.856 of the gradient down an axis but 0.776 at
     22.5 degrees; scaled by mfd_isotropy, the incision rate is K A^m |grad h|
     whatever the plane's direction."""
-    from pipeline.flow import reference as ref
+    from worldlib.flow import reference as ref
 
     n, dx, k_dt, gradient = 21, 10.0, 1e-3, 0.3
     r, c = np.mgrid[0:n, 0:n] * dx

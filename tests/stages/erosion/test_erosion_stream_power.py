@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from stages.erosion import stream_power as sp
-from pipeline.flow import device as flow
+from worldlib.flow import device as flow
 
 
 def channel(n_cells: int) -> np.ndarray:
@@ -39,7 +39,7 @@ def test_steady_state_slope(n_exp):
 def test_kernel_equals_reference(n_exp):
     rng = np.random.default_rng(5)
     h = rng.random((23, 31)) * 200.0
-    from pipeline.flow import reference as ref
+    from worldlib.flow import reference as ref
 
     kind = ref.cell_kinds(h.astype(np.float32))
     code = flow.d8(flow.fill(ref.canonical(h.astype(np.float32)), kind, eps=True), kind, 10.0)

@@ -4,7 +4,7 @@ import OpenImageIO as oiio
 import pytest
 
 from pipeline.errors import InputError
-from pipeline import dem
+from worldlib.terrain import dem
 from stages.heightmap.stage import HeightmapParams, heights
 
 

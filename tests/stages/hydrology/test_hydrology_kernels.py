@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from pipeline.flow import device as dev
-from pipeline.flow import reference as ref
+from worldlib.flow import device as dev
+from worldlib.flow import reference as ref
 
 pytestmark = pytest.mark.every_device  # kernels against their references on each runtime
 

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from pipeline.flow import device as dev
+from worldlib.flow import device as dev
 from stages.hydrology import lakes
-from pipeline.flow import reference as ref
+from worldlib.flow import reference as ref
 
 
 def solve(h, depth_m, area=4.0, accumulate=dev.accumulate, merge_sweep=dev.merge_sweep):
@@ -85,7 +85,7 @@ def test_no_depressions():
 def test_hack_exponent_matches_brute_force():
     """Mainstream length = longest upstream path, by explicit walks; main
     stems traced from the outlets by the longest donor."""
-    from pipeline.flow import reference as ref
+    from worldlib.flow import reference as ref
     from stages.hydrology.rivers import hack_exponent
 
     rng = np.random.default_rng(3)

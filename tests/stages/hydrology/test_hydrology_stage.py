@@ -69,7 +69,7 @@ def test_run_end_to_end(tmp_path):
     # the USD: rivers lie on the terrain mesh, lakes flat at their level
     from pxr import Usd, UsdGeom
 
-    from pipeline.terrain_mesh import build_terrain_mesh, height_on_mesh
+    from worldlib.terrain.mesh import build_terrain_mesh, height_on_mesh
 
     stage = Usd.Stage.Open(str(out["hydrology.water"]))
     assert stage.GetDefaultPrim().GetPath() == "/World"

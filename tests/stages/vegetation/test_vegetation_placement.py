@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 from stages.vegetation import device as dev
 from stages.vegetation import placement as pl
 from stages.vegetation.params import KAPPA, VegetationParams
-from pipeline.terrain_mesh import build_terrain_mesh, height_on_mesh
+from worldlib.terrain.mesh import build_terrain_mesh, height_on_mesh
 from pipeline.grid import Grid
 
 from .conftest import synthetic_height

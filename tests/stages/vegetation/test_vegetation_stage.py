@@ -15,7 +15,7 @@ from pipeline.contract import Params, RunContext, Stage
 from pipeline.grid import Grid
 from stages.vegetation import STAGE, VegetationParams
 from stages.vegetation import placement as pl
-from pipeline.terrain_mesh import build_terrain_mesh, height_on_mesh
+from worldlib.terrain.mesh import build_terrain_mesh, height_on_mesh
 
 from .conftest import synthetic_height
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.render import Scene
+from worldlib.render import Scene
 
 
 def box(lo, hi) -> tuple[np.ndarray, np.ndarray]:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline import volume
+from worldlib.volumes import dense as volume
 from stages.forest_volumes import reference, splat
 from stages.forest_volumes.stage import _rotations
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline import volume
-from pipeline.render import Camera
+from worldlib.volumes import dense as volume
+from worldlib.render import Camera
 from stages.volumes import device, error, reference
 from stages.volumes.samples import sample_table
 from stages.volumes.voxelize import plant_grid, voxelize

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import usdio, volume
+from pipeline import usdio
+from worldlib.volumes import dense as volume
 from pipeline.config import canonical_params
 from pipeline.contract import RunContext
 from stages.forest_volumes import STAGE as FOREST
@@ -199,7 +200,7 @@ def test_forest_tiles_get_sector_volumes(volumes, forest):
 
 
 def test_stored_sector_levels_are_column_runs_that_keep_the_mean_coverage(forest):
-    from pipeline import sparse_volume
+    from worldlib.volumes import sparse as sparse_volume
 
     _, res, folder = forest
     path, info = next(iter(res["forest_volumes.stats"]["sectors"].items()))
@@ -223,7 +224,7 @@ def test_the_sector_is_measured_against_its_instances(forest, volumes):
     """column_errors: the baked sector keeps its instances' extinction and
     lies close to them column by column; a sector moved by three voxels, or
     with half its density, is caught."""
-    from pipeline import sparse_volume
+    from worldlib.volumes import sparse as sparse_volume
     from stages.forest_volumes.stage import column_errors
 
     layer, res, folder = forest
@@ -252,7 +253,7 @@ def test_vdb_levels_read_back_with_the_same_values(plants, tmp_path):
     and the Volume's fields name it."""
     from pxr import Usd, UsdVol
 
-    from pipeline import vdb
+    from worldlib.volumes import vdb
 
     if vdb.available() is not None:
         pytest.skip(f"no OpenVDB writer here: {vdb.available()}")

@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 
 from pipeline import exr, usdio
+from worldlib import images
 from pipeline.contract import RunContext
 from pipeline.grid import Grid
 from stages.world import STAGE
-from pipeline.terrain_mesh import build_terrain_mesh, height_on_mesh
+from worldlib.terrain.mesh import build_terrain_mesh, height_on_mesh
 
 
 def _terrain(rows=33, cols=40, cell=25.0):
@@ -183,11 +184,9 @@ def test_the_ground_textures_are_reused_while_terrain_and_splat_do_not_change(tm
 def test_mipmapped_texture_levels_are_box_means(tmp_path):
     import OpenImageIO as oiio
 
-    from pipeline import exr
-
     rng = np.random.default_rng(1)
     rgb = rng.random((8, 6, 3)).astype(np.float32)
-    exr.write_mipmapped_texture(tmp_path / "t.exr", rgb, {"stage": "world"})
+    images.write_mipmapped_texture(tmp_path / "t.exr", rgb, {"stage": "world"})
     inp = oiio.ImageInput.open(str(tmp_path / "t.exr"))
     levels = []
     while inp.seek_subimage(0, len(levels)):

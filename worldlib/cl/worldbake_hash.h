@@ -2,7 +2,7 @@
  *
  * Included with #include "worldbake_hash.h"; pipeline.opencl.load_program
  * passes this folder with -I, and a stage's cache key hashes the header
- * (pipeline.sources). The numpy twin is pipeline/hashing.py: keep them equal.
+ * (pipeline.sources). The numpy twin is worldlib/hashing.py: keep them equal.
  *
  * A kernel that hashes vectors defines HASH_UINT (uint4, uint8, ...) before
  * the include; the default is uint.

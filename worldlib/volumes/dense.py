@@ -246,7 +246,7 @@ def read_channels(inp, path: Path | str, what: str) -> tuple[np.ndarray, dict[st
     attributes; `what` names the format in the error for other channels."""
     import OpenImageIO as oiio
 
-    from .errors import InputError
+    from pipeline.errors import InputError
 
     spec = inp.spec()
     names = tuple(spec.channelnames)
@@ -258,11 +258,11 @@ def read_channels(inp, path: Path | str, what: str) -> tuple[np.ndarray, dict[st
 
 
 def read_atlas(path: Path | str) -> VolumeLevel:
-    """A level written by write_atlas (or by pipeline.sparse_volume.write_runs,
+    """A level written by write_atlas (or by worldlib.volumes.sparse.write_runs,
     as a dense level), its header attributes in `attributes`."""
     import OpenImageIO as oiio
 
-    from .errors import InputError
+    from pipeline.errors import InputError
 
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
@@ -273,8 +273,8 @@ def read_atlas(path: Path | str) -> VolumeLevel:
         inp.close()
     if "volume_grid" not in attrs:
         raise InputError(f"{path}: no worldbake:volume_grid attribute; not a volume atlas")
-    if attrs.get("volume_layout") == "column runs":  # a sparse level (pipeline.sparse_volume)
-        from .sparse_volume import read_runs
+    if attrs.get("volume_layout") == "column runs":  # a sparse level (worldlib.volumes.sparse)
+        from .sparse import read_runs
 
         return read_runs(path).to_dense()
     level = from_atlas(np.ascontiguousarray(pixels), tuple(attrs["volume_grid"]),
@@ -289,7 +289,7 @@ def read_atlas(path: Path | str) -> VolumeLevel:
 def define_volume_prim(stage, path: str, level: VolumeLevel, atlas_file: str, purpose: str | None = None,
                        vdb_file: str | None = None):
     """A UsdVol.Volume prim for one level: extent = the grid's box, and a
-    field per channel group. With `vdb_file` (pipeline.vdb) the fields are
+    field per channel group. With `vdb_file` (worldlib.volumes.vdb) the fields are
     OpenVDBAsset prims naming its grids, which Houdini, usdview and
     Omniverse render. Without it: EXR atlases are no field format USD knows
     (UsdVol has OpenVDB and Field3D assets only), so the fields are

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .volume import VolumeLevel
+from .dense import VolumeLevel
 
 _WRITE = r"""
 import sys, numpy as np, pyopenvdb as vdb

@@ -33,7 +33,9 @@ import numpy as np
 
 from . import bvh as _bvh
 from . import reference
-from .scene import Camera, Image, Scene, Settings, linear_from_srgb, srgb8
+from pipeline.exr import linear_from_srgb, srgb8
+
+from .scene import Camera, Image, Scene, Settings
 
 __all__ = ["Camera", "Image", "Prepared", "Scene", "Settings", "render", "reference", "linear_from_srgb", "srgb8",
            "KERNELS"]

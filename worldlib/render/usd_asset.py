@@ -23,7 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .scene import Scene, linear_from_srgb
+from pipeline.exr import linear_from_srgb
+
+from .scene import Scene
 
 TEXTURE_PX = 256  # the plant readers' texture stack side (the renderer's stack has one size)
 

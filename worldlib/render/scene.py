@@ -184,13 +184,3 @@ class Image:
         return self.albedo * light + (1.0 - self.alpha[..., None]) * bg
 
 
-def linear_from_srgb(srgb: np.ndarray) -> np.ndarray:
-    """sRGB-encoded [0, 1] colour to linear (the standard piecewise curve), in the input's precision."""
-    return np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
-
-
-def srgb8(linear_rgb: np.ndarray) -> np.ndarray:
-    """Linear [0, 1] colour to 8-bit sRGB (the standard piecewise curve)."""
-    x = np.clip(np.asarray(linear_rgb, np.float64), 0.0, 1.0)
-    s = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    return np.round(s * 255.0).astype(np.uint8)

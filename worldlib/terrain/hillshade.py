@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .grid import Grid
+from pipeline.grid import Grid
 
 
 def hillshade(height: Grid, azimuth_deg: float = 315.0, altitude_deg: float = 45.0, z_factor: float = 1.0) -> np.ndarray:

@@ -7,7 +7,7 @@ occupied, 3.8 occupied voxels per occupied (x, z) column). A SparseLevel
 holds the occupied voxels of a grid (density or surface above 0): their
 flat indices (z * ny + y) * nx + x, ascending, and their channels, with the
 grid's shape, origin and voxel edge; the channels and units are those of
-pipeline.volume.VolumeLevel, and to_dense() gives that level back.
+worldlib.volumes.dense.VolumeLevel, and to_dense() gives that level back.
 
 Column runs (the file): every (x, z) column of the grid holds its occupied
 voxels in one run along y, from its lowest to its highest occupied voxel
@@ -16,7 +16,7 @@ voxels in one run along y, from its lowest to its highest occupied voxel
     part 0 "voxels"   the runs one after the other, columns in z-then-x
                       order, each from its bottom up, pixels row-major in
                       an image RUNS_WIDTH wide; channels as the Z-slice
-                      atlas (pipeline.volume.CHANNELS; density float32,
+                      atlas (worldlib.volumes.dense.CHANNELS; density float32,
                       the others half floats); the header as the atlas's
                       (volume_grid, volume_bbox_min/_max, volume_voxel_m,
                       volume_mip, ...) with volume_layout "column runs".
@@ -33,7 +33,7 @@ voxels: on a default-world sector (132 x 92 x 132 voxels, 61 k occupied)
 zip EXRs take 1.80 MB dense, 1.63 MB as 4^3 bricks, 0.98 MB as runs.
 
 Mips sum each 2 x 2 x 2 block of occupied voxels (np.bincount in voxel
-order: deterministic), as pipeline.volume.downsample does on a dense grid.
+order: deterministic), as worldlib.volumes.dense.downsample does on a dense grid.
 """
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from .volume import CHANNEL_UNITS, CHANNELS, HALF_MAX, VolumeLevel, read_channels
+from .dense import CHANNEL_UNITS, CHANNELS, HALF_MAX, VolumeLevel, read_channels
 
 RUNS_WIDTH = 256  # pixels a row of the voxels part
 RUN_CHANNELS = ("run.y0", "run.length", "run.offset")
@@ -235,7 +235,7 @@ def read_runs(path: Path | str) -> SparseLevel:
     """A level written by write_runs, its header attributes in `attributes`."""
     import OpenImageIO as oiio
 
-    from .errors import InputError
+    from pipeline.errors import InputError
 
     inp = oiio.ImageInput.open(str(path))
     if inp is None:

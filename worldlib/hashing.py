@@ -1,4 +1,4 @@
-"""The numpy twin of pipeline/cl/worldbake_hash.h: counter-based random
+"""The numpy twin of worldlib/cl/worldbake_hash.h: counter-based random
 numbers that kernels and references compute bit for bit alike."""
 from __future__ import annotations
 

@@ -31,7 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .scene import Camera, Image, Scene, Settings, srgb8
+from pipeline.exr import srgb8
+
+from .scene import Camera, Image, Scene, Settings
 from .usd_asset import load_texture, resized, subtree_scene, with_stack
 
 ATLAS_SIZE = 1024  # texels per side of every texture the world picture uses (the ground's and the billboard atlas)

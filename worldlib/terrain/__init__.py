@@ -1,0 +1,4 @@
+"""Terrain: the mesh lattice stages share, DEM files, hillshade, statistics."""
+
+# The final terrain height: from erosion when it runs, else the heightmap.
+TERRAIN_SOURCES = ("erosion.height", "heightmap.height")
