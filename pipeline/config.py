@@ -78,6 +78,28 @@ def _check_values(tree: Any, origin: dict[str, str], shown: str, prefix: str = "
             _check_values(v, origin, shown, key + ".", depth + 1)
 
 
+def _check_depth(tree: dict, shown: str) -> None:
+    """Refuse tables or lists nested more than MAX_DEPTH deep, read without
+    recursion: a parsed file can hold nesting deeper than Python's stack
+    (a dotted key of 20000 parts), which merging would recurse into."""
+    todo: list[tuple[Any, str, int]] = [(tree, "", 0)]
+    while todo:
+        node, key, depth = todo.pop()
+        if depth > MAX_DEPTH:
+            shown_key = key if len(key) <= 60 else key[:57] + "..."
+            raise InputError(f"{shown}: {shown_key}: tables nested more than {MAX_DEPTH} deep")
+        items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
+        for k, v in items:
+            if isinstance(v, (dict, list)):
+                todo.append((v, f"{key}.{k}" if key and isinstance(node, dict) else f"{key}[{k}]" if key else str(k),
+                             depth + 1))
+
+
+# The type of each top-level key other than tables of stage params (checked
+# before the stages' schemas, so a wrong type is named as such).
+TOP_LEVEL_TYPES = {"name": str, "description": str, "extends": str}
+
+
 @dataclass(frozen=True)
 class WorldConfig:
     path: Path  # the config file given by the user
@@ -157,6 +179,7 @@ def _read_toml(path: Path, root: Path, seen: tuple[Path, ...], origin: dict[str,
         raise InputError(f"{shown}: not valid TOML: {e}") from None
     except RecursionError:
         raise InputError(f"{shown}: not valid TOML: nested too deep") from None
+    _check_depth(raw, shown)
     parent = raw.pop("extends", None)
     if parent is None:
         base: dict = {}
@@ -304,6 +327,10 @@ def load_config(path: Path | str, stages: dict[str, Stage], *, project_root: Pat
             allowed = ", ".join(list(TOP_LEVEL_KEYS) + sorted(stages))
             raise InputError(f"{origin.get(key, shown)}: {key}: unknown key (allowed at the top level: {allowed})")
 
+    for key, kind in TOP_LEVEL_TYPES.items():
+        if key in tree and not isinstance(tree[key], kind):
+            raise InputError(f"{origin.get(key, shown)}: {key}: must be a {kind.__name__} ({TOP_LEVEL_KEYS[key]}), "
+                             f"got {tree[key]!r}")
     name = check_name(tree.get("name", path.stem), origin.get("name", shown), "name", "the world name")
     for v in variants:
         check_name(v, shown, f"variants.{v}", "a variant name")

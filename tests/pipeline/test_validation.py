@@ -48,6 +48,10 @@ def bad(project: Path, text: str, name: str = "bad.toml") -> None:
     ('extends = "default.toml"\n[variants.v]\nworld.roughness = 7.0\n', r"\[variants.v\]: world.roughness"),
     ("x = " + "[" * 50000 + "]" * 50000 + "\n", r"bad.toml: (not valid TOML|x: tables nested)"),
     ("[" + ".".join(["a"] * 40) + "]\n", r"bad.toml: a(\.a)*: tables nested more than 16 deep"),
+    ('extends = "default.toml"\n[heightmap]\n' + ".".join(["a"] * 20000) + " = 1\n",
+     r"bad.toml: heightmap(\.a)+(\.\.\.)?: tables nested more than 16 deep"),
+    ('extends = "default.toml"\ndescription = 5\n', r"bad.toml: description: must be a str .*got 5"),
+    ('extends = "default.toml"\nname = 7\n', r"bad.toml: name: must be a str"),
 ])
 def test_bad_config_is_refused_before_work(project, capsys, text, pattern):
     bad(project, text)
