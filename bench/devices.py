@@ -40,7 +40,7 @@ def heightmap_case(n: int):
     from stages.heightmap.stage import HeightmapParams, heights
 
     params = HeightmapParams(resolution=n)
-    return f"heightmap fBm {n}^2", lambda: heights(params, 7)
+    return f"heightmap fBm {n}^2", lambda: heights(_current(), params, 7)
 
 
 def erosion_case(n: int, steps: int = 20):
@@ -58,7 +58,7 @@ def erosion_case(n: int, steps: int = 20):
     def run():
         sim = sims.get(id(_current()))
         if sim is None:
-            sim = sims[id(_current())] = DeviceSim(h, ph)
+            sim = sims[id(_current())] = DeviceSim(_current(), h, ph)
             sim.step(k)
             sim.finish()
         for _ in range(steps):
@@ -83,9 +83,9 @@ def hydrology_case(n: int):
     kind = ref.cell_kinds(h)
 
     def run():
-        filled = dev.fill(h, kind, eps=True)
-        code = dev.d8(filled, kind, 8.0)
-        dev.accumulate(code)
+        filled = dev.fill(_current(), h, kind, eps=True)
+        code = dev.d8(_current(), filled, kind, 8.0)
+        dev.accumulate(_current(), code)
 
     return f"hydrology fill+d8+accumulate {n}^2", run
 
@@ -97,7 +97,7 @@ def vegetation_case(n: int):
 
     h = synthetic_world(n, size_m=8.0 * n, relief_m=1200.0, seed=5)
     params = VegetationParams()
-    return f"vegetation attributes (slope, horizon sunlight) {n}^2", lambda: attributes.compute(h, 8.0, params, device)
+    return f"vegetation attributes (slope, horizon sunlight) {n}^2", lambda: attributes.compute(h, 8.0, params, device.on(_current()))
 
 
 def plants_case(n: int):
@@ -115,7 +115,7 @@ def plants_case(n: int):
     ring[:, 12] = rng.random(n) * 0.3
     ring[:, 14:] = rng.random((n, 6))
     sides = rng.integers(3, 17, n).astype(np.int32)
-    return f"plants tube rings {n} rings", lambda: geometry.tube_rings(ring, sides, use_opencl=True)
+    return f"plants tube rings {n} rings", lambda: geometry.tube_rings(_current(), ring, sides)
 
 
 def kernels(devices, quick: bool, rounds: int) -> list[dict]:

@@ -61,6 +61,9 @@ def _world(n: int, size_m: float = SIZE_M) -> tuple[np.ndarray, float]:
 
 
 def roofline(sizes: list[int], reps: int, rounds: int = 20) -> list[dict]:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from stages.erosion import simulate
     from bench.erosion_profile import BYTES_PER_CELL, COPY_KERNELS, profile
     from stages.erosion.device import DeviceSim
@@ -77,8 +80,8 @@ def roofline(sizes: list[int], reps: int, rounds: int = 20) -> list[dict]:
         # PoCL builds each kernel for its work-group size at the first launch (and loads it from its cache
         # in a new process): a short loop first, so the timed one measures the loop and not that
         plan.max_steps = 32
-        simulate.run(DeviceSim(h, ph), ph, plan)
-        sim = DeviceSim(h, ph)
+        simulate.run(DeviceSim(cl_env, h, ph), ph, plan)
+        sim = DeviceSim(cl_env, h, ph)
         plan.max_steps = LOOP_STEPS  # the whole loop, water flowing (the kernels are timed on its final state)
         m = simulate.run(sim, ph, plan)
         prof = profile(sim, step_constants(ph, m["dt_mean_s"]), reps=reps, rounds=rounds)
@@ -105,6 +108,9 @@ def roofline(sizes: list[int], reps: int, rounds: int = 20) -> list[dict]:
 
 
 def speedup(n: int, steps: int) -> dict:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from stages.erosion.device import DeviceSim
     from stages.erosion.physics import step_constants
     from stages.erosion.reference import ReferenceSim
@@ -113,7 +119,7 @@ def speedup(n: int, steps: int) -> dict:
     h, dx = _world(n)
     ph = physics_for(ErosionParams(), dx)
     k = step_constants(ph, 0.5 * dx / 20.0)
-    dev, ref = DeviceSim(h, ph), ReferenceSim(h, ph)
+    dev, ref = DeviceSim(cl_env, h, ph), ReferenceSim(h, ph)
     dev.step(k)
     dev.finish()  # build and first touch outside the clock
     t0 = time.perf_counter()
@@ -143,6 +149,9 @@ def speedup(n: int, steps: int) -> dict:
 
 
 def _fixed_run(n: int, size_m: float, dt: float, hours: float) -> tuple[np.ndarray, float, dict]:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from stages.erosion import simulate
     from stages.erosion.device import DeviceSim
     from stages.erosion.stage import ErosionParams, physics_for, plan_for
@@ -151,7 +160,7 @@ def _fixed_run(n: int, size_m: float, dt: float, hours: float) -> tuple[np.ndarr
     p = ErosionParams(thermal_years=0.0, storm_hours=hours, dt_s=dt)
     ph = physics_for(p, dx)
     plan = plan_for(p, dx, ph)
-    sim = DeviceSim(h, ph)
+    sim = DeviceSim(cl_env, h, ph)
     t0 = time.perf_counter()
     m = simulate.run(sim, ph, plan)
     sec = time.perf_counter() - t0
@@ -202,6 +211,9 @@ def time_vs_error(sizes: list[int], size_m: float, hours: float, courants: list[
 
 
 def resolution(n_coarse: int, factor: int, sigma_m: float) -> dict:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from scipy.ndimage import gaussian_filter
 
     from pipeline.contract import RunContext
@@ -211,7 +223,7 @@ def resolution(n_coarse: int, factor: int, sigma_m: float) -> dict:
     out = {}
     for n in (n_coarse, n_coarse * factor):
         h, dx = _world(n)
-        ctx = RunContext(stage=STAGE, key="bench", out_dir=Path("."), seed=0, provenance={}, project_root=Path("."))
+        ctx = RunContext(cl=cl_env, stage=STAGE, key="bench", out_dir=Path("."), seed=0, provenance={}, project_root=Path("."))
         t0 = time.perf_counter()
         res = STAGE.run(ctx, {"height": Grid(h, cell_size_m=dx)}, ErosionParams())
         sec = time.perf_counter() - t0

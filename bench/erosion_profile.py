@@ -40,11 +40,14 @@ def profile(sim, k, reps: int = 10, rounds: int = 5) -> dict[str, float | list[f
     kernel, so every kernel, the copies included, starts its block with its
     own arrays where its timed launches will find them (at 512^2 in the
     L3, which the kernel timed before would otherwise have partly evicted)."""
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     import time
 
     import pyopencl as cl
 
-    copies = {name: CachedKernel(load_program(ROOFLINE), name) for name in COPY_KERNELS}
+    copies = {name: CachedKernel(load_program(cl_env, ROOFLINE), name) for name in COPY_KERNELS}
     q = sim.queue
     R, C, P = sim.R, sim.C, sim.P
     d, w = sim.cd, sim.cw

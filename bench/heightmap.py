@@ -37,6 +37,9 @@ def best_of(fn, repeat):
 
 def cl_roofline(n_cells: int, repeat: int) -> dict[str, float]:
     """GB/s of a fill (write only) and a copy (read + write) kernel."""
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     import pyopencl as cl
 
     from pipeline.opencl import get_cl
@@ -44,7 +47,7 @@ def cl_roofline(n_cells: int, repeat: int) -> dict[str, float]:
     from pipeline.opencl import load_program
 
     env = get_cl()
-    prg = load_program(noise.KERNELS, ("-DVW=1",))
+    prg = load_program(cl_env, noise.KERNELS, ("-DVW=1",))
     a = cl.Buffer(env.ctx, cl.mem_flags.READ_WRITE, n_cells * 4)
     b = cl.Buffer(env.ctx, cl.mem_flags.READ_WRITE, n_cells * 4)
     fill = cl.Kernel(prg, "fill")
@@ -85,6 +88,9 @@ def fastnoise_time(n: int, octaves: int, wavelength_cells: float, noise_type: st
 
 
 def main(argv=None) -> None:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="512^2 and 1024^2 instead of 2048^2 and 4096^2")
     ap.add_argument("--octaves", type=int, default=8)
@@ -123,8 +129,8 @@ def main(argv=None) -> None:
         for gen in gens:
             s = spec_for(gen, n)
             assert gen == "fault" or s.n_main == octaves, s.info
-            noise.bake(s, (0, 0, 64, 64))  # build + warm-up
-            times = [noise.bake(s, (0, 0, n, n))[1] for _ in range(args.repeat)]
+            noise.bake(cl_env, s, (0, 0, 64, 64))  # build + warm-up
+            times = [noise.bake(cl_env, s, (0, 0, n, n))[1] for _ in range(args.repeat)]
             results[gen] = min(times)
         # numpy reference, timed on a smaller grid and scaled per cell
         m = min(args.ref_size, n)

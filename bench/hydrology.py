@@ -41,9 +41,12 @@ def best_of(fn, repeat):
 
 
 def dem(n: int, seed: int = 20261123) -> np.ndarray:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from stages.heightmap.stage import HeightmapParams, heights
 
-    h, _ = heights(HeightmapParams(resolution=n), seed)
+    h, _ = heights(cl_env, HeightmapParams(resolution=n), seed)
     return h
 
 
@@ -55,6 +58,9 @@ _ERODED: dict[int, np.ndarray] = {}
 def erode(n: int) -> tuple[np.ndarray, float]:
     """The n^2 DEM eroded by the erosion stage (its run, through a RunContext,
     with the default world's settings); returns (height, seconds)."""
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     import tempfile
     from pathlib import Path
 
@@ -65,7 +71,7 @@ def erode(n: int) -> tuple[np.ndarray, float]:
     if n not in _ERODED:
         t0 = time.perf_counter()
         with tempfile.TemporaryDirectory() as tmp:
-            ctx = RunContext(stage=STAGE, key="bench", out_dir=Path(tmp), seed=0, provenance={}, project_root=Path(tmp))
+            ctx = RunContext(cl=cl_env, stage=STAGE, key="bench", out_dir=Path(tmp), seed=0, provenance={}, project_root=Path(tmp))
             out = STAGE.run(ctx, {"height": Grid(dem(n).astype(np.float32), cell_size_m=8192.0 / n)},
                             ErosionParams(**DEFAULT_EROSION))
         _ERODED[n] = (np.asarray(out["erosion.height"].channel("height"), np.float32), time.perf_counter() - t0)
@@ -91,6 +97,9 @@ def eroded(n: int, erode_max: int):
 
 
 def main() -> None:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--sizes", type=int, nargs="*")
@@ -124,10 +133,10 @@ def main() -> None:
     w = dem(64)
     k = ref.cell_kinds(w)
     g, vf = ps_grid(w, 8.0)
-    R = dev.fill(w, k, True)
-    c = dev.d8(R, k, 8.0)
-    dev.accumulate(c)
-    dev.breach(w, k)
+    R = dev.fill(cl_env, w, k, True)
+    c = dev.d8(cl_env, R, k, 8.0)
+    dev.accumulate(cl_env, c)
+    dev.breach(cl_env, w, k)
     g.accumulation(g.flowdir(g.fill_depressions(Raster(w.astype(np.float64), viewfinder=vf))))
 
     rows, breaches = [], []
@@ -145,23 +154,23 @@ def main() -> None:
             g, vf = ps_grid(h, dx)
             cells = h.size
             r = args.repeat
-            t_ours_fill, F = best_of(lambda: dev.fill(h, kind, False), r)
+            t_ours_fill, F = best_of(lambda: dev.fill(cl_env, h, kind, False), r)
             t_ps_fill, PF = best_of(lambda: g.fill_depressions(Raster(h.astype(np.float64), viewfinder=vf)), r)
             fill_equal = bool(np.array_equal(F, np.asarray(PF).astype(np.float32)))
-            R = dev.fill(h, kind, True)
+            R = dev.fill(cl_env, h, kind, True)
             R64 = Raster(R.astype(np.float64), viewfinder=vf)
-            t_ours_fd, code = best_of(lambda: dev.d8(R, kind, dx), r)
+            t_ours_fd, code = best_of(lambda: dev.d8(cl_env, R, kind, dx), r)
             t_ps_fd, pfd = best_of(lambda: g.flowdir(R64), r)
             inter = kind == ref.INTERIOR
             agree = float((np.asarray(pfd)[inter] == dirmap[code[inter]]).mean())
             ours_dirs = np.where(code >= 0, dirmap[np.clip(code, 0, 7)], 0).astype(np.int64)
             fd_r = Raster(ours_dirs, viewfinder=ViewFinder(affine=vf.affine, shape=h.shape, nodata=0))
-            t_ours_acc, A = best_of(lambda: dev.accumulate(code), r)
+            t_ours_acc, A = best_of(lambda: dev.accumulate(cl_env, code), r)
             t_ps_acc, PA = best_of(lambda: g.accumulation(fd_r), r)
             PA = np.asarray(PA)
             acc_equal = bool(np.array_equal(PA[inter], A[inter].astype(np.float64)))
             # breaching has no pysheds counterpart: the serial kernel against the Python reference
-            t_ours_br, B = best_of(lambda: dev.breach(h, kind), r)
+            t_ours_br, B = best_of(lambda: dev.breach(cl_env, h, kind), r)
             if n <= args.breach_ref_max:
                 t_ref_br, RB = best_of(lambda: ref.breach(h, kind), 1)
                 breaches.append((f"{n}^2 {label}", cells / t_ours_br / 1e6, cells / t_ref_br / 1e6,

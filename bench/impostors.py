@@ -58,12 +58,13 @@ class Plant:
     """A species' scene, BVH and mesh reference views (rendered once per view set)."""
 
     def __init__(self, layer: Path, name: str):
+        from pipeline.opencl import get_cl
         from worldlib.render import Prepared
         from worldlib.render.usd_asset import load_plant
 
         self.name = name
         self.ps = load_plant(layer, f"/Plants/{name}")
-        self.prepared = Prepared(self.ps.scene)
+        self.prepared = Prepared(get_cl(), self.ps.scene)
         self.height = float(self.ps.hi[1] - self.ps.lo[1])
         self.references: dict = {}
 
@@ -148,6 +149,9 @@ def pictures(plants: list, out_dir: Path, defaults, scale: int) -> None:
     draws them (every quad, alpha-tested), and the alpha masks at 0.5 of
     mesh and impostor (white both, red the mesh only, blue the impostor
     only); every view at the frame's size, enlarged `scale` times."""
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from pipeline import exr
     from worldlib.render import Prepared, Settings
     from stages.impostors import heldout, octahedral, sampler, slices
@@ -161,8 +165,8 @@ def pictures(plants: list, out_dir: Path, defaults, scale: int) -> None:
         slice_px = min(defaults.slice_px, max(px // 2, 8))
         sheets = ([*slices.grass_slices(plant.prepared, defaults.grass_slice_px, defaults.samples)] if grass
                   else [slices.tree_slices(plant.prepared, defaults.slice_slabs, slice_px, defaults.samples)])
-        drawn = Prepared(slices.sheet_scene(sheets))
-        rows_of = {} if grass else {r: Prepared(slices.sheet_scene(sheets, rows=(r,))) for r in range(sheets[0].rows)}
+        drawn = Prepared(cl_env, slices.sheet_scene(sheets))
+        rows_of = {} if grass else {r: Prepared(cl_env, slices.sheet_scene(sheets, rows=(r,))) for r in range(sheets[0].rows)}
         settings = Settings(px, px, samples=defaults.heldout_samples)
 
         def over(rgba):

@@ -37,6 +37,9 @@ def _write(path: Path, linear: np.ndarray) -> None:
 
 
 def closeup(scene, size=480):
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from worldlib.render import Camera, Prepared, Settings
 
     p = scene.positions.astype(np.float64)
@@ -47,12 +50,15 @@ def closeup(scene, size=480):
     d = np.array([math.cos(a), -0.12, math.sin(a)])
     d /= np.linalg.norm(d)
     cam = Camera(tuple(c - d * (2 * h)), tuple(d), (0.0, 1.0, 0.0), ortho_height_m=h)
-    img = Prepared(scene).render(cam, Settings(size, size, samples=3, ao_rays=6, ao_radius_m=0.08 * h, seed=1))
+    img = Prepared(cl_env, scene).render(cam, Settings(size, size, samples=3, ao_rays=6, ao_radius_m=0.08 * h, seed=1))
     return img.shaded()
 
 
 def stand(species: dict, n_per: int = 30, size=(900, 500), level: int = 2):
     """Many instances on a ground plane, seen in perspective."""
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from worldlib.render import Camera, Prepared, Scene, Settings
 
     rng = np.random.default_rng(4)
@@ -78,7 +84,7 @@ def stand(species: dict, n_per: int = 30, size=(900, 500), level: int = 2):
     # one texture stack per scene: each species keeps its own three slots
     scene = Scene.concat([ground] + parts)
     cam = Camera((0.0, 9.0, -extent - 18.0), (0.0, -0.28, 1.0), (0.0, 1.0, 0.0), fov_y_deg=42.0)
-    img = Prepared(scene).render(cam, Settings(size[0], size[1], samples=2, ao_rays=4, ao_radius_m=1.5, seed=2))
+    img = Prepared(cl_env, scene).render(cam, Settings(size[0], size[1], samples=2, ao_rays=4, ao_radius_m=1.5, seed=2))
     return img.shaded()
 
 

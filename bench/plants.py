@@ -41,13 +41,14 @@ def best_of(fn, repeat):
 
 def presets(seed: int) -> dict:
     from stages.plants.plant import Settings, build_plant
+    from pipeline.opencl import get_cl
     from stages.plants.stage import PRESETS
 
     print(f"\n== 1. presets (world seed {seed}, default settings: 4 LODs, halving, 20000 Hausdorff samples)")
     out = {}
     for name, spec in sorted(PRESETS.items()):
         t0 = time.perf_counter()
-        res = build_plant(name, spec, seed, Settings())
+        res = build_plant(name, spec, seed, Settings(cl=get_cl()))
         dt = time.perf_counter() - t0
         m = res.metrics
         out[name] = res
@@ -135,6 +136,9 @@ def copy_bandwidth(n_floats: int, repeat: int) -> float:
 
 
 def builder(quick: bool, repeat: int) -> None:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from stages.plants import geometry, grass, leaves, mesh
     from stages.plants import reference as ref
     from stages.plants.species import GrassSpec, LeafSpec
@@ -160,7 +164,7 @@ def builder(quick: bool, repeat: int) -> None:
     tris = (n_rings - 1) * sides * 2  # as if one long tube
     nv = n_rings * (sides + 1)
     tk = _device_time("tube_rings", n_rings, [np.int32(n_rings)], [ring.reshape(-1), sides_a, offset], nv * ref.VERT * 4, repeat)
-    te = best_of(lambda: geometry.tube_rings(ring, sides_a, True), repeat)
+    te = best_of(lambda: geometry.tube_rings(cl_env, ring, sides_a), repeat)
     tn = best_of(lambda: ref.tube_rings(ring, sides_a, offset), max(1, repeat // 2))
     _row("tube_rings", f"{n_rings} rings x {sides}", tris, tk, te, tn, nv * ref.VERT * 4)
 
@@ -174,7 +178,7 @@ def builder(quick: bool, repeat: int) -> None:
     nt = len(tmpl.rows)
     tk = _device_time("leaf_instances", n_leaves * nt, [np.int32(n_leaves), np.int32(nt)],
                       [rec.reshape(-1), tmpl.rows.reshape(-1)], n_leaves * nt * ref.VERT * 4, repeat)
-    te = best_of(lambda: geometry.leaf_instances(rec, tmpl.rows, True), repeat)
+    te = best_of(lambda: geometry.leaf_instances(cl_env, rec, tmpl.rows), repeat)
     tn = best_of(lambda: ref.leaf_instances(rec, tmpl.rows), max(1, repeat // 2))
     _row("leaf_instances", f"{n_leaves} leaves x {nt} verts", n_leaves * tmpl.n_tris, tk, te, tn, n_leaves * nt * ref.VERT * 4)
 
@@ -185,7 +189,7 @@ def builder(quick: bool, repeat: int) -> None:
     nb, n = len(brec), 8
     tk = _device_time("grass_blades", nb * (n + 1), [np.int32(nb), np.int32(n), np.float32(g.taper)],
                       [brec.reshape(-1), rows.reshape(-1)], nb * (2 * n + 1) * ref.VERT * 4, repeat)
-    te = best_of(lambda: geometry.grass_blades(brec, rows, g.taper, True), repeat)
+    te = best_of(lambda: geometry.grass_blades(cl_env, brec, rows, g.taper), repeat)
     tn = best_of(lambda: ref.grass_blades(brec, rows, g.taper), max(1, repeat // 2))
     _row("grass_blades", f"{nb} blades x {n} segs", nb * (2 * n - 1), tk, te, tn, nb * (2 * n + 1) * ref.VERT * 4)
     print(f"{'copy_floats':14s} roofline: {gbs_copy:.2f} GB/s (4 B read + 4 B written per float)")

@@ -45,6 +45,9 @@ def best_of(fn, repeat):
 
 
 def tiny(repeat: int) -> None:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from worldlib.render import Camera, Scene, Settings, render
 
     rng = np.random.default_rng(5)
@@ -54,9 +57,9 @@ def tiny(repeat: int) -> None:
                   rng.random((300, 3)), -1)
     s = Settings(48, 48, samples=2, ao_rays=4, ao_radius_m=0.5)
     cam = Camera((0.0, 0.0, 4.0), (0.0, 0.0, -1.0), fov_y_deg=40.0)
-    render(scene, cam, s)  # build the kernel
-    tk, a = best_of(lambda: render(scene, cam, s), repeat)
-    tn, b = best_of(lambda: render(scene, cam, s, device=False), 1)
+    render(cl_env, scene, cam, s)  # build the kernel
+    tk, a = best_of(lambda: render(cl_env, scene, cam, s), repeat)
+    tn, b = best_of(lambda: render(None, scene, cam, s), 1)
     rays = 48 * 48 * 4 * (1 + 4 * float(a.alpha.mean()))
     print(f"\n== 1. kernel vs numpy reference, tiny scene ({scene.n_triangles} triangles, 48x48, 2x2 samples, 4 AO rays)")
     print(f"kernel     {tk * 1e3:8.1f} ms  {rays / tk / 1e6:8.3f} Mrays/s (BVH build included)")
@@ -66,17 +69,21 @@ def tiny(repeat: int) -> None:
 
 
 def tree_scene(quick: bool):
+    from pipeline.opencl import get_cl
     from stages.plants import measure
     from stages.plants.plant import Settings, build_plant
     from stages.plants.stage import PRESETS
 
     spec = PRESETS["conifer"]
-    res = build_plant("conifer", spec, 20261123, Settings(lod_count=1))
+    res = build_plant("conifer", spec, 20261123, Settings(lod_count=1, cl=get_cl()))
     rgba = np.concatenate([res.cards.albedo, res.cards.alpha[..., None]], -1)
     return measure.plant_scene(res.lods[0], spec, rgba, None), spec
 
 
 def tree(quick: bool, repeat: int) -> None:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from worldlib.render import Prepared, Scene, Settings
     from stages.plants import measure
 
@@ -84,13 +91,13 @@ def tree(quick: bool, repeat: int) -> None:
     n = 256 if quick else 512
     cam = measure.side_cameras(scene.positions.astype(np.float64), 8)[1]
     t0 = time.perf_counter()
-    prep = Prepared(scene)
+    prep = Prepared(cl_env, scene)
     t_bvh = time.perf_counter() - t0
     s1 = Settings(n, n, samples=1)
     prep.render(cam, s1)
     tk, img = best_of(lambda: prep.render(cam, s1), repeat)
     opaque = Scene(scene.positions, scene.normals, scene.uv, scene.triangles, scene.tint, -1, scene.textures)
-    prep_o = Prepared(opaque)
+    prep_o = Prepared(cl_env, opaque)
     tko, img_o = best_of(lambda: prep_o.render(cam, s1), repeat)
     print(f"\n== 2. primary rays on the conifer (LOD0, {scene.n_triangles} triangles), {n}x{n}, 1 sample")
     print(f"kernel, alpha-tested cards  {n * n / tk / 1e6:8.2f} Mrays/s   coverage {img.alpha.mean():.3f}   BVH build {t_bvh:.2f} s")
@@ -119,13 +126,16 @@ def tree(quick: bool, repeat: int) -> None:
 
 
 def bake_quality(quick: bool, repeat: int) -> None:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from worldlib.render import Prepared, Settings
     from stages.plants import measure
 
     scene, _ = tree_scene(quick)
     n = 192 if quick else 384
     cam = measure.side_cameras(scene.positions.astype(np.float64), 8)[1]
-    prep = Prepared(scene)
+    prep = Prepared(cl_env, scene)
     s = Settings(n, n, samples=3, ao_rays=8, ao_radius_m=0.5)
     t, img = best_of(lambda: prep.render(cam, s), max(1, repeat - 1))
     rays = n * n * 9 * (1 + 8 * float(img.alpha.mean()))
@@ -211,8 +221,13 @@ def image_difference(a, b) -> str:
 
 def assets(plants: str | None, baseline: str | None, repeat: int, species=("conifer", "broadleaf"),
            with_reference: bool = True) -> None:
-    import worldlib.render as current
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
+    import inspect
     from pathlib import Path
+
+    import worldlib.render as current
 
     from worldlib.plant_asset import plant_asset_prim
     from stages.impostors import asset_scene
@@ -229,7 +244,9 @@ def assets(plants: str | None, baseline: str | None, repeat: int, species=("coni
         for name, r in renderers.items():
             scene = r.Scene(sc.positions, sc.normals, sc.uv, sc.triangles, sc.tint, sc.texture, sc.textures)
             t0 = time.perf_counter()
-            prepared[name] = r.Prepared(scene)
+            # a revision from before the device was handed around chose it itself
+            prepared[name] = (r.Prepared(cl_env, scene) if "env" in inspect.signature(r.Prepared).parameters
+                              else r.Prepared(scene))
             times[name] = time.perf_counter() - t0
         print(f"-- {sp}: {sc.n_triangles} triangles; BVH build + upload: "
               + ", ".join(f"{k} {v:.2f} s" for k, v in times.items()))
@@ -263,8 +280,8 @@ def assets(plants: str | None, baseline: str | None, repeat: int, species=("coni
     ps = asset_scene.load(layer, plant_asset_prim("conifer"))
     cam = workloads(ps, current)["atlas frames"][3][0]
     s = current.Settings(12, 12, samples=2, ao_rays=1, ao_radius_m=0.08 * ps.radius, seed=5)
-    tk, a = best_of(lambda: current.Prepared(ps.scene).render(cam, s), 1)
-    tn, b = best_of(lambda: current.render(ps.scene, cam, s, device=False), 1)
+    tk, a = best_of(lambda: current.Prepared(cl_env, ps.scene).render(cam, s), 1)
+    tn, b = best_of(lambda: current.render(None, ps.scene, cam, s), 1)
     rays = count_rays([(cam, s)], [a])
     print(f"-- numpy reference, conifer 12x12, 2x2 samples, 1 AO ray: {rays / tn:.1f} rays/s in {tn:.1f} s "
           f"(kernel, with its BVH build, {tk:.2f} s); kernel vs reference: {image_difference(a, b)}")

@@ -42,9 +42,12 @@ def fastscape(h0: np.ndarray, dx: float, steps: int) -> np.ndarray:
 
 
 def ours(h0: np.ndarray, dx: float, steps: int) -> np.ndarray:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from stages.erosion import stream_power as sp
 
-    return sp.run(h0, dx, years=steps * DT, dt_years=DT, k=K, m=M, n_exp=N, uplift_m_per_year=UPLIFT).height
+    return sp.run(cl_env, h0, dx, years=steps * DT, dt_years=DT, k=K, m=M, n_exp=N, uplift_m_per_year=UPLIFT).height
 
 
 def main() -> None:

@@ -38,20 +38,26 @@ from stages.hydrology.stage import CHANNEL_HEAD_AREA_M2 as CHANNEL_AREA_M2  # th
 
 
 def statistics(h: np.ndarray, dx: float) -> dict:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from worldlib.terrain.stats import terrain_statistics
     from worldlib.flow import device as flow
     from worldlib.flow import reference as ref
 
     h32 = ref.canonical(h.astype(np.float32))
     kind = ref.cell_kinds(h32)
-    filled = flow.fill(h32, kind, eps=False)
-    routed = flow.fill(flow.breach(h32, kind), kind, eps=True)
-    code = flow.d8(routed, kind, dx)
-    area = flow.accumulate(code).astype(np.float64) * dx * dx
+    filled = flow.fill(cl_env, h32, kind, eps=False)
+    routed = flow.fill(cl_env, flow.breach(cl_env, h32, kind), kind, eps=True)
+    code = flow.d8(cl_env, routed, kind, dx)
+    area = flow.accumulate(cl_env, code).astype(np.float64) * dx * dx
     return terrain_statistics(h32, filled, code, area, dx, CHANNEL_AREA_M2)
 
 
 def main() -> None:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     ap = argparse.ArgumentParser()
     ap.add_argument("--sizes", type=int, nargs="*", default=[1024])
     ap.add_argument("--variants", nargs="*", default=list(VARIANTS))
@@ -73,7 +79,7 @@ def main() -> None:
                     h = h0
                 else:
                     kw = {**DEFAULT, **VARIANTS[name], "dt_years": DEFAULT["years"] / steps}
-                    h = sp.run(h0, dx, **kw).height
+                    h = sp.run(cl_env, h0, dx, **kw).height
                 seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
                 st = statistics(h, dx)
                 rows.append((n, name, steps, seconds, cpu, st))

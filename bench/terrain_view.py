@@ -134,6 +134,9 @@ def _shadow(h, start, sun, max_slope, iters=160):
 
 
 def main() -> None:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     ap = argparse.ArgumentParser()
     ap.add_argument("height", help="a height EXR (first channel) or .npy")
     ap.add_argument("out", help="the PNG to write")
@@ -153,7 +156,7 @@ def main() -> None:
     else:
         g = read_grid(args.height)
         h, cell = g.channel(g.channels[0]), args.cell or g.cell_size_m
-    write_png(args.out, render(h, cell, args.width, args.azimuth, args.elevation, distance=args.distance))
+    write_png(args.out, render(cl_env, h, cell, args.width, args.azimuth, args.elevation, distance=args.distance))
     if args.hillshade:
         write_png(args.hillshade, hillshade(Grid(np.asarray(h, np.float32), cell)))
 

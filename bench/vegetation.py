@@ -27,11 +27,14 @@ import numpy as np
 
 
 def terrain(resolution: int, size_m: float, seed: int):
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from pipeline.grid import Grid
     from stages.heightmap.stage import HeightmapParams, heights
 
     p = HeightmapParams(size_m=size_m, resolution=resolution)
-    h, _ = heights(p, seed)
+    h, _ = heights(cl_env, p, seed)
     return Grid(h, size_m / resolution, ("height",), (0.0, 0.0))
 
 
@@ -39,8 +42,11 @@ def poisson_vs_scipy(side_m: float, r: float, passes: int, big_side_m: float) ->
     from scipy.spatial import cKDTree
     from scipy.stats import qmc
 
-    from stages.vegetation import device as dev
+    from pipeline.opencl import get_cl
+    from stages.vegetation import device
     from stages.vegetation import placement as pl
+
+    dev = device.on(get_cl())
 
     def ours(side):
         cells = int(side // 4.0) + 1
@@ -75,7 +81,11 @@ def poisson_vs_scipy(side_m: float, r: float, passes: int, big_side_m: float) ->
 
 
 def sweep(grid, configs, reference, seed: int) -> None:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from stages.vegetation import attributes as at
+    from stages.vegetation import device
     from stages.vegetation import device as dev
     from stages.vegetation import ecosystem as eco
     from stages.vegetation import placement as pl
@@ -87,10 +97,10 @@ def sweep(grid, configs, reference, seed: int) -> None:
     dx = grid.cell_size_m
     base = VegetationParams()
     t0 = time.perf_counter()
-    a = at.compute(h, dx, base, dev)
+    a = at.compute(h, dx, base, device.on(cl_env))
     moist = at.fallback_moisture(h, dx, base.moisture_fallback_radius_m, base.moisture_fallback_scale_m)
     names = base.plant_species()
-    suit = dev.suitability(h, a["slope"], moist, a["sunlight"], a["curvature"], np.zeros(h.shape, np.uint8),
+    suit = dev.suitability(cl_env, h, a["slope"], moist, a["sunlight"], a["curvature"], np.zeros(h.shape, np.uint8),
                            preference_table(base, names))
     print(f"=== simulation sweep: {rows}x{cols} cells of {dx:g} m; attributes and suitability {time.perf_counter() - t0:.2f} s ===")
     dom = pl.Domain(rows, cols, dx, (0.0, 0.0))
@@ -105,12 +115,12 @@ def sweep(grid, configs, reference, seed: int) -> None:
         t0 = time.perf_counter()
         g = eco.sim_grid(cols, rows, dx, cell)
         ss = eco.to_sim_grid(suit, dx, g)
-        res = eco.simulate(ss, g, p, names, seed, dev)
-        share = eco.relative_yield(res, p, ss, eco.alone_density(p, names, cell, seed, dev), dx, (rows, cols))
+        res = eco.simulate(ss, g, p, names, seed, device.on(cl_env))
+        share = eco.relative_yield(res, p, ss, eco.alone_density(p, names, cell, seed, device.on(cl_env)), dx, (rows, cols))
         t_sim = time.perf_counter() - t0
         n_t, _ = pl.target_density(p, names, suit, share, dx, (0.0, 0.0), seed)
         t0 = time.perf_counter()
-        placed = pl.place_species(p, names, n_t, dom, seed, dev)
+        placed = pl.place_species(p, names, n_t, dom, seed, device.on(cl_env))
         t_place = time.perf_counter() - t0
         errs = [pl.density_error(placed[n].x, placed[n].z, n_t[s], dom) for s, n in enumerate(names)]
         return {"t_sim": t_sim, "t_place": t_place, "n_t": n_t, "stats": res.stats,

@@ -37,6 +37,9 @@ def _picture(path: Path, images: list[tuple[np.ndarray, np.ndarray]]) -> None:
 
 
 def main(argv=None) -> None:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from worldlib.render.usd_asset import load_asset
     from stages.volumes import error
     from stages.volumes.stage import VolumesParams, load_species, volume_species
@@ -77,8 +80,8 @@ def main(argv=None) -> None:
                 scene = load_asset(folder / f"{name}.usdc", levels=[0])[0].scene
                 lo, hi = scene.positions.min(0), scene.positions.max(0)
                 for v, cam in enumerate(error.view_cameras(lo, hi)[:2]):
-                    mesh = error.mesh_views(scene, [cam], a.pixels * 2)[0]
-                    comps = [error.level_views(lv, [cam], a.pixels * 2, backend(True))[0] for lv in chain[:4]]
+                    mesh = error.mesh_views(cl_env, scene, [cam], a.pixels * 2)[0]
+                    comps = [error.level_views(lv, [cam], a.pixels * 2, backend(cl_env))[0] for lv in chain[:4]]
                     _picture(a.pictures / f"{name}_view{v}.png", [(mesh.alpha, mesh.albedo)] + comps)
     if a.sectors:
         stats = json.loads(a.sectors.read_text())
@@ -104,24 +107,24 @@ def main(argv=None) -> None:
                                                 for k in keys))
             print(f"{'max |.|':<40} " + " ".join(f"{max(abs(e[k]) for e in measured.values()):>8.3g}" for k in keys))
         # the stored levels' mean coverage against the finest stored level's (read back)
-        from worldlib.volumes import dense as _volume
+        from worldlib.volumes import sparse as _volume
 
         drift = 0.0
         for path, s in list(stats["sectors"].items())[:: max(1, len(stats["sectors"]) // 16)]:
             stem = path.rsplit("/", 1)[-1]
-            means = [_volume.read_atlas(a.sectors.parent / f"{stem}.mip{k}.exr").mean_density()
+            means = [_volume.read_level(a.sectors.parent / f"{stem}.mip{k}.exr").mean_density()
                      for k in range(len(s["levels"]))]
             drift = max(drift, max(abs(m / means[0] - 1) for m in means))
         print(f"stored mean coverage drift over the mips (every {max(1, len(stats['sectors']) // 16)}th sector): "
               f"{drift:.2e}")
         if a.pictures and stats["sectors"]:
             # the sector with the most instances, from above at 35 degrees, every level
-            from worldlib.volumes import dense as volume
+            from worldlib.volumes import sparse as volume
             from worldlib.render import Camera
 
             path = max(stats["sectors"], key=lambda p: sum(stats["sectors"][p]["instances"].values()))
             stem = path.rsplit("/", 1)[-1]
-            levels = [volume.read_atlas(a.sectors.parent / f"{stem}.mip{k}.exr")
+            levels = [volume.read_level(a.sectors.parent / f"{stem}.mip{k}.exr")
                       for k in range(len(stats["sectors"][path]["levels"]))]
             lo, hi = levels[0].origin, levels[0].bbox_max
             c, r = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
@@ -129,7 +132,7 @@ def main(argv=None) -> None:
             d /= np.linalg.norm(d)
             cam = Camera(tuple(c - d * 2 * r), tuple(d), ortho_height_m=1.2 * r)
             _picture(a.pictures / f"sector_{stem}.png",
-                     [error.level_views(lv, [cam], 400, backend(True))[0] for lv in levels])
+                     [error.level_views(lv, [cam], 400, backend(cl_env))[0] for lv in levels])
     kernel_speedups(folder / f"{names[0]}.usdc")
     print(json.dumps(rows))
 
@@ -138,6 +141,9 @@ def kernel_speedups(usdc: Path) -> None:
     """Both kernels against their numpy references on the same small work:
     the samples of 300 triangles of the asset, a 48 x 48 composite of its
     32-voxel volume."""
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from worldlib.render.usd_asset import load_asset
     from stages.volumes import device, error, reference
     from stages.volumes.samples import sample_table
@@ -147,12 +153,12 @@ def kernel_speedups(usdc: Path) -> None:
     grid = plant_grid(level.scene, 32, 1)
     table = sample_table(level.scene, np.arange(min(300, level.scene.n_triangles)), grid.voxel / 2)
     timings = {}
-    device.surface_samples(table.take(0, 1), grid, level.scene.textures, 0.5)  # builds the program
+    device.surface_samples(cl_env, table.take(0, 1), grid, level.scene.textures, 0.5)  # builds the program
     for name, be in (("kernel", device), ("numpy", reference)):
         t = time.perf_counter()
         be.surface_samples(table, grid, level.scene.textures, 0.5)
         timings[("samples", name)] = time.perf_counter() - t
-    lv = voxelize(level.scene, level.parts, 32, 1).level
+    lv = voxelize(cl_env, level.scene, level.parts, 32, 1).level
     cam = error.view_cameras(lv.origin, lv.bbox_max)[0]
     g = error.composite_grid(lv)
     for name, be in (("kernel", device), ("numpy", reference)):

@@ -11,6 +11,9 @@ import argparse
 
 
 def main(argv=None) -> None:
+    from pipeline.opencl import get_cl
+
+    cl_env = get_cl()  # the engine's choice of device
     from worldlib.render import world_view
 
     ap = argparse.ArgumentParser()
@@ -27,7 +30,7 @@ def main(argv=None) -> None:
     for zoom in a.zoom:
         stats: dict = {}
         out = a.out if len(a.zoom) == 1 else a.out.replace(".png", f"_z{zoom:g}.png")
-        rgba = world_view.render_world(a.world, a.width, a.height, azimuth_deg=a.azimuth, elevation_deg=a.elevation,
+        rgba = world_view.render_world(cl_env, a.world, a.width, a.height, azimuth_deg=a.azimuth, elevation_deg=a.elevation,
                                        zoom=zoom, stats=stats)
         world_view.save_png(out, rgba)
         print(f"{stats['triangles']:,} triangles; instances drawn {stats['instances']}; "

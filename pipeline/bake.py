@@ -284,12 +284,18 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
                   "params": ps.params_json, "seed": config.seed if stage.uses_seed else "none"}
     # a unit's key: the stage's code and the unit's own material (its inputs' content, the params it uses)
     code_material = {k: ps.key_material[k] for k in ("stage", "version", "source", "files", "seed", "libraries")}
+    # the device this process chose (a Dask worker chooses its own), handed to the stage
+    device = None
+    if stage.uses_opencl:
+        from .opencl import get_cl
+
+        device = get_cl()
     with store.writing(stage.name, ps.key) as work:
         ctx = RunContext(stage=stage, key=ps.key, out_dir=work, seed=config.seed, provenance=provenance,
                          project_root=config.project_root, progress=progress,
                          final_dir=store.folder(stage.name, ps.key),
                          input_artifacts={role: art for role, (art, _, _) in ps.inputs.items() if role in inputs},
-                         units=Units(store.units, store.tmp, stage.name, code_material))
+                         units=Units(store.units, store.tmp, stage.name, code_material), cl=device)
         t0 = time.perf_counter()
         try:
             outputs = stage.run(ctx, inputs, config.params[stage.name])

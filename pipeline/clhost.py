@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .opencl import get_cl, global_size
+from .opencl import CL, global_size
 
 _KERNELS: dict = {}  # (id(program), name) -> (program, kernel); the program is kept so its id stays unique
 
@@ -23,12 +23,12 @@ def kernel(program, name: str):
 
 
 class Buffers:
-    """Device buffers from arrays, and back, on the process's OpenCL device."""
+    """Device buffers from arrays, and back, on the OpenCL device `env`."""
 
-    def __init__(self):
+    def __init__(self, env: CL):
         import pyopencl as cl
 
-        self.cl, self.env = cl, get_cl()
+        self.cl, self.env = cl, env
 
     def arr(self, a, write: bool = False, in_place: bool = False):
         """A buffer holding `a` (an empty array gets one element: OpenCL has

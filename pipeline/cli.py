@@ -30,6 +30,7 @@ from .bake import check_world, key_step, plan_bake
 from .executors import bake_worlds
 from .config import check_name, list_variants, load_config
 from .errors import DeviceError, InputError, StageError
+from .export import export_world
 from .graph import build_graph
 from .registry import all_stages
 from .store import Store, StoreBusy
@@ -127,7 +128,7 @@ def _cmd_validate(args) -> int:
 
 def _cmd_export(args) -> int:
     store = Store(Path(args.project) / args.build)
-    dest = store.export(args.world, Path(args.dest))
+    dest = export_world(store, args.world, Path(args.dest))
     errors = usdio.validate(dest)
     print(f"exported world {args.world} to {dest} ({len(errors)} validation errors)")
     return 1 if errors else 0

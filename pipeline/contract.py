@@ -141,6 +141,133 @@ class Input:
     units: str = ""
 
 
+# --------------------------------------------------------------------------- what a stage shows in the report
+
+RGB = tuple[int, int, int]  # 8-bit sRGB
+
+
+@dataclass(frozen=True)
+class Relief:
+    """Shading of a map by a terrain's relief: each pixel's colour times
+    (1 - strength) + strength * light."""
+
+    # a Grid of heights -> the light of each cell: float in [0, 1], or 8-bit
+    # (grey or RGB, 255 is full light) as previews are
+    shade: Callable[[Any], Any]
+    one_of: tuple[str, ...]  # the grid of heights: the first of these artifacts the world holds
+    channel: str  # its channel of heights
+    strength: float = 0.45
+
+
+@dataclass(frozen=True)
+class ValueRange:
+    """The values a map's colour ramp spans: fixed ends, the data's min or
+    max where an end is None, or -m .. m with m a percentile of |value|."""
+
+    lo: float | None = None
+    hi: float | None = None
+    symmetric_percentile: float | None = None
+
+
+@dataclass(frozen=True)
+class ReportMap:
+    """A map of a channel of one of the stage's grids.
+
+    `channel` may be a pattern ("density.{species}"): one map per channel
+    of the grid it matches, in the grid's order. With `categories` the
+    matched channels are weights and one map shows the category (the name
+    the pattern binds) of the largest weight per cell, with a legend of each
+    category's share. `name` (the picture is report_<name>.png), `title` and
+    `note` may use {artifact}, {channel} and the pattern's placeholder. A
+    map of a later stage with the same name replaces an earlier one (the
+    terrain's height is erosion's when erosion runs)."""
+
+    artifact: str
+    channel: str
+    name: str
+    title: str
+    palette: str | tuple[tuple[float, RGB], ...] = "terrain"  # one of pipeline.report.PALETTES, or ramp stops
+    values: ValueRange = ValueRange()
+    units: str | None = None  # None: the channel's declared units
+    note: str = ""
+    relief: Relief | None = None
+    categories: tuple[tuple[str, RGB], ...] = ()  # category -> colour (unlisted ones are grey)
+
+
+@dataclass(frozen=True)
+class MapFrame:
+    """What a drawn map draws on: the relief's light at the map's pixels
+    ((rows, cols) in [0, 1], row 0 north), the world x, z of the map's
+    north-west corner and the metres per pixel."""
+
+    light: Any
+    origin_m: tuple[float, float]
+    metres_per_px: float
+
+
+@dataclass(frozen=True)
+class Drawn:
+    """A drawn map: its pixels ((rows, cols, 3) uint8) and legend entries."""
+
+    rgb: Any
+    legend: tuple[tuple[RGB, str], ...] = ()
+
+
+@dataclass(frozen=True)
+class DrawnMap:
+    """A map the stage draws from the composed world (its world.usda) over
+    the relief: draw(world_usda, frame) -> Drawn."""
+
+    name: str
+    title: str
+    draw: Callable[[Path, MapFrame], Drawn]
+    relief: Relief
+
+
+@dataclass(frozen=True)
+class ReportPicture:
+    """A picture of the composed world: make(world_usda, out_png, cl) writes
+    the PNG and returns its caption; cl is the engine's OpenCL device
+    (pipeline.opencl.CL)."""
+
+    name: str  # the picture is report_<name>.png
+    make: Callable[[Path, Path, Any], str]
+
+
+@dataclass(frozen=True)
+class Table:
+    """Rows for the report. A cell is text, a number, None (shown as "-") or
+    (number, note); the footer is a last row of headers (totals, say)."""
+
+    columns: tuple[str, ...]
+    rows: tuple[tuple[Any, ...], ...]
+    footer: tuple[Any, ...] = ()
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class ReportTable:
+    """A section of tables about the composed world: make(world_usda) ->
+    tables (none: the section is left out)."""
+
+    title: str
+    make: Callable[[Path], tuple[Table, ...]]
+
+
+@dataclass(frozen=True)
+class ReportWarning:
+    """A warning for each channel of one of the stage's grids matching
+    `channel` (a name or a pattern) that is nowhere above zero; `message`
+    may use {channel} and the pattern's placeholder."""
+
+    artifact: str
+    channel: str
+    message: str
+
+
+ReportItem = ReportMap | DrawnMap | ReportPicture | ReportTable | ReportWarning
+
+
 @dataclass(frozen=True)
 class Stage:
     name: str
@@ -164,6 +291,10 @@ class Stage:
     # the params and the sizes of the input grids. Raises ParamError; returns
     # a Check. None: the schema is all there is to check.
     check: Callable[[Any, "CheckContext"], "Check"] | None = None
+    # What the world's report.html shows of this stage beyond its row in the
+    # stage table (pipeline.report lays it out): maps of its grids, pictures
+    # and tables of the composed world, warnings.
+    report: tuple["ReportItem", ...] = ()
 
     def output(self, name: str) -> Artifact:
         for a in self.outputs:
@@ -246,6 +377,10 @@ class RunContext:
     final_dir: Path | None = None  # where out_dir will be renamed to once the run is whole
     input_artifacts: dict[str, str] = field(default_factory=dict)  # role -> the artifact the plan chose for it
     units: Any = None  # pipeline.units.Units of this run (the engine's; None: nothing is reused)
+    # The OpenCL device (pipeline.opencl.CL: context, queue, device) the
+    # engine chose, for a stage declaring uses_opencl (None otherwise): the
+    # device its key names. The stage passes it to the code that runs kernels.
+    cl: Any = None
 
     def path(self, artifact_name: str) -> Path:
         """Where an output artifact's file goes."""

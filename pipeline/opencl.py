@@ -2,6 +2,11 @@
 runtimes; a program cache; and `CachedKernel` for kernels launched many times
 in a time loop.
 
+The device is handed around, not looked up: the engine chooses it (get_cl)
+and gives it to each stage that declares `uses_opencl` as `RunContext.cl`, a
+`CL`; stages pass it down, and every function that runs a kernel takes it as
+its first argument `env` (load_program refuses to build without one).
+
 Which device a bake uses, in this order (the first candidate whose probe
 passes wins; each candidate that fails is skipped with one line saying why):
 
@@ -10,12 +15,10 @@ passes wins; each candidate that fails is skipped with one line saying why):
    it matches is a candidate, in platform order.
 2. GPUs with double precision, in platform order (a bake's budgets and
    diagnostics are float64).
-3. CPU runtimes: PoCL, then Intel's CPU runtime (`intel-opencl-rt`). Where
-   both work PoCL ran the default bake 1.2x faster (its erosion storm 3.6x,
-   hydrology 2.2x; Intel's is faster only on the horizon-sunlight kernel):
-   `python -m bench.devices`. PoCL 3.0's LLVM 14 cannot compile for the
-   newest CPUs ("unknown target CPU 'generic'"); there its probe fails and
-   Intel's runtime is used.
+3. CPU runtimes: PoCL, then Intel's CPU runtime (`intel-opencl-rt`): where
+   both work PoCL bakes faster (`python -m bench.devices` compares them side
+   by side). PoCL 3.0's LLVM 14 cannot compile for the newest CPUs ("unknown
+   target CPU 'generic'"); there its probe fails and Intel's runtime is used.
 4. Any other device.
 
 The probe builds and runs a tiny kernel with the options every kernel is built
@@ -50,6 +53,14 @@ class OpenCLError(DeviceError):
 
 @dataclass(frozen=True)
 class CL:
+    """An OpenCL device handle: the context, its in-order queue and the
+    device. Code that runs kernels takes one as its first argument (`env`),
+    as pyopencl's own functions take a context or queue; the engine chooses
+    it (get_cl) and hands it to a stage as `RunContext.cl`.
+
+    Pickled (a job sent to a worker process), it names its device; the
+    receiving process opens a context of its own on that same device."""
+
     ctx: "object"  # pyopencl.Context
     queue: "object"  # pyopencl.CommandQueue
     device: "object"  # pyopencl.Device
@@ -58,6 +69,19 @@ class CL:
     def fingerprint(self) -> str:
         """Identifies everything about the device that may change numbers."""
         return device_fingerprint(self.device)
+
+    def __reduce__(self):
+        import pyopencl as cl
+
+        for pi, p in enumerate(cl.get_platforms()):
+            try:
+                devices = p.get_devices()
+            except cl.Error:
+                continue
+            for di, d in enumerate(devices):
+                if d == self.device:
+                    return (_reopen, (f"{pi}:{di}", self.fingerprint))
+        raise OpenCLError(f"cannot name the device {self.fingerprint} for another process")
 
 
 def device_fingerprint(d) -> str:
@@ -223,7 +247,7 @@ def list_devices() -> list[Candidate]:
     return out
 
 
-CPU_RUNTIME_ORDER = ("portable computing language", "intel(r) opencl")  # measured: bench/devices.py
+CPU_RUNTIME_ORDER = ("portable computing language", "intel(r) opencl")  # the faster first (bench/devices.py)
 
 
 def order_candidates(devices: list[Candidate], want: str = "") -> list[Candidate]:
@@ -376,8 +400,10 @@ atexit.register(release_all)
 
 
 def get_cl() -> CL:
-    """The context and in-order queue in use: the process-wide choice (each
-    Dask worker makes its own), or the one `use_device` set."""
+    """The engine's choice of device: the process-wide one (each Dask worker
+    makes its own), or the one `use_device` set. The engine hands it to the
+    stages that declare `uses_opencl` (RunContext.cl); library and stage
+    code never calls this but takes the handle as an argument."""
     if _current:
         return _current[-1]
     return _default_cl()
@@ -393,15 +419,32 @@ def _context_for(fingerprint_and_index: str, device) -> CL:
     return env
 
 
+def context_for(device) -> CL:
+    """A context and queue on `device` (a pyopencl.Device), one per device
+    and process: what a test of every device passes to the code it tests."""
+    return _context_for(device_fingerprint(device) + str(device.int_ptr), device)
+
+
+def _reopen(index: str, fingerprint: str) -> CL:
+    """The other side of pickling a CL: this process's context on the device
+    at platform:device `index`, which must be the one `fingerprint` names."""
+    for c in list_devices():
+        if c.index == index and c.fingerprint == fingerprint:
+            return context_for(c.device)
+    raise OpenCLError(f"no device {index} ({fingerprint}) in this process; "
+                      f"found: {'; '.join(c.label for c in list_devices()) or 'none'}")
+
+
 class use_device:
-    """Run code on another device (tests of every kernel on every runtime):
+    """Make another device the engine's choice (get_cl) for a while: a bake
+    in a test of every device.
 
         with use_device(candidate.device):
             ...  # get_cl() returns a context on that device
     """
 
     def __init__(self, device):
-        self.env = _context_for(device_fingerprint(device) + str(device.int_ptr), device)
+        self.env = context_for(device)
 
     def __enter__(self) -> CL:
         _current.append(self.env)
@@ -455,20 +498,32 @@ def _build(env: CL, source_hash: str, source: str, options: tuple[str, ...]):
                               "Another device may work: see `worldbake devices` and WORLDBAKE_CL_DEVICE.") from e
 
 
-def load_program(path: Path | str, options: tuple[str, ...] = ()) -> "object":
-    """Build the kernels in a .cl file once per process (and per options).
+def require(env, what: str) -> CL:
+    """`env` when it is a device handle; else an OpenCLError naming `what`
+    needs one (code that also has a numpy path takes None for that path, so
+    a missing device must fail where only the device will do)."""
+    if not isinstance(env, CL):
+        raise OpenCLError(f"{what}: no OpenCL device handed in (got {env!r}); a stage gets one as ctx.cl "
+                          "when it declares uses_opencl")
+    return env
+
+
+def load_program(env: CL, path: Path | str, options: tuple[str, ...] = ()) -> "object":
+    """Build the kernels in a .cl file for the device `env` once per process
+    (and per options).
 
     `-cl-fp32-correctly-rounded-divide-sqrt` keeps divisions and square roots
     exact so kernels agree with their numpy references; fast-math options are
     never used because they change numbers between devices."""
     from .sources import CL_INCLUDE_DIR, cl_include_hash
 
+    require(env, Path(path).name)
     source = Path(path).read_text()
     # The shared headers' hash is an option too: an edited header must not
     # be served from this process's cache or PoCL's (keyed on source text
     # and options).
     opts = BUILD_OPTIONS + (f"-I{CL_INCLUDE_DIR}", f"-DWORLDBAKE_INCLUDE_HASH=0x{cl_include_hash()[:12]}") + tuple(options)
-    return _build(get_cl(), hashlib.sha256(source.encode()).hexdigest(), source, opts)
+    return _build(env, hashlib.sha256(source.encode()).hexdigest(), source, opts)
 
 
 def global_size(shape: tuple[int, ...], local: tuple[int, ...] | None) -> tuple[int, ...]:
@@ -479,18 +534,18 @@ def global_size(shape: tuple[int, ...], local: tuple[int, ...] | None) -> tuple[
     return tuple(-(-s // l) * l for s, l in zip(shape, local))
 
 
-def to_device(array: np.ndarray):
+def to_device(env: CL, array: np.ndarray):
     import pyopencl.array as cla
 
-    return cla.to_device(get_cl().queue, np.ascontiguousarray(array))
+    return cla.to_device(env.queue, np.ascontiguousarray(array))
 
 
 class CachedKernel:
     """A kernel launched many times with mostly the same arguments (a time loop).
 
     Each launch sets only the arguments that changed since the last launch with
-    the same buffers: PoCL spends about 4 us of host time per clSetKernelArg,
-    which over the 50-odd arguments of an erosion step is CPU taken from the
+    the same buffers: PoCL spends host time on every clSetKernelArg, which
+    over the 50-odd arguments of an erosion step is CPU taken from the
     kernels themselves on a 2-core machine. One kernel object is kept per set
     of buffer arguments (a double-buffered loop alternates between two), the
     most recent `max_sets` of them."""

@@ -52,6 +52,11 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+def _files_under(folder: Path) -> set[str]:
+    """Every file below folder, as a POSIX path relative to it."""
+    return {p.relative_to(folder).as_posix() for p in folder.rglob("*") if not p.is_dir()}
+
+
 class StoreBusy(Exception):
     """gc without waiting while a bake uses the store."""
 
@@ -95,20 +100,30 @@ class Store:
     def manifest(self, stage: str, key: str) -> dict:
         return json.loads((self.folder(stage, key) / MANIFEST).read_text())
 
-    def damaged(self, stage: str, key: str) -> list[str]:
+    def damaged(self, stage: str, key: str, full: bool = False) -> list[str]:
         """The files of a stored run that are no longer what it wrote:
-        missing, another size, or another mtime and another sha256 (an
-        edited file; a file only touched keeps its content and is not
-        damaged). Runs whose manifest has no file_stats are not checked."""
-        folder, manifest = self.folder(stage, key), self.manifest(stage, key)
-        bad = []
-        for rel, (size, mtime_ns) in manifest.get("file_stats", {}).items():
+        missing, extra (not in its manifest), another size, or another
+        sha256. Without `full`, a file keeping the size and mtime it was
+        written with is taken as unchanged (a bake's cheap check; an edit
+        that restores both is found only by `full`, which hashes every file).
+        A manifest that cannot be read makes the whole run damaged."""
+        folder = self.folder(stage, key)
+        try:
+            manifest = self.manifest(stage, key)
+            files, stats = dict(manifest["files"]), manifest.get("file_stats", {})
+        except (OSError, ValueError, KeyError, TypeError):
+            return [MANIFEST]
+        bad = sorted(_files_under(folder) - set(files) - {MANIFEST})
+        for rel, digest in files.items():
             try:
                 st = (folder / rel).stat()
             except OSError:
                 bad.append(rel)
                 continue
-            if st.st_size != size or (st.st_mtime_ns != mtime_ns and sha256_file(folder / rel) != manifest["files"][rel]):
+            size, mtime_ns = stats.get(rel, (st.st_size, None))
+            if st.st_size != size:
+                bad.append(rel)
+            elif (full or st.st_mtime_ns != mtime_ns) and sha256_file(folder / rel) != digest:
                 bad.append(rel)
         return bad
 
@@ -151,6 +166,11 @@ class Store:
                 raise RuntimeError(f"internal: {stage} run finished without a manifest")
             final = self.folder(stage, key)
             final.parent.mkdir(parents=True, exist_ok=True)
+            if final.exists() and not self.has(stage, key):
+                # a folder without its manifest is not a run (deleted manifest, a copy cut short)
+                print(f"worldbake: {stage} {key}: an incomplete folder (no {MANIFEST}) was in the store; "
+                      f"moved aside and made again", file=sys.stderr, flush=True)
+                self.discard(stage, key)
             try:
                 os.rename(work, final)
             except OSError:
@@ -213,6 +233,8 @@ class Store:
         the folders that would go, nothing removed."""
         if not self.build.is_dir():
             return []
+        if dry_run:  # removes nothing, so it waits for no bake (a running bake's new runs may show as removable)
+            return self._gc(dry_run=True)
         with self._locked(fcntl.LOCK_EX, wait, f"worldbake: gc waits for the bakes using {self.build}"):
             return self._gc(dry_run)
 
@@ -236,10 +258,3 @@ class Store:
         if not dry_run:
             self.clean_stale()
         return removed
-
-    def export(self, world: str, dest: Path) -> Path:
-        """A self-contained copy of a world for handoff (pipeline.export):
-        a folder with readable names, or a .usdz. Returns its root layer."""
-        from .export import export_world
-
-        return export_world(self, world, dest)

@@ -1,8 +1,8 @@
 """USD helpers: stage metadata, provenance, validation.
 
-Conventions (DESIGN.md): metersPerUnit = 1, upAxis Y, defaultPrim /World of
-kind assembly, provenance in customLayerData["worldbake"], asset paths
-relative to the layer that authors them.
+Conventions: metersPerUnit = 1, upAxis Y, defaultPrim /World of kind
+assembly, provenance in customLayerData["worldbake"], asset paths relative
+to the layer that authors them.
 """
 from __future__ import annotations
 

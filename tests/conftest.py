@@ -5,6 +5,8 @@ device whose probe passes (pyopencl's own suite does the same with
 `pytest_generate_tests_for_pyopencl`): on a machine where PoCL and Intel's CPU
 runtime both work, every kernel is compared with its numpy reference on both,
 with the same strictness. Unmarked tests run on the device a bake would use.
+A test takes the device as the `cl_env` fixture and hands it to the code it
+tests (the code never looks the device up).
 """
 from __future__ import annotations
 
@@ -54,12 +56,29 @@ def pytest_generate_tests(metafunc):
     metafunc.parametrize("cl_device", devices, ids=[device_id(c) for c in devices], scope="module")
 
 
+def _parametrized_device(request):
+    callspec = getattr(request.node, "callspec", None)
+    return callspec.params.get("cl_device") if callspec is not None else None
+
+
+@pytest.fixture
+def cl_env(request):
+    """The OpenCL device handle (pipeline.opencl.CL) a test passes to the
+    code it tests, as pyopencl's suite takes `ctx_factory`: the parametrized
+    device of an `every_device` test, else the one a bake would use."""
+    from pipeline import opencl
+
+    candidate = _parametrized_device(request)
+    return opencl.get_cl() if candidate is None else opencl.context_for(candidate.device)
+
+
 @pytest.fixture(autouse=True)
 def _run_on_parametrized_device(request):
-    """Make get_cl() return the parametrized device for the test's duration."""
-    callspec = getattr(request.node, "callspec", None)
-    candidate = callspec.params.get("cl_device") if callspec is not None else None
-    if candidate is None:
+    """A marked test that does not take `cl_env` (one that bakes: the engine
+    chooses the device) runs with the parametrized device as the engine's
+    choice (get_cl) for its duration."""
+    candidate = _parametrized_device(request)
+    if candidate is None or "cl_env" in request.fixturenames:
         yield
         return
     from pipeline.opencl import use_device

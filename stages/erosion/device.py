@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.opencl import CachedKernel, get_cl, global_size, load_program, x86_avx512
+from pipeline.opencl import CachedKernel, global_size, load_program, x86_avx512
 
 from .physics import G, THERMAL_C, Physics, StepConstants, talus_thresholds
 from .state import Diag
@@ -18,13 +18,13 @@ KERNEL_NAMES = ("flux", "update", "boundary_out", "halo", "thermal_send", "therm
                 "velocity")
 X0 = 16  # padded column of cell column 0 (the west halo at X0 - 1): rows of cells start on 64 bytes
 ALIGN = 16  # the pitch is a multiple of this many floats (64 bytes)
-VW_THERMAL = 8  # cells per work-item of the talus rule (float8: fastest measured on PoCL/AVX-512)
-DEFAULT_LOCAL = (8, 1)  # work-items per work-group: fastest measured on PoCL; results do not depend on it
+VW_THERMAL = 8  # cells per work-item of the talus rule (float8: the fastest on PoCL/AVX-512, bench/erosion.py)
+DEFAULT_LOCAL = (8, 1)  # work-items per work-group: the fastest on PoCL; results do not depend on it
 
 
 def step_vector_width(device) -> int:
     """Cells per vector of the storm kernels: 16 where the device prefers
-    16-wide floats (AVX-512: 10-17 % faster than 8 in the bench), else 8."""
+    16-wide floats (AVX-512, where 16 lanes beat 8), else 8."""
     return 16 if device.preferred_vector_width_float >= 16 else 8
 
 
@@ -41,9 +41,9 @@ def storm_tile(device) -> tuple[int, int]:
 
 
 
-def program(boundary_code: int, vw: int, nv: int = 1, avx512: bool = False, nr: int = 1):
+def program(env, boundary_code: int, vw: int, nv: int = 1, avx512: bool = False, nr: int = 1):
     options = (f"-DBOUNDARY={boundary_code}", f"-DVW={vw}", f"-DNV={nv}", f"-DNR={nr}", f"-DX0={X0}")
-    return load_program(KERNELS, options + (("-DX86_AVX512=1",) if avx512 else ()))
+    return load_program(env, KERNELS, options + (("-DX86_AVX512=1",) if avx512 else ()))
 
 
 def pad(a: np.ndarray, periodic: bool, shape: tuple[int, int]) -> np.ndarray:
@@ -57,7 +57,8 @@ def pad(a: np.ndarray, periodic: bool, shape: tuple[int, int]) -> np.ndarray:
 
 
 class DeviceSim:
-    """One erosion simulation on the device. `local` is the work-group size
+    """One erosion simulation on the OpenCL device `env` (a
+    pipeline.opencl.CL; the stage's ctx.cl). `local` is the work-group size
     (work-items along a row, rows) of the per-cell kernels, each work-item
     handling `vw` cells of a row (default: 16 or 8 for the storm, 8 for the
     talus rule), in the storm a tile of `nr` rows of up to `nv` vectors
@@ -66,12 +67,12 @@ class DeviceSim:
     compiles the storm for AVX-512 (default: where pipeline.opencl.x86_avx512
     allows). Results depend on none of these."""
 
-    def __init__(self, height: np.ndarray, ph: Physics, *, local: tuple[int, int] | None = DEFAULT_LOCAL,
+    def __init__(self, env, height: np.ndarray, ph: Physics, *, local: tuple[int, int] | None = DEFAULT_LOCAL,
                  water: np.ndarray | None = None, sediment: np.ndarray | None = None, vw: int | None = None,
                  nv: int | None = None, avx512: bool | None = None, nr: int | None = None):
         import pyopencl as cl
 
-        self.cl = get_cl()
+        self.cl = env
         self.ph = ph
         self.rows, self.cols = height.shape
         self.n = self.rows * self.cols
@@ -99,8 +100,8 @@ class DeviceSim:
                        // ALIGN) * ALIGN
         self.prows = max(self.gsize[1] * self.nr, self.gsize_th[1]) + 2
         self.gsize1 = global_size((self.cols, self.rows), (16, 1))  # scalar 2-D kernels (guarded)
-        prg = program(ph.boundary_code, self.vw, self.nv, self.avx512, self.nr)
-        prg_th = program(ph.boundary_code, self.vw_thermal)
+        prg = program(env, ph.boundary_code, self.vw, self.nv, self.avx512, self.nr)
+        prg_th = program(env, ph.boundary_code, self.vw_thermal)
         # launched thousands of times with mostly the same arguments: set only what changed
         self.k = {name: CachedKernel(prg_th if name.startswith("thermal") else prg, name) for name in KERNEL_NAMES}
         ctx = self.cl.ctx

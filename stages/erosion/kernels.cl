@@ -127,28 +127,18 @@ typedef floatV __attribute__((aligned(4))) floatV_u;
 /* The storm kernels: each work-item runs a tile of NR rows of the grid's width
  * in vectors of VW cells, NV at most (TILE_VECTORS; see X86_AVX512), row after
  * row: a tile spans whole rows, so it reads every array in long runs that the
- * prefetchers follow from DRAM (tiles of a few hundred cells were 20 % slower
- * at 2048^2). Neighbouring cells of a tile share what they have in common
- * instead of computing it twice: the geometry of the face between them in
- * `flux`, and in `update` the sediment one sends the other and its spq.
+ * prefetchers follow from DRAM. Neighbouring cells of a tile share what they
+ * have in common instead of computing it twice: the geometry of the face
+ * between them in `flux`, and in `update` the sediment one sends the other
+ * and its spq.
  * Whatever crosses from one vector to the next is carried in registers
  * (shifted by a lane), from one row to the next in per-vector arrays. The
  * first vector of a tile row and the first row of a tile compute everything
  * themselves, so no value ever comes from outside the tile and a cell on the
  * grid's edge (always first in its tile) applies its own neighbour masks.
- * Measured at 512^2 on 2 Zen 4 cores and dropped (interleaved A/B, bit-identical
- * variants): software prefetch (L1 or L2, 4 vectors to 3 rows ahead) 0 to -8 %;
- * update writing dT, W, S in place (no write-allocate) +2 % at best; update
- * tiles in reverse order (L2 reuse from flux) -2 to -6 %; tiles handed out by
- * an integer atomic counter -5 %; east neighbours from aligned loads and lane
- * shifts, no change; QE/QS/QW/QN interleaved in blocks of 16 cells (one stream
- * instead of four) -4 to -8 %; two rows interleaved per tile, 32-cell vectors
- * (two zmm per operation, more independent work in flight) and 32-row tiles, no
- * gain. Division-free flux (wrong results, a bound) was only 5 % faster.
- * What does help at 512^2 is fewer operations: there the step is bound by the
- * FP pipes, not by memory (with each core re-running one tile whose data stay
- * in its L2, flux is 1 % and update 12 % faster), and every AVX-512 operation
- * taken out of a vector's code saved about 1 % of its kernel. */
+ * Where a tile's data stay in a core's L2 the step is bound by the FP pipes,
+ * not by memory, so the cells code is written for the fewest operations per
+ * vector (bench/erosion.py measures the kernels against a roofline copy). */
 #define TILE_VECTORS MIN((cols + VW - 1) / VW, NV)
 #ifndef NR
 #define NR 1
@@ -343,7 +333,7 @@ BODY void flux_body(FLUX_ARGS, const int c00, const int r00)
 /* Sediment that leaves a cell with its water through one face in one step,
  * S (q c) / W, written q * spq with the cell's sediment per unit discharge
  * spq = (S c) * (1 / W): one division and two products per cell, then one
- * product per face (S * ((q c) * (1 / W)) took three per face: 5 % of `update`).
+ * product per face instead of three for S * ((q c) * (1 / W)).
  * The outflow scaling in `flux` leaves every cell at least LIMITER_EPS = 2^-20
  * of its water, far more than the roundings of q, of sum q c and of spq (about
  * 12 * 2^-24), so sum q c < W and the faces never carry off more than S; cells

@@ -17,7 +17,8 @@ from typing import Any, Literal, Optional
 
 import numpy as np
 
-from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, RunContext, Stage
+from pipeline.contract import (Artifact, Check, CheckContext, Input, Param, ParamError, Params, Relief, ReportMap,
+                               RunContext, Stage, ValueRange)
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
 from worldlib.terrain.hillshade import hillshade
@@ -246,7 +247,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[
         from . import stream_power
 
         share = 0.5  # of the progress bar
-        res = stream_power.run(h.astype(np.float64), dx, params.geological_years, params.geological_step_years,
+        res = stream_power.run(ctx.cl, h.astype(np.float64), dx, params.geological_years, params.geological_step_years,
                                params.stream_power_k, params.stream_power_m, params.stream_power_n,
                                params.uplift_mm_per_year / 1000.0, progress=lambda f, m: ctx.progress(share * f, m),
                                routing=params.geological_routing, channel_area_m2=params.channel_area_m2,
@@ -262,7 +263,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[
         progress = lambda f, m: ctx.progress(share + (1 - share) * f, m)  # noqa: E731
     progress(0.0, f"erosion {h.shape[1]}x{h.shape[0]} cells of {dx:g} m: {plan.thermal_iterations} talus "
                   f"iterations, {params.storm_hours:g} h storm")
-    sim = DeviceSim(h, ph)
+    sim = DeviceSim(ctx.cl, h, ph)
     after_thermal = {}
 
     def on_thermal_done(fields: dict[str, np.ndarray]) -> None:
@@ -370,6 +371,12 @@ STAGE = Stage(
     params=ErosionParams,
     run=run,
     check=check,
+    report=(ReportMap("erosion.height", "height", name="height", title="Height ({artifact})",
+                      relief=Relief(hillshade, ("erosion.height",), "height")),
+            ReportMap("erosion.change", "change.net", name="change",
+                      title="Erosion change ({channel}, deposition red, erosion blue)", palette="diverging",
+                      values=ValueRange(symmetric_percentile=99.0), note="clipped at the 99th percentile of |change|",
+                      relief=Relief(hillshade, ("erosion.height",), "height"))),
     source_dir=Path(__file__).resolve().parent,
     uses_seed=False,
     uses_opencl=True,

@@ -99,7 +99,7 @@ __kernel void stream_power_step(__global double* h, __global const char* code, _
 // over the receivers j still below h_i. The host computes the flow
 // fractions frac[8 i + k] (0 where neighbour k is not lower) and
 // factor = K dt A^m (0 on hillslopes and base level) with numpy: PoCL's
-// double pow made those launches 5x slower than the serial passes. Two
+// double pow would cost those launches more than the serial passes. Two
 // serial passes here: the area (`order` = cells by ascending z, walked
 // backwards: donors before receivers) and the solve (forwards: receivers
 // before donors).

@@ -127,18 +127,18 @@ def reference_step(h: np.ndarray, code: np.ndarray, area_m2: np.ndarray, dx: flo
 
 
 class _DeviceSolver:
-    """The serial solve on the OpenCL device, buffers kept across steps."""
+    """The serial solve on the OpenCL device `env`, buffers kept across steps."""
 
-    def __init__(self, rows: int, cols: int):
+    def __init__(self, env, rows: int, cols: int):
         import pyopencl as cl
 
-        from pipeline.opencl import get_cl, load_program
+        from pipeline.opencl import load_program
 
         self.cl = cl
-        self.env = get_cl()
+        self.prg = load_program(env, KERNELS)
+        self.env = env
         if "cl_khr_fp64" not in self.env.device.extensions:
             raise StageError(f"erosion: stream power needs double precision, which {self.env.device.name} lacks")
-        self.prg = load_program(KERNELS)
         self.rows, self.cols = rows, cols
         n = rows * cols
         mf = cl.mem_flags
@@ -172,8 +172,9 @@ LAKE_FILL_MIN_M = 1e-3  # a cell this far below the routing surface is in a clos
 FLAT_TILT_M_PER_CELL = 0.01  # tilt of a filled depression's routing surface toward its outlet
 
 
-def routing_surface(h: np.ndarray, kind: np.ndarray, flat_routing: str) -> np.ndarray:
-    """The float32 surface every interior cell descends on to base level.
+def routing_surface(env, h: np.ndarray, kind: np.ndarray, flat_routing: str) -> np.ndarray:
+    """The float32 surface every interior cell descends on to base level,
+    filled on the OpenCL device `env`.
 
     "epsilon": Priority-Flood+epsilon (Barnes 2014) of h: a filled
     depression drains along its flood order, rows, columns and diagonals.
@@ -192,17 +193,17 @@ def routing_surface(h: np.ndarray, kind: np.ndarray, flat_routing: str) -> np.nd
 
     h32 = flowref.canonical(np.asarray(h, np.float32))
     if flat_routing == "epsilon":
-        return flow.fill(h32, kind, eps=True)
-    filled = flow.fill(h32, kind, eps=False)
+        return flow.fill(env, h32, kind, eps=True)
+    filled = flow.fill(env, h32, kind, eps=False)
     lake = filled > h32
     if not lake.any():
-        return flow.fill(h32, kind, eps=True)
+        return flow.fill(env, h32, kind, eps=True)
     # outlets: dry cells beside a lake cell at or below that lake's level
     grown_level = ndimage.maximum_filter(np.where(lake, filled, -np.inf), size=3)
     outlet = ~lake & ndimage.binary_dilation(lake, structure=np.ones((3, 3), bool)) & (h32 <= grown_level)
     dist = ndimage.distance_transform_edt(~outlet)
     z = np.where(lake, filled + np.float32(FLAT_TILT_M_PER_CELL) * dist.astype(np.float32), h32).astype(np.float32)
-    return flow.fill(flowref.canonical(z), kind, eps=True)
+    return flow.fill(env, flowref.canonical(z), kind, eps=True)
 
 
 def counter_uniform(key: int, step: int, n: int) -> np.ndarray:
@@ -265,7 +266,7 @@ def mfd_fractions(z: np.ndarray, interior: np.ndarray, dx: float, p_exp: float) 
     slope^p times contour length (0.5 dx across an axis, 0.354 dx across a
     diagonal; Quinn et al. 1991). Rows of base-level cells are 0."""
     rows, cols = z.shape
-    # slopes and slope^p in float32 (z is float32; numpy's float32 power is 10x faster than float64's), the
+    # slopes and slope^p in float32 (z is float32; numpy's float32 power is much faster than float64's), the
     # shares normalised in float64 so that they sum to 1 to round-off
     z32 = np.asarray(z, np.float32)
     zp = np.pad(z32, 1, constant_values=np.inf)
@@ -373,18 +374,18 @@ def mfd_reference_step(h: np.ndarray, z: np.ndarray, interior: np.ndarray, dx: f
 
 
 class _DeviceMFDSolver:
-    """The mfd_* kernels on the OpenCL device, buffers kept across steps."""
+    """The mfd_* kernels on the OpenCL device `env`, buffers kept across steps."""
 
-    def __init__(self, rows: int, cols: int):
+    def __init__(self, env, rows: int, cols: int):
         import pyopencl as cl
 
-        from pipeline.opencl import get_cl, load_program
+        from pipeline.opencl import load_program
 
         self.cl = cl
-        self.env = get_cl()
+        prg = load_program(env, KERNELS)
+        self.env = env
         if "cl_khr_fp64" not in self.env.device.extensions:
             raise StageError(f"erosion: stream power needs double precision, which {self.env.device.name} lacks")
-        prg = load_program(KERNELS)
         self.k_area, self.k_solve = cl.Kernel(prg, "mfd_area"), cl.Kernel(prg, "mfd_solve")
         self.rows, self.cols = rows, cols
         n = rows * cols
@@ -416,14 +417,15 @@ class _DeviceMFDSolver:
         return out, area
 
 
-def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, m: float, n_exp: float,
+def run(env, height: np.ndarray, dx: float, years: float, dt_years: float, k: float, m: float, n_exp: float,
         uplift_m_per_year: float, progress: Callable[[float, str], None] | None = None,
         step_fn: Callable | None = None, routing: str = "d8", channel_area_m2: float = 0.0,
         diffusivity_m2_per_year: float = 0.0, breach: bool = False, mfd_exponent: float = 1.1,
         mfd_step_fn: Callable | None = None, flat_routing: str = "epsilon",
         fill_lakes: bool = False, mfd_isotropic: bool = True) -> StreamPowerResult:
-    """Erode `height` (m, finite) for `years`; k in m^(1-2m)/year, uplift in
-    m/year. step_fn replaces the device solve (tests pass reference_step).
+    """Erode `height` (m, finite) for `years` on the OpenCL device `env`
+    (pipeline.opencl.CL); k in m^(1-2m)/year, uplift in m/year. step_fn
+    replaces the device solve (tests pass reference_step).
     routing "d8", "rho8" or "mfd" (n = 1 only: multiple flow directions,
     slope^mfd_exponent; detachment-limited, so the eroded volume leaves the
     map and the check is the volume budget); channel_area_m2: no incision below this drainage
@@ -444,7 +446,7 @@ def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, 
     base = kind != flowref.INTERIOR  # map edges: base level, fixed
     breached_m3 = 0.0
     if breach and years > 0:
-        carved = flow.breach(flowref.canonical(h.astype(np.float32)), kind).astype(np.float64)
+        carved = flow.breach(env, flowref.canonical(h.astype(np.float32)), kind).astype(np.float64)
         breached_m3 = float((h - carved).sum()) * dx * dx
         h = carved
     height_start = h.copy()
@@ -455,10 +457,10 @@ def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, 
     if routing == "mfd":
         if n_exp != 1.0:
             raise StageError(f"erosion: mfd routing solves stream power with n = 1 only (got n = {n_exp:g})")
-        mfd_solve = mfd_step_fn or _DeviceMFDSolver(rows, cols).step
+        mfd_solve = mfd_step_fn or _DeviceMFDSolver(env, rows, cols).step
         solve = None
     else:
-        solve = step_fn or _DeviceSolver(rows, cols).step
+        solve = step_fn or _DeviceSolver(env, rows, cols).step
     cell_area = dx * dx
     eroded = uplifted = out_total = 0.0
     worst_newton = 0
@@ -475,7 +477,7 @@ def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, 
                     raise StageError(f"erosion: hillslope diffusion blew up at step {s + 1} (non-finite heights)")
                 diffusion_out -= float((diffused - h_up).sum()) * cell_area
                 h_up = diffused
-            R = routing_surface(h_up, kind, flat_routing)
+            R = routing_surface(env, h_up, kind, flat_routing)
             if fill_lakes:
                 # sediment settles in every closed depression up to the (tilted) routing surface
                 lake = R.astype(np.float64) > h_up + LAKE_FILL_MIN_M
@@ -496,12 +498,12 @@ def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, 
             if progress and (s % max(1, steps // 20) == 0 or s == steps - 1):
                 progress((s + 1) / steps, f"stream power {s + 1}/{steps} ({(s + 1) * dt:.3g} years)")
             continue
-        R = routing_surface(h_up, kind, flat_routing)
+        R = routing_surface(env, h_up, kind, flat_routing)
         if routing == "rho8":
             code = rho8(R, kind == flowref.INTERIOR, dx, counter_uniform(RHO8_KEY, s, h.size))
         else:
-            code = flow.d8(R, kind, dx)
-        area = flow.accumulate(code).astype(np.float64) * cell_area
+            code = flow.d8(env, R, kind, dx)
+        area = flow.accumulate(env, code).astype(np.float64) * cell_area
         river_area = np.where(area >= channel_area_m2, area, 0.0) if channel_area_m2 > 0 else area
         new, it = solve(h_up, code, river_area, dx, k * dt, m, n_exp)
         worst_newton = max(worst_newton, it)
@@ -512,7 +514,7 @@ def run(height: np.ndarray, dx: float, years: float, dt_years: float, k: float, 
             raise StageError(f"erosion: stream power raised a cell at step {s + 1} (broken invariant)")
         e = np.maximum(e, 0.0) * cell_area
         q, scale = flow.quantize(e)
-        arrived = flow.accumulate(code, q)
+        arrived = flow.accumulate(env, code, q)
         eroded += float(q.sum()) / scale
         out_total += float(arrived[code < 0].sum()) / scale
         h = new

@@ -37,20 +37,22 @@ def source_voxels(source: VolumeLevel) -> tuple[np.ndarray, np.ndarray]:
 
 
 class DeviceSplat:
-    """One sector's fixed-point sums on the OpenCL device: the accumulator
-    is a host array the device writes in place (a CPU runtime shares it)."""
+    """One sector's fixed-point sums on the OpenCL device `env` (a
+    pipeline.opencl.CL): the accumulator is a host array the device writes
+    in place (a CPU runtime shares it)."""
 
-    def __init__(self, shape_xyz, origin, voxel: float, local: int | None = 64):
+    def __init__(self, env, shape_xyz, origin, voxel: float, local: int | None = 64):
         import pyopencl as cl
 
-        from pipeline.opencl import get_cl, load_program
+        from pipeline.opencl import load_program
 
-        self.env = get_cl()
+        program = load_program(env, KERNELS)
+        self.env = env
         self.shape_xyz, self.origin, self.voxel, self.local = tuple(shape_xyz), np.asarray(origin, np.float64), voxel, local
         nx, ny, nz = self.shape_xyz
         self.acc = np.zeros((CHANNELS, nx * ny * nz), np.int64)
         self.dev = cl.Buffer(self.env.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=self.acc)
-        self.kernel = cl.Kernel(load_program(KERNELS), "splat")
+        self.kernel = cl.Kernel(program, "splat")
 
     def add(self, source: VolumeLevel, pos, rot, scale) -> None:
         import pyopencl as cl

@@ -19,7 +19,7 @@ Volumetric Billboards, Decaudin and Neyret 2009).
    so the sector keeps the plants' projected area. Sums in 64-bit fixed
    point with integer atomics: the same for any work-group size.
 4. Only the occupied voxels go on (worldlib.volumes.sparse: a forest on a
-   slope fills ~4 % of its box): the grid is clipped to them (whole mips
+   slope fills a few percent of its box): the grid is clipped to them (whole mips
    kept), mips sum the occupied 2 x 2 x 2 blocks, and each level is an EXR
    in the column runs layout (per (x, z) column one run of voxels along y;
    density float32, the other channels half floats; pxr24), and
@@ -52,11 +52,10 @@ from pipeline.errors import InputError, StageError
 from . import reference, splat
 
 MAX_DEPOSITS = 4_000_000  # bounds the error reference's index and weight buffers per batch
-# Measured on 18 default-world sector levels (column runs): zip 6.78 MB, pxr24 6.07 (density rounded to 24-bit
-# floats, relative 1.5e-5 a voxel; the half channels stay lossless), piz 7.78, dwaa 5.50 but albedo off by up to
-# 0.0085 1/m; zip and pxr24 cost the same time. The finest level is pxr24, its density rounded so before the mips
-# are made from it (what is stored is what they average); the mips are zip, so the stored mips keep the stored
-# finest level's mean coverage (pxr24 on every level drifted by up to 7.6e-7).
+# The finest level is pxr24, the smallest of the compressions that keep albedo exact: it rounds density to 24-bit
+# floats (relative 1.5e-5 a voxel; the half channels stay lossless), and the density is rounded so before the mips
+# are made from it (what is stored is what they average). The mips are zip, lossless, so they keep the stored finest
+# level's mean coverage.
 COMPRESSION = ("pxr24", "zip")
 
 
@@ -71,9 +70,9 @@ class ForestVolumesParams(Params):
     source_voxel_ratio: float = Param(4.0, units="sector voxels", description="largest source voxel of a splat, "
                                       "scaled by its instance, in sector voxels: each instance splats the coarsest "
                                       "level of its species whose voxels, scaled, are at most this. 4: a spruce is "
-                                      "one cube of at most a sector voxel (cover from above within 0.12, 63 MB on "
-                                      "the default world); 1.25: 8 voxels (canopy height closer, from the side "
-                                      "0.033 against 0.094 of L1 at 32 m; cover from above 0.18; 115 MB)",
+                                      "one cube of at most a sector voxel (the closer cover from above); 1.25: 8 "
+                                      "voxels (the closer canopy height and view from the side, nearly twice the "
+                                      "bytes)",
                                       ge=0.25, le=8.0)
     use_opencl: bool = Param(True, description="splat with the OpenCL kernel (false: its numpy reference, small "
                              "forests only)")
@@ -207,8 +206,10 @@ def sector_grid(boxes_lo: np.ndarray, boxes_hi: np.ndarray, voxel_m: float, mip_
     return origin, voxel, (int(n[0]), int(n[1]), int(n[2]))
 
 
-def bake_sector(tile: TileInstances, species: dict[str, SpeciesVolume], params: ForestVolumesParams) -> tuple[
+def bake_sector(env, tile: TileInstances, species: dict[str, SpeciesVolume], params: ForestVolumesParams) -> tuple[
         sparse_volume.SparseLevel, dict] | None:
+    """One tile's sector, splatted on the OpenCL device `env` (the stage's
+    ctx.cl) or, with use_opencl false, by the numpy reference."""
     names = [n for n in tile.species if n in species]
     if not names:
         return None
@@ -222,7 +223,7 @@ def bake_sector(tile: TileInstances, species: dict[str, SpeciesVolume], params: 
                                        params.max_voxels)
     counts = {}
     if params.use_opencl:
-        device = splat.DeviceSplat(shape, origin, voxel)
+        device = splat.DeviceSplat(env, shape, origin, voxel)
     else:
         nx, ny, nz = shape
         sums = np.zeros((splat.CHANNELS, nx * ny * nz), np.int64)
@@ -379,6 +380,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) ->
     layer = ctx.path("forest_volumes.sectors")
     stage, _ = usdio.create_stage(layer, ctx.provenance)
     report: dict[str, Any] = {"forest_species": sorted(forest), "sectors": {}}
+    # run time is a run record (metrics), never content: the layer and stats.json are the same every bake
+    seconds_per_sector: dict[str, float] = {}
     phases = {"read": time.perf_counter() - t0, "splat": 0.0, "mips": 0.0, "error": 0.0, "write": 0.0, "usd": 0.0}
     # the error is measured on error_sectors tiles spread evenly over the list (deterministic)
     measured = set(np.linspace(0, len(tiles) - 1, min(params.error_sectors, len(tiles))).round().astype(int).tolist()
@@ -386,7 +389,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) ->
     for i, tile in enumerate(tiles):
         ctx.progress(i / max(len(tiles), 1), f"forest volumes: {tile.path}")
         t = time.perf_counter()
-        baked = bake_sector(tile, forest, params)
+        baked = bake_sector(ctx.cl, tile, forest, params)
         phases["splat"] += time.perf_counter() - t
         if baked is None:
             continue
@@ -417,7 +420,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) ->
             entry["bytes_file"] = (ctx.out_dir / f).stat().st_size
             info["levels"].append(entry)
         phases["write"] += time.perf_counter() - t_write
-        info["seconds"] = time.perf_counter() - t
+        seconds_per_sector[tile.path] = time.perf_counter() - t
         t_usd = time.perf_counter()
         parts = tile.path.split("/")
         for j in range(2, len(parts) + 1):
@@ -437,15 +440,13 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) ->
     if errors:
         raise StageError("forest volumes: the layer fails USD validation: " + "; ".join(errors[:10]))
     phases["usd"] += time.perf_counter() - t_usd
-    report["seconds"] = time.perf_counter() - t0
-    report["phases_seconds"] = phases
     report["bytes_files"] = sum(e["bytes_file"] for v in report["sectors"].values() for e in v["levels"])
     errs = [v["error"] for v in report["sectors"].values() if "error" in v]
     if errs:
         report["error"] = {"sectors": len(errs), **{f"{k}_max": max(abs(e[k]) for e in errs) for k in ERROR_KEYS}}
-    ctx.metrics.update(sectors=len(report["sectors"]), seconds=report["seconds"], phases_seconds=phases,
+    ctx.metrics.update(sectors=len(report["sectors"]), seconds=time.perf_counter() - t0, phases_seconds=phases,
                        bytes_files=report["bytes_files"], error=report.get("error"),
-                       seconds_per_sector={k: v["seconds"] for k, v in report["sectors"].items()})
+                       seconds_per_sector=seconds_per_sector)
     return {"forest_volumes.sectors": layer, "forest_volumes.stats": report}
 
 

@@ -188,19 +188,20 @@ def vector_width(device) -> int:
     return max(v for v in (1, 2, 4, 8) if v <= max(1, min(w, 8)))
 
 
-def program(spec: TerrainSpec, vw: int):
+def program(env, spec: TerrainSpec, vw: int):
     from pipeline.opencl import load_program
 
-    return load_program(KERNELS, spec.options + (f"-DVW={vw}",))
+    return load_program(env, KERNELS, spec.options + (f"-DVW={vw}",))
 
 
 def bake(
-    spec: TerrainSpec, window: tuple[int, int, int, int], local_size: tuple[int, int] | None = None,
+    env, spec: TerrainSpec, window: tuple[int, int, int, int], local_size: tuple[int, int] | None = None,
     progress: Callable[[float, str], None] | None = None, band_cells: int = 1 << 22, vw: int | None = None,
 ) -> tuple[np.ndarray, float]:
-    """Evaluate the spec on the tile window = (col0, row0, cols, rows) of world
-    cells (any integers; cells outside the world continue the same function).
-    Returns the float32 (rows, cols) heights and the device time in seconds.
+    """Evaluate the spec on the OpenCL device `env` (pipeline.opencl.CL) on
+    the tile window = (col0, row0, cols, rows) of world cells (any integers;
+    cells outside the world continue the same function). Returns the
+    float32 (rows, cols) heights and the device time in seconds.
 
     A work-item computes `vw` consecutive cells of a row (default: the
     device's preferred vector width); `local_size` is in work-items. The tile
@@ -211,14 +212,13 @@ def bake(
     so tiles of any size fit the device's allocation limit."""
     import pyopencl as cl
 
-    from pipeline.opencl import get_cl, global_size
+    from pipeline.opencl import global_size
 
     col0, row0, cols, rows = (int(v) for v in window)
     if cols <= 0 or rows <= 0:
         raise ValueError(f"empty window {window}")
-    env = get_cl()
     vw = vector_width(env.device) if vw is None else int(vw)
-    kernel = cl.Kernel(program(spec, vw), "terrain")
+    kernel = cl.Kernel(program(env, spec, vw), "terrain")
     mf = cl.mem_flags
 
     def const(a, dtype):

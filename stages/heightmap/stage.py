@@ -16,7 +16,8 @@ from typing import Any, Literal, Optional
 import numpy as np
 import pydantic
 
-from pipeline.contract import Artifact, Check, CheckContext, GridInfo, Param, ParamError, Params, ProjectPath, RunContext, Stage
+from pipeline.contract import (Artifact, Check, CheckContext, GridInfo, Param, ParamError, Params, ProjectPath, Relief,
+                               ReportMap, RunContext, Stage)
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
 from worldlib.terrain.hillshade import hillshade
@@ -171,10 +172,12 @@ def spec_from_params(p: HeightmapParams, seed: int) -> noise.TerrainSpec:
 
 
 def heights(
-    p: HeightmapParams, seed: int, local_size=None, progress=None, dem_file: Path | None = None,
+    env, p: HeightmapParams, seed: int, local_size=None, progress=None, dem_file: Path | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    """The float32 heights of the params' tile and diagnostics. `dem_file` is
-    the resolved dem_path (default: dem_path as given)."""
+    """The float32 heights of the params' tile and diagnostics, the noise
+    and fault generators run on the OpenCL device `env` (pipeline.opencl.CL;
+    a DEM needs none: None). `dem_file` is the resolved dem_path (default:
+    dem_path as given)."""
     tile = p.tile
     if p.generator == "dem":
         t0 = time.perf_counter()
@@ -188,11 +191,11 @@ def heights(
                        "dem_shape": list(src.shape)}
         h = dem.load_dem(path, p.resolution, tile, p.dem_min_m, p.dem_max_m)
         return h, {"dem_seconds": time.perf_counter() - t0}
-    from pipeline.opencl import get_cl
-
     spec = spec_from_params(p, seed)
-    vw = noise.vector_width(get_cl().device)
-    h, seconds = noise.bake(spec, tile, local_size=local_size, progress=progress, vw=vw)
+    if env is None:
+        raise ValueError(f"heightmap: the {p.generator} generator runs on an OpenCL device; none was handed in")
+    vw = noise.vector_width(env.device)
+    h, seconds = noise.bake(env, spec, tile, local_size=local_size, progress=progress, vw=vw)
     return h, {"kernel_seconds": seconds, "kernel_mcells_per_s": h.size / max(seconds, 1e-12) / 1e6,
                "opencl_vector_width": vw, **spec.info}
 
@@ -200,7 +203,7 @@ def heights(
 def run(ctx: RunContext, inputs: dict[str, Any], params: HeightmapParams) -> dict[str, Any]:
     ctx.progress(0.0, f"{params.generator} {params.tile[2]}x{params.tile[3]} cells")
     dem_file = ctx.resolve(params.dem_path) if params.dem_path else None
-    h, info = heights(params, ctx.seed, progress=lambda f, m: ctx.progress(0.9 * f, m), dem_file=dem_file)
+    h, info = heights(ctx.cl, params, ctx.seed, progress=lambda f, m: ctx.progress(0.9 * f, m), dem_file=dem_file)
     if not np.isfinite(h).all():
         raise StageError(f"heightmap: generator {params.generator!r} produced {int((~np.isfinite(h)).sum())} non-finite heights")
     col0, row0, _, _ = params.tile
@@ -269,6 +272,8 @@ STAGE = Stage(
     params=HeightmapParams,
     run=run,
     check=check,
+    report=(ReportMap("heightmap.height", "height", name="height", title="Height ({artifact})",
+                      relief=Relief(hillshade, ("heightmap.height",), "height")),),
     source_dir=Path(__file__).resolve().parent,
     uses_seed=True,
     uses_opencl=True,

@@ -60,56 +60,107 @@ def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.nd
     (m^3); accumulate(code, int64 weights) -> int64 sums and merge_sweep(cells,
     h, term, cols) -> MergeTree: the device's or the references (default:
     merge_tree_reference)."""
-    from scipy import ndimage
-
     rows, cols = h.shape
-    n = rows * cols
     h64 = h.astype(np.float64)
     D = (kind == ref.INTERIOR) & (F > h)
-    level = np.full((rows, cols), np.nan)
     runoff = np.where(kind == ref.NODATA, 0.0, np.nan_to_num(runoff_m3, nan=0.0)).astype(np.float64)
     total_in = float(runoff.sum())
     if not D.any():
-        return LakeResult(level, np.zeros((rows, cols)), np.zeros((rows, cols), np.int32),
-                          {"lakes": 0, "depressions": 0, "volume_in_m3": total_in, "volume_stored_m3": 0.0,
-                           "volume_out_m3": total_in, "budget_relative_error": 0.0})
+        return _no_lakes(rows, cols, total_in)
+    routing = _lake_routing(D, code_main, code_raw, runoff, accumulate)  # 2.
+    cells = _sweep_order(routing.in_depression, h64)  # 3.
+    tree = (merge_sweep or merge_tree_reference)(cells, h, routing.term, cols)
+    nodes = _node_table(tree, cells, h64, F, cell_area)
+    direct = _pit_inflow(nodes, routing)
+    order = _depressions_upstream_first(nodes, routing)  # 4.
+    lake_level, stored, out_ocean, spills = _fill_depressions(nodes, order, direct, h64, cell_area)
+    level, depth = _cell_levels(nodes, lake_level, h64)
+    level, depth = level.reshape(rows, cols), depth.reshape(rows, cols)
+    from scipy import ndimage
 
-    # 2. lake routing and inflows
-    code_lake = np.where(D, code_raw, code_main).astype(np.int8)
+    lake_id, nlakes = ndimage.label(depth > 0, structure=np.ones((3, 3), bool))
+    out_direct = float(routing.acc[(kind.ravel() == ref.EDGE)].sum())
+    stats = _lake_stats(nodes, depth, cell_area, int(nlakes), total_in, stored, out_direct + out_ocean, len(spills))
+    return LakeResult(level, depth, lake_id.astype(np.int32), stats, spills)
+
+
+def _no_lakes(rows: int, cols: int, total_in: float) -> LakeResult:
+    return LakeResult(np.full((rows, cols), np.nan), np.zeros((rows, cols)), np.zeros((rows, cols), np.int32),
+                      {"lakes": 0, "depressions": 0, "volume_in_m3": total_in, "volume_stored_m3": 0.0,
+                       "volume_out_m3": total_in, "budget_relative_error": 0.0})
+
+
+@dataclass(frozen=True)
+class _LakeRouting:
+    """Step 2: where each cell's water goes on the lake routing."""
+    in_depression: np.ndarray  # bool per cell (flat): in a depression D
+    acc: np.ndarray  # float64 per cell: runoff accumulated on the lake routing (m^3)
+    term: np.ndarray  # int64 per cell: the end of its path on the lake routing
+    pit: np.ndarray  # bool per cell: a pit of a depression
+    exit: np.ndarray  # int64 per cell: a depression cell's first non-D cell on the main routing
+
+
+def _lake_routing(D: np.ndarray, code_main: np.ndarray, code_raw: np.ndarray, runoff: np.ndarray,
+                  accumulate) -> _LakeRouting:
+    """Steepest descent on the raw terrain inside D, the main routing elsewhere;
+    the runoff accumulated on it; each depression cell's exit."""
     from worldlib.flow.device import quantize
 
+    code_lake = np.where(D, code_raw, code_main).astype(np.int8)
     q, scale = quantize(runoff)
     acc = accumulate(code_lake, q).astype(np.float64).ravel() / scale
-    rcv_lake = ref.receivers(code_lake)
-    term = terminals(rcv_lake)
+    term = terminals(ref.receivers(code_lake))
     Df = D.ravel()
     pit = Df & (code_lake.ravel() == ref.PIT)
-
-    # exit of each depression: first non-D cell on the main routing path
     rcv_main = ref.receivers(code_main)
-    nxt = np.where(Df & (rcv_main >= 0), rcv_main, np.arange(n))
+    nxt = np.where(Df & (rcv_main >= 0), rcv_main, np.arange(Df.size))
     while True:
         nn = nxt[nxt]
         if np.array_equal(nn, nxt):
             break
         nxt = nn
+    return _LakeRouting(Df, acc, term, pit, nxt)
 
-    # 3. union-find sweep in increasing height (stable by cell index)
+
+def _sweep_order(Df: np.ndarray, h64: np.ndarray) -> np.ndarray:
+    """Depression cells in increasing height (stable by cell index): the union-find sweep's order."""
     cells = np.flatnonzero(Df)
-    cells = cells[np.lexsort((cells, h64.ravel()[cells]))]
-    tree = (merge_sweep or merge_tree_reference)(cells, h, term, cols)
-    parent_n, child_a, child_b = tree.parent, tree.child_a, tree.child_b
-    birth, entry_a, entry_b, cell_node = tree.birth, tree.entry_a, tree.entry_b, tree.cell_node
+    return cells[np.lexsort((cells, h64.ravel()[cells]))]
+
+
+@dataclass(frozen=True)
+class _NodeTable:
+    """The merge tree with what the filling needs per node."""
+    tree: MergeTree
+    own_sorted: np.ndarray  # each node's own cells, grouped in sweep order (so ascending in height)
+    own_start: np.ndarray  # node nd's own cells: own_sorted[own_start[nd]:own_start[nd + 1]]
+    cnt: np.ndarray  # float64 cells of each node's subtree
+    ssum: np.ndarray  # float64 sum of the heights of each node's subtree
+    top: np.ndarray  # float64 level at which each node's basin spills (its parent's birth, a root's fill level)
+    cap: np.ndarray  # float64 capacity of each node's basin (m^3)
+    roots: np.ndarray  # the roots, one per depression
+    rep_cell: np.ndarray  # any cell of each node's subtree
+    tin: np.ndarray  # Euler intervals for "is e in the subtree of nd"
+    tout: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return self.tree.parent.size
+
+    def own_cells(self, nd: int) -> np.ndarray:
+        return self.own_sorted[self.own_start[nd]:self.own_start[nd + 1]]
+
+    def inside(self, e, nd) -> bool:
+        return self.tin[nd] <= self.tin[e] < self.tout[nd]
+
+
+def _node_table(tree: MergeTree, cells: np.ndarray, h64: np.ndarray, F: np.ndarray, cell_area: float) -> _NodeTable:
+    parent_n, child_a, birth, cell_node = tree.parent, tree.child_a, tree.birth, tree.cell_node
     nn_ = parent_n.size
-    # each node's own cells, grouped in sweep order (so ascending in height)
     own_node = cell_node[cells]
     perm = np.argsort(own_node, kind="stable")
     own_sorted = cells[perm]
     own_start = np.searchsorted(own_node[perm], np.arange(nn_ + 1))
-
-    def own_cells(nd: int) -> np.ndarray:
-        return own_sorted[own_start[nd]:own_start[nd + 1]]
-
     # per node: count and sum of heights of its subtree cells, top level L
     own_cnt = np.diff(own_start).astype(np.float64)
     own_sum = np.bincount(own_node, weights=h64.ravel()[cells], minlength=nn_)
@@ -132,7 +183,15 @@ def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.nd
         rep_cell[nd] = rep_cell[child_a[nd]]
     top[roots_idx] = F.ravel()[rep_cell[roots_idx]].astype(np.float64)
     cap = cell_area * (cnt * top - ssum)
-    # Euler intervals for "is e in the subtree of N"
+    tin, tout = _euler_intervals(tree, roots_idx)
+    return _NodeTable(tree, own_sorted, own_start, cnt, ssum, top, cap, roots_idx, rep_cell, tin, tout)
+
+
+def _euler_intervals(tree: MergeTree, roots_idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Entry and exit clocks of a depth-first walk: e is in the subtree of nd
+    when tin[nd] <= tin[e] < tout[nd]."""
+    child_a, child_b = tree.child_a, tree.child_b
+    nn_ = tree.parent.size
     tin = np.zeros(nn_, np.int64)
     tout = np.zeros(nn_, np.int64)
     clock = 0
@@ -149,16 +208,31 @@ def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.nd
                     stack.append((int(child_a[nd]), 0))
             else:
                 tout[nd] = clock
+    return tin, tout
 
-    def inside(e, nd):
-        return tin[nd] <= tin[e] < tout[nd]
 
-    # direct water per node: inflow at pits (terminals of the lake routing)
-    direct = np.zeros(nn_)
-    pit_cells = np.flatnonzero(pit)
-    np.add.at(direct, cell_node[pit_cells], acc[pit_cells])
+def _pit_inflow(nodes: _NodeTable, routing: _LakeRouting) -> np.ndarray:
+    """Direct water per node: inflow at pits (terminals of the lake routing)."""
+    direct = np.zeros(nodes.size)
+    pit_cells = np.flatnonzero(routing.pit)
+    np.add.at(direct, nodes.tree.cell_node[pit_cells], routing.acc[pit_cells])
+    return direct
 
-    # 4. depressions upstream first: Kahn's order on the graph "spills into"
+
+@dataclass(frozen=True)
+class _DepressionOrder:
+    """Step 4's order: depressions upstream first, and where each spills."""
+    nodes_of_tree: list  # node ids of each depression's tree, ascending
+    exit_cell: np.ndarray  # each depression's spill cell
+    tgt_cell: np.ndarray  # where its spill water lands
+    tgt_tree: np.ndarray  # the depression it spills into, -1 off the map
+    order: list  # depression indices, upstream first
+
+
+def _depressions_upstream_first(nodes: _NodeTable, routing: _LakeRouting) -> _DepressionOrder:
+    """Kahn's order on the graph "spills into"."""
+    parent_n, cell_node, roots_idx = nodes.tree.parent, nodes.tree.cell_node, nodes.roots
+    nn_ = nodes.size
     tree_of = np.empty(nn_, np.int64)
     for i, r0 in enumerate(roots_idx.tolist()):
         tree_of[r0] = i
@@ -168,11 +242,17 @@ def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.nd
     nodes_of_tree = [[] for _ in roots_idx]
     for nd in range(nn_):
         nodes_of_tree[tree_of[nd]].append(nd)
-    exit_cell = nxt[rep_cell[roots_idx]]
-    tgt_cell = term[exit_cell]
-    tgt_tree = np.where(Df[tgt_cell] & (cell_node[tgt_cell] >= 0), tree_of[np.maximum(cell_node[tgt_cell], 0)], -1)
+    exit_cell = routing.exit[nodes.rep_cell[roots_idx]]
+    tgt_cell = routing.term[exit_cell]
+    tgt_tree = np.where(routing.in_depression[tgt_cell] & (cell_node[tgt_cell] >= 0),
+                        tree_of[np.maximum(cell_node[tgt_cell], 0)], -1)
     tgt_tree[tgt_tree == np.arange(len(roots_idx))] = -1
-    indeg = np.bincount(tgt_tree[tgt_tree >= 0], minlength=len(roots_idx))
+    return _DepressionOrder(nodes_of_tree, exit_cell, tgt_cell, tgt_tree, _kahn_order(tgt_tree))
+
+
+def _kahn_order(tgt_tree: np.ndarray) -> list:
+    n_trees = len(tgt_tree)
+    indeg = np.bincount(tgt_tree[tgt_tree >= 0], minlength=n_trees)
     order_roots = []
     ready = list(np.flatnonzero(indeg == 0)[::-1])
     while ready:
@@ -183,23 +263,28 @@ def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.nd
             indeg[j] -= 1
             if indeg[j] == 0:
                 ready.append(j)
-    if len(order_roots) < len(roots_idx):  # a cycle through equal spill levels: cannot happen, kept safe
+    if len(order_roots) < n_trees:  # a cycle through equal spill levels: cannot happen, kept safe
         done = set(order_roots)
-        order_roots += [i for i in range(len(roots_idx)) if i not in done]
+        order_roots += [i for i in range(n_trees) if i not in done]
+    return order_roots
 
-    lake_level = np.full(nn_, np.nan)  # level of nodes that are one lake
-    stored = 0.0
-    out_ocean = 0.0
-    spills = []
-    own_h = [None] * nn_
 
-    def level_for(nd, water):
+class _LakeLevels:
+    """Flat lake levels over a node's subtree; each node's own heights read once."""
+
+    def __init__(self, nodes: _NodeTable, h64: np.ndarray, cell_area: float):
+        self.nodes, self.h64, self.cell_area = nodes, h64, cell_area
+        self.own_h = [None] * nodes.size
+
+    def level_for(self, nd, water):
         """Flat level holding `water` over the subtree of nd, nd's children full."""
-        oh = own_h[nd]
+        nodes, tree = self.nodes, self.nodes.tree
+        oh = self.own_h[nd]
         if oh is None:
-            oh = own_h[nd] = h64.ravel()[own_cells(nd)]  # ascending: sweep order
-        if child_a[nd] >= 0:
-            c0, s0, base = cnt[child_a[nd]] + cnt[child_b[nd]], ssum[child_a[nd]] + ssum[child_b[nd]], birth[nd]
+            oh = self.own_h[nd] = self.h64.ravel()[nodes.own_cells(nd)]  # ascending: sweep order
+        if tree.child_a[nd] >= 0:
+            a_, b_ = tree.child_a[nd], tree.child_b[nd]
+            c0, s0, base = nodes.cnt[a_] + nodes.cnt[b_], nodes.ssum[a_] + nodes.ssum[b_], tree.birth[nd]
         else:
             c0, s0, base = 0.0, 0.0, -np.inf
         ncum = c0 + np.arange(1, len(oh) + 1)
@@ -211,56 +296,82 @@ def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.nd
         else:
             lows = oh
         highs = np.concatenate([lows[1:], [np.inf]])
-        lev = (water / cell_area + scum) / ncum
+        lev = (water / self.cell_area + scum) / ncum
         ok = np.flatnonzero(lev <= highs)
-        return float(min(lev[ok[0]], top[nd])) if ok.size else float(top[nd])
+        return float(min(lev[ok[0]], nodes.top[nd])) if ok.size else float(nodes.top[nd])
 
-    for ti in order_roots:
-        r0 = int(roots_idx[ti])
-        nodes = nodes_of_tree[ti]
-        W0 = {}
-        for nd in nodes:  # ascending ids: children first
-            w = direct[nd]
-            if child_a[nd] >= 0:
-                w += W0[child_a[nd]] + W0[child_b[nd]]
-            W0[nd] = w
-        total = W0[r0]
-        excess = max(0.0, total - cap[r0])
-        stack = [(r0, min(total, cap[r0]), [])]
-        while stack:
-            nd, water, ext = stack.pop()
-            a_, b_ = int(child_a[nd]), int(child_b[nd])
-            if a_ < 0 or water >= cap[a_] + cap[b_]:
-                lake_level[nd] = level_for(nd, water)
-                continue
-            ext_a = [(x, e) for x, e in ext if inside(e, a_)]
-            ext_b = [(x, e) for x, e in ext if not inside(e, a_)]
-            wa = W0[a_] + direct[nd] + sum(x for x, _ in ext_a)
-            wb = W0[b_] + sum(x for x, _ in ext_b)
-            if wa > cap[a_]:
-                s = wa - cap[a_]
-                wa = cap[a_]
-                wb += s
-                ext_b.append((s, int(entry_b[nd])))
-            elif wb > cap[b_]:
-                s = wb - cap[b_]
-                wb = cap[b_]
-                wa += s
-                ext_a.append((s, int(entry_a[nd])))
-            stack.append((a_, wa, ext_a))
-            stack.append((b_, wb, ext_b))
-        stored += min(total, cap[r0])
+
+def _fill_depressions(nodes: _NodeTable, order: _DepressionOrder, direct: np.ndarray, h64: np.ndarray,
+                      cell_area: float) -> tuple[np.ndarray, float, float, list]:
+    """Each depression upstream first: its tree filled, its excess spilled
+    downstream (into `direct`, changed) or off the map. Returns the level of
+    nodes that are one lake, the stored and the off-map volume, the spills."""
+    lake_level = np.full(nodes.size, np.nan)
+    levels = _LakeLevels(nodes, h64, cell_area)
+    cell_node = nodes.tree.cell_node
+    stored = 0.0
+    out_ocean = 0.0
+    spills = []
+    for ti in order.order:
+        r0 = int(nodes.roots[ti])
+        total = _fill_tree(nodes, r0, order.nodes_of_tree[ti], direct, levels, lake_level)
+        excess = max(0.0, total - nodes.cap[r0])
+        stored += min(total, nodes.cap[r0])
         if excess > 0:
-            x = int(exit_cell[ti])
-            t = int(tgt_cell[ti])
-            if tgt_tree[ti] >= 0:
+            x = int(order.exit_cell[ti])
+            t = int(order.tgt_cell[ti])
+            if order.tgt_tree[ti] >= 0:
                 direct[cell_node[t]] += excess
                 spills.append((x, t, excess))
             else:
                 out_ocean += excess
                 spills.append((x, -1, excess))
+    return lake_level, stored, out_ocean, spills
 
-    # levels per cell: the topmost single-lake ancestor
+
+def _fill_tree(nodes: _NodeTable, r0: int, tree_nodes: list, direct: np.ndarray, levels: _LakeLevels,
+               lake_level: np.ndarray) -> float:
+    """One depression top-down: a node holding at least its children's
+    capacities is one lake (its level into lake_level); otherwise the fuller
+    child spills into the other. Returns the water the depression received."""
+    child_a, child_b, cap = nodes.tree.child_a, nodes.tree.child_b, nodes.cap
+    W0 = {}
+    for nd in tree_nodes:  # ascending ids: children first
+        w = direct[nd]
+        if child_a[nd] >= 0:
+            w += W0[child_a[nd]] + W0[child_b[nd]]
+        W0[nd] = w
+    total = W0[r0]
+    stack = [(r0, min(total, cap[r0]), [])]
+    while stack:
+        nd, water, ext = stack.pop()
+        a_, b_ = int(child_a[nd]), int(child_b[nd])
+        if a_ < 0 or water >= cap[a_] + cap[b_]:
+            lake_level[nd] = levels.level_for(nd, water)
+            continue
+        ext_a = [(x, e) for x, e in ext if nodes.inside(e, a_)]
+        ext_b = [(x, e) for x, e in ext if not nodes.inside(e, a_)]
+        wa = W0[a_] + direct[nd] + sum(x for x, _ in ext_a)
+        wb = W0[b_] + sum(x for x, _ in ext_b)
+        if wa > cap[a_]:
+            s = wa - cap[a_]
+            wa = cap[a_]
+            wb += s
+            ext_b.append((s, int(nodes.tree.entry_b[nd])))
+        elif wb > cap[b_]:
+            s = wb - cap[b_]
+            wb = cap[b_]
+            wa += s
+            ext_a.append((s, int(nodes.tree.entry_a[nd])))
+        stack.append((a_, wa, ext_a))
+        stack.append((b_, wb, ext_b))
+    return total
+
+
+def _cell_levels(nodes: _NodeTable, lake_level: np.ndarray, h64: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Levels per cell (flat): the topmost single-lake ancestor's; NaN where dry. And depths."""
+    parent_n, cell_node = nodes.tree.parent, nodes.tree.cell_node
+    nn_ = nodes.size
     lake_top = np.full(nn_, -1, np.int64)
     for nd in range(nn_ - 1, -1, -1):
         p = parent_n[nd]
@@ -268,25 +379,57 @@ def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.nd
             lake_top[nd] = lake_top[p]
         elif not np.isnan(lake_level[nd]):
             lake_top[nd] = nd
-    lev_cells = np.full(n, np.nan)
+    lev_cells = np.full(h64.size, np.nan)
     cn_ok = cell_node >= 0
     lt = np.where(cn_ok, lake_top[np.maximum(cell_node, 0)], -1)
     has = lt >= 0
     lev_cells[has] = lake_level[lt[has]]
     depth = np.where(has, np.maximum(lev_cells - h64.ravel(), 0.0), 0.0)
     lev_cells[depth <= 0] = np.nan
-    depth = depth.reshape(rows, cols)
-    lake_id, nlakes = ndimage.label(depth > 0, structure=np.ones((3, 3), bool))
+    return lev_cells, depth
+
+
+def _lake_stats(nodes: _NodeTable, depth: np.ndarray, cell_area: float, nlakes: int, total_in: float,
+                stored: float, out_total: float, n_spills: int) -> dict:
     vol_cells = float(depth.sum() * cell_area)
-    out_direct = float(acc[(kind.ravel() == ref.EDGE)].sum())
-    out_total = out_direct + out_ocean
     resid = total_in - stored - out_total
-    stats = {
-        "lakes": int(nlakes), "depressions": int(len(roots_idx)), "basins": int((child_a < 0).sum()),
+    return {
+        "lakes": nlakes, "depressions": int(len(nodes.roots)), "basins": int((nodes.tree.child_a < 0).sum()),
         "volume_in_m3": total_in, "volume_stored_m3": stored, "volume_stored_cells_m3": vol_cells,
-        "volume_out_m3": out_total, "spills": len(spills),
+        "volume_out_m3": out_total, "spills": n_spills,
         "budget_relative_error": abs(resid) / max(total_in, 1e-300),
         "stored_vs_cells_relative_error": abs(stored - vol_cells) / max(stored, 1e-300),
         "lake_area_m2": float((depth > 0).sum() * cell_area),
     }
-    return LakeResult(lev_cells.reshape(rows, cols), depth, lake_id.astype(np.int32), stats, spills)
+
+
+@dataclass(frozen=True)
+class LakeMaps:
+    depth: np.ndarray  # float64 water depth per cell (0 where dry)
+    level: np.ndarray  # float64 water level per cell, NaN where dry
+    lake_id: np.ndarray  # int32 connected lake label, 0 where dry
+    stats: dict
+
+
+def lake_maps(env, land, filled: np.ndarray, code: np.ndarray, rain: np.ndarray, params) -> LakeMaps:
+    """The stage's step 4 on the OpenCL device `env` (the stage's ctx.cl): every catchment's basins receive
+    lake_runoff_depth_m of water scaled by the local rain relative to the
+    mean; no lakes when params.lakes is off."""
+    import functools
+
+    from pipeline.errors import StageError
+    from worldlib.flow import device as dev
+
+    rows, cols = land.shape
+    if not params.lakes:
+        return LakeMaps(np.zeros((rows, cols)), np.full((rows, cols), np.nan), np.zeros((rows, cols), np.int32),
+                        {"lakes": 0})
+    data, cell_area = land.data, land.cell_area
+    code_raw = dev.d8(env, np.where(data, land.h, np.float32(0)), land.kind, land.dx)
+    mean_rain = float(rain[data].mean()) if rain[data].mean() > 0 else 1.0
+    lake_in = params.lake_runoff_depth_m * cell_area * rain / mean_rain
+    lk = solve_lakes(land.h, land.kind, filled, code, code_raw, lake_in, cell_area,
+                     functools.partial(dev.accumulate, env), functools.partial(dev.merge_sweep, env))
+    if lk.stats["budget_relative_error"] > 1e-6:
+        raise StageError(f"hydrology: lake volume budget off by {lk.stats['budget_relative_error']:.2e} (relative)")
+    return LakeMaps(lk.depth, lk.level, lk.lake_id, lk.stats)

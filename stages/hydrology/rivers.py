@@ -161,6 +161,39 @@ def extract(code: np.ndarray, area_m2: np.ndarray, discharge: np.ndarray, h: np.
                   surface.reshape(rows, cols), curves, stats)
 
 
+def extract_on(ground: np.ndarray, code: np.ndarray, area_m2: np.ndarray, discharge: np.ndarray, h: np.ndarray,
+               lake_depth: np.ndarray, dx: float, params) -> Rivers:
+    """extract() with the stage's river parameters."""
+    return extract(code, area_m2, discharge, h, lake_depth, ground, dx, params.river_threshold_m2,
+                   params.river_velocity_coefficient_m_s, params.river_velocity_min_m_s,
+                   params.river_velocity_max_m_s, params.river_min_slope, params.river_width_depth_ratio,
+                   params.river_lift_m)
+
+
+def rivers_on_mesh(land, code: np.ndarray, area_m2: np.ndarray, discharge: np.ndarray, lake_depth: np.ndarray,
+                   params):
+    """The stage's step 5: the terrain mesh the curves sit on (None for a
+    grid thinner than 2 cells) and the rivers, whose surfaces follow the mesh
+    at the cells the curves pass."""
+    from pipeline.grid import Grid
+    from worldlib.terrain.mesh import build_terrain_mesh, height_on_mesh
+
+    h, dx, hmin = land.h, land.dx, land.hmin
+    rows, cols = land.shape
+    mesh = None
+    if rows >= 2 and cols >= 2:
+        mesh = build_terrain_mesh(Grid(np.nan_to_num(h, nan=hmin), dx, ("height",), land.origin_m), params.mesh_max_vertices)
+    ground = np.nan_to_num(h, nan=hmin).astype(np.float64)
+    riv = extract_on(ground, code, area_m2, discharge, h, lake_depth, dx, params)
+    if mesh is not None and riv.curves:
+        used = np.unique(np.concatenate(riv.curves))
+        ox, oz = land.origin_m
+        gm = ground.ravel().copy()
+        gm[used] = height_on_mesh(mesh, ox + (used % cols + 0.5) * dx, oz + (used // cols + 0.5) * dx)
+        riv = extract_on(gm.reshape(rows, cols), code, area_m2, discharge, h, lake_depth, dx, params)
+    return mesh, riv
+
+
 def follow_mesh(surface, x: np.ndarray, y: np.ndarray, z: np.ndarray, width: np.ndarray, discharge: np.ndarray,
                 max_rise_m: float, samples_per_segment: int = 16, rounds: int = 4):
     """Insert vertices where a straight segment would pass over higher ground.

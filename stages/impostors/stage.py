@@ -29,7 +29,7 @@ impostor_distance_m on the reference screen (plant_frame_px; 16 x 16 frames
 of 64 px for the default conifer, 48 for the broadleaf, 32 for the shrub),
 in the smallest power-of-two atlas that holds them. The held-out views are
 that size too (one texel per pixel: the nearest the impostor is used), and
-the measured error then sets the switch distances as before.
+the measured error then sets the switch distances.
 
 Steps (run): read the asset's LOD0 into a render scene
 (worldlib.render.usd_asset, the reader every USD picture shares); bake the atlas;
@@ -57,6 +57,7 @@ from worldlib.render.usd_asset import load_plant
 from worldlib.plant_asset import PLANTS_ROOT, plant_asset_prim
 
 from . import atlas, heldout, images, octahedral, sampler, slices, usd_layer
+from .screen import pixel_at_1m, switch_distance_m
 
 Layout = Literal["hemi", "octahedral"]
 
@@ -81,8 +82,8 @@ class ImpostorsParams(Params):
                            "octahedral: the whole sphere")
     layouts: dict[str, Layout] = Param({}, description="per-species layout overriding `layout`")
     samples: int = Param(3, units="samples per side", description="n x n samples per atlas texel: 2 x 2 gives alpha "
-                         "in quarters, and a 0.5 threshold then keeps every half-covered needle (conifer held-out IoU "
-                         "0.917 at 2, 0.928 at 3, 0.932 at 4)", ge=1, le=8)
+                         "in quarters, and a 0.5 threshold then keeps every half-covered needle; more samples bring "
+                         "the held-out IoU closer to the mesh's, with less to gain past 3", ge=1, le=8)
     ao_rays: int = Param(1, units="rays", description="ambient-occlusion rays per sample", ge=0, le=64)
     ao_radius: float = Param(0.08, units="bounding-sphere radii", description="occluders farther than this do not "
                              "darken the ao channel (a whole crown's radius would make every inner leaf black)",
@@ -107,8 +108,8 @@ class ImpostorsParams(Params):
                             "this", ge=16, le=1024)
     heldout_samples: int = Param(6, units="samples per side", description="n x n samples per pixel of the mesh's "
                                  "held-out views (the reference): its alpha must be the true coverage, not a coarse "
-                                 "estimate of it (conifer median IoU 0.915 against 3 x 3, 0.928 against 6 x 6, 0.932 "
-                                 "against 12 x 12)", ge=1, le=16)
+                                 "estimate of it (a coarse reference understates the impostors' IoU; past 6 x 6 it "
+                                 "changes little)", ge=1, le=16)
     heldout_stride: int = Param(18, units="views", description="the bake measures 1/stride of the held-out set "
                                 "(azimuth every 5 deg x elevation every 10 deg; 36 views of 648 for hemi), every "
                                 "elevation equally often, azimuths spread (heldout.lattice; 1: all; "
@@ -136,11 +137,6 @@ def _plant_names(plants_layer: Path, placed: dict | None) -> list[str]:
     if placed is not None:
         names = [n for n in names if n in placed.get("placed", [])]
     return sorted(names)
-
-
-def pixel_at_1m(params: "ImpostorsParams") -> float:
-    """Metres one screen pixel covers at 1 m (pinhole: 2 tan(fov / 2) / screen_px)."""
-    return 2.0 * math.tan(math.radians(0.5 * params.screen_fov_deg)) / params.screen_px
 
 
 def plant_frame_px(radius: float, height_m: float, params: "ImpostorsParams") -> int:
@@ -171,13 +167,6 @@ class References:
             rgba, depth = impostor(octahedral.view_direction(az, el))
             errors.append(heldout.ViewError(az, el, *heldout.compare(mesh_rgba, mesh_depth, rgba, depth)))
         return errors
-
-
-def switch_distance_m(error_m: float, params: ImpostorsParams) -> float:
-    """The distance beyond which `error_m` of geometric error projects to at
-    most error_px pixels on the reference screen (pinhole: one pixel covers
-    2 d tan(fov / 2) / screen_px metres at distance d)."""
-    return error_m / (params.error_px * pixel_at_1m(params))
 
 
 def _polygon_area(poly: np.ndarray) -> float:
@@ -213,7 +202,7 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
     saved = unit.restore(tex_dir)
     if saved is not None:
         return _from_saved(saved, {"load_s": time.perf_counter() - t0, "total_s": time.perf_counter() - t0})
-    prepared = Prepared(ps.scene)
+    prepared = Prepared(ctx.cl, ps.scene)
     grass = "Blades" in ps.parts
     seed = (ctx.seed * 1_000_003 + sum(map(ord, name))) & 0xFFFFFFFF
     timings: dict[str, float] = {"load_s": time.perf_counter() - t0}
@@ -246,9 +235,9 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
     sheets = ([*slices.grass_slices(prepared, params.grass_slice_px, params.samples)] if grass
               else [slices.tree_slices(prepared, params.slice_slabs, slice_px, params.samples)])
     if grass:  # seed 001: the tuft's five quads are drawn together
-        billboards = {None: Prepared(slices.sheet_scene(sheets))}
+        billboards = {None: Prepared(ctx.cl, slices.sheet_scene(sheets))}
     else:  # seed 002 / Jakulin: the two slicings nearest the view, blended
-        billboards = {r: Prepared(slices.sheet_scene(sheets, rows=(r,))) for r in range(sheets[0].rows)}
+        billboards = {r: Prepared(ctx.cl, slices.sheet_scene(sheets, rows=(r,))) for r in range(sheets[0].rows)}
     timings["slices_s"] = time.perf_counter() - t
     t = time.perf_counter()
     view_settings = Settings(view_px, view_px, samples=params.heldout_samples)
@@ -267,7 +256,7 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
     slice_errors = heldout.summarize(references.measure(slice_view), height)
     # What a USD viewer draws of the Impostor prim: every quad at once, alpha-tested at 0.5 (the
     # material's opacityThreshold), the nearest wins (so each slab pair shows its viewer's side); no blend.
-    drawn = billboards[None] if grass else Prepared(slices.sheet_scene(sheets))
+    drawn = billboards[None] if grass else Prepared(ctx.cl, slices.sheet_scene(sheets))
 
     def drawn_view(d):
         cam, _ = heldout.view_camera(d, ps.centre, ps.radius)

@@ -36,6 +36,8 @@ from worldlib import materials
 from worldlib.render import Camera, Prepared, Settings
 from worldlib.plant_asset import PLANTS_ROOT, plant_asset_prim
 
+from .screen import switch_distance_m
+
 # the six cards views: (name, view direction toward the viewer, camera up), the
 # orientation UsdImaging's cards draw mode maps each texture with
 CARD_AXES = (
@@ -138,8 +140,6 @@ def lod_ladder(own: dict[str, float]) -> dict[str, float]:
 
 def write(path: Path, provenance: dict, baked: list[dict], plants_layer: Path | None, params) -> dict:
     from pxr import Gf, Sdf, Usd, UsdGeom
-
-    from .stage import switch_distance_m
 
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)

@@ -152,8 +152,12 @@ def cluster_scene(spec, seed: int, leaf_tex: np.ndarray | None) -> Scene:
                  np.concatenate(tex), textures_stack)
 
 
-def bake(spec, seed: int, size: int = 256) -> CardBake:
-    """Render the species' cluster into its card texture and make the card template."""
+def bake(env, spec, seed: int, size: int = 256) -> CardBake:
+    """Render the species' cluster into its card texture (on the OpenCL
+    device `env`) and make the card template."""
+    from pipeline.opencl import require
+
+    require(env, "plants: the card bake")  # its renders are the device's (None would be the numpy reference's)
     f = spec.foliage
     leaf_tex = None
     if spec.leaf.shape in ("ellipse", "card"):
@@ -167,10 +171,10 @@ def bake(spec, seed: int, size: int = 256) -> CardBake:
     # the card is the cluster's bounding rectangle; its square texture stretches to fit
     cam = Camera((float(centre[0]), float(centre[1]), zmax), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0),
                  ortho_height_m=float(span[1]), ortho_width_m=float(span[0]))
-    img = render(scene, cam, Settings(size, size, samples=4, ao_rays=4, ao_radius_m=0.15 * float(span.max()),
-                                      seed=seed & 0xFFFFFFFF))
+    img = render(env, scene, cam, Settings(size, size, samples=4, ao_rays=4, ao_radius_m=0.15 * float(span.max()),
+                                           seed=seed & 0xFFFFFFFF))
     alpha = img.alpha
-    thickness, translucency = _thickness(scene, spec.leaf.shape, img, centre, span, float(p[:, 2].min()) - 1.0, zmax,
+    thickness, translucency = _thickness(env, scene, spec.leaf.shape, img, centre, span, float(p[:, 2].min()) - 1.0, zmax,
                                          size, seed)
     straight = img.albedo / np.maximum(alpha, 1e-6)[..., None]
     straight *= (0.55 + 0.45 * img.ao)[..., None]  # the cluster's self-shadowing, baked in
@@ -197,14 +201,14 @@ def bake(spec, seed: int, size: int = 256) -> CardBake:
                     scene.n_triangles, leaf_tex, thickness, translucency)
 
 
-def _thickness(scene: Scene, shape: str, front, centre, span, zmin: float, zmax: float, size: int, seed: int):
+def _thickness(env, scene: Scene, shape: str, front, centre, span, zmin: float, zmax: float, size: int, seed: int):
     """Thickness (m) and translucency (0..1) per texel: the cluster seen
     from the back too; thickness is the distance from the first surface
     seen from the front to the first seen from the back (the whole depth of
     foliage along the card normal) plus one leaf's thickness."""
     cam = Camera((float(centre[0]), float(centre[1]), zmin), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0),
                  ortho_height_m=float(span[1]), ortho_width_m=float(span[0]))
-    back = render(scene, cam, Settings(size, size, samples=4, ao_rays=0, seed=seed & 0xFFFFFFFF))
+    back = render(env, scene, cam, Settings(size, size, samples=4, ao_rays=0, seed=seed & 0xFFFFFFFF))
     back_depth = back.depth[:, ::-1]  # seen from behind, the image's x runs the other way
     hit = np.isfinite(front.depth) & np.isfinite(back_depth) & (front.alpha > 0)
     depth = (zmax - zmin) - np.where(hit, front.depth, 0.0) - np.where(hit, back_depth, 0.0)
@@ -227,8 +231,12 @@ class SliceBake:
     normal: np.ndarray  # (n, 4n, 3) tangent space of each quad
 
 
-def bake_grass_slices(blades_scene: Scene, slice_part, size: int = 128, seed: int = 0) -> SliceBake:
-    """Render the tuft (blades_scene) through each vertical quad of the slice tuft."""
+def bake_grass_slices(env, blades_scene: Scene, slice_part, size: int = 128, seed: int = 0) -> SliceBake:
+    """Render the tuft (blades_scene) through each vertical quad of the
+    slice tuft, on the OpenCL device `env`."""
+    from pipeline.opencl import require
+
+    require(env, "plants: the grass slice bake")  # its renders are the device's
     albedo, alpha, normal = [], [], []
     v = slice_part.verts
     for i in range(4):
@@ -239,7 +247,7 @@ def bake_grass_slices(blades_scene: Scene, slice_part, size: int = 128, seed: in
         forward = np.cross(up, right)  # the camera's right is then the quad's u direction
         centre = q.mean(0)
         cam = Camera(tuple(centre - forward * (10.0 * max(w, h))), tuple(forward), tuple(up), ortho_height_m=h, ortho_width_m=w)
-        img = render(blades_scene, cam, Settings(size, size, samples=4, ao_rays=4, ao_radius_m=0.1 * h, seed=seed + i))
+        img = render(env, blades_scene, cam, Settings(size, size, samples=4, ao_rays=4, ao_radius_m=0.1 * h, seed=seed + i))
         a = img.alpha
         rgb = img.albedo / np.maximum(a, 1e-6)[..., None] * (0.6 + 0.4 * img.ao)[..., None]
         # world normal to the quad's tangent frame (x = u, y = v, z = toward the viewer)

@@ -93,8 +93,9 @@ def row_parameters(rec: np.ndarray, segments: int, dense: int = 128) -> np.ndarr
     return rows.astype(np.float32)
 
 
-def blades(rec: np.ndarray, segments: int, taper: float, use_opencl: bool = True) -> Part:
-    verts = geometry.grass_blades(rec, row_parameters(rec, segments), taper, use_opencl)
+def blades(env, rec: np.ndarray, segments: int, taper: float) -> Part:
+    """The blades' strips, made on the OpenCL device `env` (None: the numpy reference)."""
+    verts = geometry.grass_blades(env, rec, row_parameters(rec, segments), taper)
     return Part(verts, blade_triangles(len(rec), segments), np.arange(len(verts), dtype=np.int64))
 
 

@@ -147,8 +147,9 @@ def leaf_records(sk: Skeleton, leaf, bw_of_segment: np.ndarray, rng: np.random.G
     return rec.astype(np.float32)
 
 
-def instance(tmpl: Template, rec: np.ndarray, use_opencl: bool = True) -> Part:
-    verts = geometry.leaf_instances(rec, tmpl.rows, use_opencl)
+def instance(env, tmpl: Template, rec: np.ndarray) -> Part:
+    """The template at every leaf record, on the OpenCL device `env` (None: the numpy reference)."""
+    verts = geometry.leaf_instances(env, rec, tmpl.rows)
     nl, nt = len(rec), len(tmpl.rows)
     tris = (tmpl.tris[None, :, :] + (np.arange(nl) * nt)[:, None, None]).reshape(-1, 3)
     return Part(verts, tris, np.arange(len(verts), dtype=np.int64))

@@ -166,9 +166,10 @@ def _foliage_key(parts: dict[str, Part], cams: list[Camera]) -> bytes:
     return h.digest()
 
 
-def crown_opacity(parts: dict[str, Part], spec, card_rgba: np.ndarray | None, azimuths: int = 8,
+def crown_opacity(env, parts: dict[str, Part], spec, card_rgba: np.ndarray | None, azimuths: int = 8,
                   size: int = 128, slices_rgba: np.ndarray | None = None, hulls: dict | None = None) -> dict:
-    """Crown opacity from the side (module docstring) and its value per azimuth.
+    """Crown opacity from the side (module docstring) and its value per
+    azimuth, rendered on the OpenCL device `env`.
 
     Only the pixels inside a view's hull count, so the full render covers
     the hull's bounding rectangle only. `hulls` (optional, shared between
@@ -188,14 +189,14 @@ def crown_opacity(parts: dict[str, Part], spec, card_rgba: np.ndarray | None, az
     masks = hulls.get(key) if hulls is not None else None
     pl = None
     if masks is None:
-        pl = Prepared(foliage)
+        pl = Prepared(env, foliage)
         s_hull = Settings(size, size, samples=1)  # the hull needs only which pixels the crown reaches
         masks = [_inside_hull(pl.render(cam, s_hull).alpha >= 0.5) for cam in cams]
         if hulls is not None:
             hulls[key] = masks
     # without wood the full scene is the foliage scene
-    pf = (Prepared(plant_scene(parts, spec, card_rgba, None, slices_rgba=slices_rgba)) if has_wood
-          else pl or Prepared(foliage))
+    pf = (Prepared(env, plant_scene(parts, spec, card_rgba, None, slices_rgba=slices_rgba)) if has_wood
+          else pl or Prepared(env, foliage))
     values = []
     for cam, hull in zip(cams, masks):
         n_hull = int(hull.sum())

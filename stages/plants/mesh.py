@@ -242,9 +242,10 @@ def _tube_weld(nr: int, s: int) -> np.ndarray:
     return np.concatenate([rings, np.arange(s), [nr * s], (nr - 1) * s + np.arange(s), [nr * s + 1]]).astype(np.int64)
 
 
-def tube_parts(tubes: Tubes, bulge: float, use_opencl: bool = True) -> list[Part]:
-    """Vertices of all tubes (the tube_rings kernel), split per tube."""
-    verts = geometry.tube_rings(tubes.ring, tubes.sides, use_opencl)
+def tube_parts(env, tubes: Tubes, bulge: float) -> list[Part]:
+    """Vertices of all tubes (the tube_rings kernel on the OpenCL device
+    `env`; None: its numpy reference), split per tube."""
+    verts = geometry.tube_rings(env, tubes.ring, tubes.sides)
     parts = []
     vo = 0
     for r0, nr, s in tubes.tube_rings:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 import zlib
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -34,6 +35,14 @@ class Settings:
     lod_error_budget: tuple[float, ...] = (0.01, 0.03)
     use_opencl: bool = True
     check_lods: bool = True
+    # the OpenCL device (pipeline.opencl.CL; the stage's ctx.cl) the renders run on, and the vertex
+    # kernels when use_opencl; pickled to a worker process, it opens the same device there
+    cl: Any = None
+
+    @property
+    def vertex_env(self):
+        """The device of the vertex kernels: None runs their numpy references."""
+        return self.cl if self.use_opencl else None
 
 
 @dataclass
@@ -115,7 +124,7 @@ def _build_lsystem(name, spec, seeds, cfg: Settings, m: dict, progress) -> Plant
     # wood
     t = time.perf_counter()
     tubes = mesh.build_tubes(sk, radius, spec.wood, cfg.min_radius, np.random.default_rng(seeds[2]))
-    parts = mesh.tube_parts(tubes, spec.wood.cap_bulge, cfg.use_opencl)
+    parts = mesh.tube_parts(cfg.vertex_env, tubes, spec.wood.cap_bulge)
     m["tubes"] = tubes.n_tubes
     m["segments_too_thin"] = int((radius < cfg.min_radius).sum()) if len(radius) else 0
     m["tube_triangles"] = int(sum(p.n_tris for p in parts))
@@ -143,7 +152,7 @@ def _build_lsystem(name, spec, seeds, cfg: Settings, m: dict, progress) -> Plant
     leaf_spec = spec.leaf
     if spec.foliage.cards and spec.leaf.shape != "none":
         t_cards = time.perf_counter()
-        bake = cards.bake(spec, seeds[3])
+        bake = cards.bake(cfg.cl, spec, seeds[3])
         tmpl = bake.template
         card_len = float(np.ptp(tmpl.rows[:, 1]))
         # a card droops over its own length as a leaf does over its blade
@@ -154,7 +163,7 @@ def _build_lsystem(name, spec, seeds, cfg: Settings, m: dict, progress) -> Plant
     else:
         tmpl = leaves.make_template(spec.leaf)
     rec = leaves.leaf_records(sk, leaf_spec, bw_seg, np.random.default_rng(seeds[3])) if tmpl is not None else None
-    leaf0 = leaves.instance(tmpl, rec, cfg.use_opencl) if tmpl is not None and len(rec) else Part.empty()
+    leaf0 = leaves.instance(cfg.vertex_env, tmpl, rec) if tmpl is not None and len(rec) else Part.empty()
     polys = leaves.polygon_part(sk, bw_seg)
     m["seconds_leaves"] = time.perf_counter() - t
     m["wood_lod_checks"] = []
@@ -194,16 +203,69 @@ def _lod_chain(wood, tmpl, rec, polys, lods, times, cfg: Settings, seeds, m) -> 
     is taken, else the one with the smallest error. A level that cannot be
     made (a solid cannot get that small) ends the chain."""
     ref = _combined(lods[0])
+    n_leaves = len(rec) if rec is not None else 0
+    fol = _Foliage(tmpl, rec, n_leaves, tmpl.n_tris if tmpl is not None else 0,
+                   leaves.card_of(tmpl) if tmpl is not None else None,
+                   np.random.default_rng(seeds[4]).permutation(n_leaves) if n_leaves else None)
+    wood_at = _WoodDecimation(wood)
     W0 = wood.n_tris
     w_min = min(W0, max(64, int(0.02 * W0)))
-    n_leaves = len(rec) if rec is not None else 0
-    t_leaf = tmpl.n_tris if tmpl is not None else 0
-    card = leaves.card_of(tmpl) if tmpl is not None else None
-    rank = np.random.default_rng(seeds[4]).permutation(n_leaves) if n_leaves else None
-    dec_cache: dict[int, Part] = {}
+    prev_total = sum(p.n_tris for p in lods[0].values())
+    prev_card, prev_keep = False, 1.0
+    prev_wood = W0
+    poly = polys
+    errors = [None]
+    choices = []
+    for k in range(1, cfg.lod_count):
+        t0 = time.perf_counter()
+        budget = int(np.floor(cfg.lod_ratio * prev_total))
+        options = _foliage_options(fol, prev_card, prev_keep, cfg.lod_ratio)
+        feasible = []
+        while True:  # Lparser polygons stay as long as the budget allows, then are thinned
+            feasible = _feasible(options, budget, poly.n_tris, W0, w_min, prev_wood)
+            if feasible or poly.n_tris == 0:
+                break
+            poly = _thin_part(poly, cfg.lod_ratio)
+        if not feasible:  # the wood cannot get small enough: give it what is left, no foliage
+            feasible = [(True, 0.0, max(budget - poly.n_tris, 4))]
+        best = _best_split(k, feasible, budget, ref, wood_at, fol, poly, cfg)
+        if best is None:  # nothing this small keeps the solid closed: the chain ends here
+            m["lod_chain_stopped"] = f"no LOD{k} within {budget} triangles"
+            break
+        h, use_card, keep, parts, total, wt = best
+        errors.append(h)
+        lods.append(parts)
+        times.append(time.perf_counter() - t0)
+        choices.append({"level": k, "budget": budget, "wood_target": int(wt), "foliage_card": bool(use_card),
+                        "foliage_keep": float(keep), "candidates": len(feasible)})
+        prev_total, prev_card, prev_keep = total, use_card or prev_card, keep
+        prev_wood = parts["Wood"].n_tris
+        if cfg.check_lods and parts["Wood"].n_tris:
+            _check_wood_lod(parts["Wood"], k, m)
+    return choices, errors
 
-    def wood_at(target: int) -> Part:
-        if target >= W0:
+
+@dataclass(frozen=True)
+class _Foliage:
+    """LOD0's leaves as the chain thins them."""
+    template: Any  # the leaf template Part, or None
+    records: Any  # the leaf instances (leaves.subset's input), or None
+    count: int  # leaves at LOD0
+    template_tris: int
+    card: Any  # the template's card Part, or None
+    rank: Any  # the order leaves are dropped in (a seeded permutation), or None
+
+
+class _WoodDecimation:
+    """wood_at(target): the wood decimated from LOD0 to at most `target` triangles, each target once."""
+
+    def __init__(self, wood):
+        self.wood = wood
+        self.cache: dict[int, tuple] = {}
+
+    def __call__(self, target: int):
+        wood, dec_cache = self.wood, self.cache
+        if target >= wood.n_tris:
             return wood
         if target not in dec_cache:
             # Quadric collapse from LOD0 follows one order whatever the
@@ -222,75 +284,61 @@ def _lod_chain(wood, tmpl, rec, polys, lods, times, cfg: Settings, seeds, m) -> 
                 dec_cache[target] = (w, first)
         return dec_cache[target][0]
 
-    prev_total = sum(p.n_tris for p in lods[0].values())
-    prev_card, prev_keep = False, 1.0
-    prev_wood = W0
-    poly = polys
-    errors = [None]
-    choices = []
-    for k in range(1, cfg.lod_count):
-        t0 = time.perf_counter()
-        budget = int(np.floor(cfg.lod_ratio * prev_total))
-        options = []  # (use_card, keep, foliage triangles)
-        if n_leaves:
-            if not prev_card and prev_keep >= 1.0:
-                options.append((False, 1.0, n_leaves * t_leaf))
-            keep = prev_keep
-            while keep * n_leaves >= 1:
-                nk = int(np.floor(keep * n_leaves))
-                if card.n_tris < t_leaf or prev_card:
-                    options.append((True, keep, nk * card.n_tris))
-                elif keep < prev_keep:
-                    options.append((False, keep, nk * t_leaf))
-                keep *= cfg.lod_ratio
-            options.append((True, 0.0, 0))
+
+def _foliage_options(fol: _Foliage, prev_card: bool, prev_keep: float, lod_ratio: float) -> list:
+    """(use_card, keep, foliage triangles) a level may take, the most foliage first."""
+    n_leaves, t_leaf, card = fol.count, fol.template_tris, fol.card
+    options = []
+    if not n_leaves:
+        options.append((False, 1.0, 0))
+        return options
+    if not prev_card and prev_keep >= 1.0:
+        options.append((False, 1.0, n_leaves * t_leaf))
+    keep = prev_keep
+    while keep * n_leaves >= 1:
+        nk = int(np.floor(keep * n_leaves))
+        if card.n_tris < t_leaf or prev_card:
+            options.append((True, keep, nk * card.n_tris))
+        elif keep < prev_keep:
+            options.append((False, keep, nk * t_leaf))
+        keep *= lod_ratio
+    options.append((True, 0.0, 0))
+    return options
+
+
+def _best_split(k: int, feasible: list, budget: int, ref, wood_at: _WoodDecimation, fol: _Foliage, poly,
+                cfg: Settings):
+    """(hausdorff, use_card, keep, parts, triangles, wood target) of the first
+    split within half the level's error budget, else of the smallest error;
+    None when no split fits the budget."""
+    best = None
+    diag = lod.bbox_diagonal(ref[0])
+    budgets = cfg.lod_error_budget
+    good_enough = 0.5 * (budgets[min(k, len(budgets)) - 1] if budgets else 0.01) * diag
+    for use_card, keep, wt in feasible:
+        wk = wood_at(wt) if wood_at.wood.n_tris else wood_at.wood
+        if fol.count and keep > 0:
+            rk = leaves.subset(fol.records, keep, fol.rank, cfg.leaf_area_compensation)
+            fk = leaves.instance(cfg.vertex_env, fol.card if use_card else fol.template, rk)
         else:
-            options.append((False, 1.0, 0))
-        feasible = []
-        while True:  # Lparser polygons stay as long as the budget allows, then are thinned
-            feasible = _feasible(options, budget, poly.n_tris, W0, w_min, prev_wood)
-            if feasible or poly.n_tris == 0:
-                break
-            poly = _thin_part(poly, cfg.lod_ratio)
-        if not feasible:  # the wood cannot get small enough: give it what is left, no foliage
-            feasible = [(True, 0.0, max(budget - poly.n_tris, 4))]
-        best = None
-        diag = lod.bbox_diagonal(ref[0])
-        budgets = cfg.lod_error_budget
-        good_enough = 0.5 * (budgets[min(k, len(budgets)) - 1] if budgets else 0.01) * diag
-        for use_card, keep, wt in feasible:
-            wk = wood_at(wt) if W0 else wood
-            if n_leaves and keep > 0:
-                rk = leaves.subset(rec, keep, rank, cfg.leaf_area_compensation)
-                fk = leaves.instance(card if use_card else tmpl, rk, cfg.use_opencl)
-            else:
-                fk = Part.empty()
-            parts = {"Wood": wk, "Leaves": Part.concat([fk, poly])}
-            total = sum(p.n_tris for p in parts.values())
-            if total > budget:
-                continue
-            h = lod.hausdorff(ref, _combined(parts), cfg.hausdorff_samples)
-            if best is None or h["max"] < best[0]["max"]:
-                best = (h, use_card, keep, parts, total, wt)
-            if h["max"] <= good_enough:
-                break  # the split that keeps the most foliage is good enough
-        if best is None:  # nothing this small keeps the solid closed: the chain ends here
-            m["lod_chain_stopped"] = f"no LOD{k} within {budget} triangles"
-            break
-        h, use_card, keep, parts, total, wt = best
-        errors.append(h)
-        lods.append(parts)
-        times.append(time.perf_counter() - t0)
-        choices.append({"level": k, "budget": budget, "wood_target": int(wt), "foliage_card": bool(use_card),
-                        "foliage_keep": float(keep), "candidates": len(feasible)})
-        prev_total, prev_card, prev_keep = total, use_card or prev_card, keep
-        prev_wood = parts["Wood"].n_tris
-        if cfg.check_lods and parts["Wood"].n_tris:
-            c = mesh.check_solid(parts["Wood"])
-            _require_solid(m.get("name", "?"), k, c)
-            m["wood_lod_checks"].append({"level": k, "watertight": c["watertight"], "manifold": c["manifold"],
-                                         "degenerate": c["degenerate"], "winding_consistent": c["winding_consistent"]})
-    return choices, errors
+            fk = Part.empty()
+        parts = {"Wood": wk, "Leaves": Part.concat([fk, poly])}
+        total = sum(p.n_tris for p in parts.values())
+        if total > budget:
+            continue
+        h = lod.hausdorff(ref, _combined(parts), cfg.hausdorff_samples)
+        if best is None or h["max"] < best[0]["max"]:
+            best = (h, use_card, keep, parts, total, wt)
+        if h["max"] <= good_enough:
+            break  # the split that keeps the most foliage is good enough
+    return best
+
+
+def _check_wood_lod(wood_lod, k: int, m: dict) -> None:
+    c = mesh.check_solid(wood_lod)
+    _require_solid(m.get("name", "?"), k, c)
+    m["wood_lod_checks"].append({"level": k, "watertight": c["watertight"], "manifold": c["manifold"],
+                                 "degenerate": c["degenerate"], "winding_consistent": c["winding_consistent"]})
 
 
 def _feasible(options, budget, poly_tris, W0, w_min, prev_wood):
@@ -323,7 +371,7 @@ def _build_grass(name, spec, seeds, cfg: Settings, m: dict) -> PlantResult:
     g = spec.grass
     t = time.perf_counter()
     rec = grass.blade_records(g, np.random.default_rng(seeds[5]))
-    b0 = grass.blades(rec, g.segments, g.taper, cfg.use_opencl)
+    b0 = grass.blades(cfg.vertex_env, rec, g.segments, g.taper)
     m["blades"] = len(rec)
     m["seconds_blades"] = time.perf_counter() - t
     lods = [{"Blades": b0}]
@@ -339,7 +387,7 @@ def _build_grass(name, spec, seeds, cfg: Settings, m: dict) -> PlantResult:
             lods.append({"Cards": cards})
         else:
             sub = rec[: max(1, int(np.floor(keep * len(rec))))]
-            part = grass.blades(sub, n, g.taper, cfg.use_opencl)
+            part = grass.blades(cfg.vertex_env, sub, n, g.taper)
             if part.n_tris > cfg.lod_ratio * sum(p.n_tris for p in lods[-1].values()):
                 m["lod_chain_stopped"] = "fewer blade triangles are not possible"
                 break
@@ -353,7 +401,7 @@ def _build_grass(name, spec, seeds, cfg: Settings, m: dict) -> PlantResult:
         from .cards import bake_grass_slices
 
         t = time.perf_counter()
-        slices = bake_grass_slices(measure.plant_scene({"Blades": b0}, spec, None, None), card_parts[0], seed=seeds[5] & 0xFFFF)
+        slices = bake_grass_slices(cfg.cl, measure.plant_scene({"Blades": b0}, spec, None, None), card_parts[0], seed=seeds[5] & 0xFFFF)
         m["seconds_foliage_textures"] = time.perf_counter() - t
     t = time.perf_counter()
     info = _measure(name, lods, cfg, m, times)

@@ -27,13 +27,15 @@ import numpy as np
 import pydantic
 
 from pipeline import usdio
-from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, RunContext, Stage
+from pipeline.contract import (Artifact, Check, CheckContext, Input, Param, ParamError, Params, ReportTable, RunContext,
+                               Stage)
 from pipeline.errors import InputError, StageError
 
 from . import measure, textures
 from .asset import write_species, write_top
 from .lsystem import compile_lsystem
 from .plant import PlantResult, Settings, build_plant, species_seeds
+from .report_tables import instance_and_lod_tables
 from .species import SpeciesShape, preset_tables, resolve_species
 
 
@@ -140,8 +142,9 @@ def _write_textures(out_dir: Path, layer: Path, name: str, spec, res: PlantResul
     return looks
 
 
-def _measure_looks(spec, res: PlantResult) -> dict:
-    """Foliage / wood area, LAI and crown opacity at every LOD (measure.py)."""
+def _measure_looks(env, spec, res: PlantResult) -> dict:
+    """Foliage / wood area, LAI and crown opacity at every LOD (measure.py;
+    the renders on the OpenCL device `env`)."""
     cov = res.cards.coverage if res.cards is not None else None
     cpc = measure.cards_per_cluster(spec, res.cards is not None)
     rgba = np.concatenate([res.cards.albedo, res.cards.alpha[..., None]], -1) if res.cards is not None else None
@@ -149,7 +152,7 @@ def _measure_looks(spec, res: PlantResult) -> dict:
     levels = []
     hulls: dict = {}  # levels with the foliage and views of one before reuse its hull masks
     for k, parts in enumerate(res.lods):
-        co = measure.crown_opacity(parts, spec, rgba, slices_rgba=slices, hulls=hulls)
+        co = measure.crown_opacity(env, parts, spec, rgba, slices_rgba=slices, hulls=hulls)
         levels.append({"level": k, "crown_opacity": co["mean"], "crown_opacity_per_azimuth": co["per_azimuth"],
                        "foliage_area_m2": measure.foliage_area(parts, cov, cpc),
                        "wood_area_m2": measure.surface_area(parts.get("Wood"))})
@@ -179,7 +182,7 @@ def _species_job(name: str, spec, seed: int, cfg: Settings, out_dir: Path, top: 
     looks = _write_textures(out_dir, path, name, spec, res, prov, seed)
     res.metrics["seconds_foliage_textures"] = res.metrics.get("seconds_foliage_textures", 0.0) + time.perf_counter() - t
     t = time.perf_counter()
-    measures = _measure_looks(spec, res)
+    measures = _measure_looks(cfg.cl, spec, res)
     res.metrics["seconds_look_measures"] = time.perf_counter() - t
     res.metrics["looks"] = measures
     t = time.perf_counter()
@@ -280,7 +283,7 @@ def _run_jobs(names: list[str], job, costs: dict[str, int], progress) -> dict[st
 def run(ctx: RunContext, inputs: dict[str, Any], params: PlantsParams) -> dict[str, Path]:
     cfg = Settings(lod_count=params.lod_count, lod_ratio=params.lod_ratio, max_modules=params.max_modules,
                    min_radius=params.min_radius, hausdorff_samples=params.hausdorff_samples,
-                   leaf_area_compensation=params.leaf_area_compensation, use_opencl=params.use_opencl,
+                   leaf_area_compensation=params.leaf_area_compensation, use_opencl=params.use_opencl, cl=ctx.cl,
                    lod_error_budget=tuple(params.lod_error_budget))
     out_dir = Path(ctx.out_dir)
     top = ctx.path("plants.assets")
@@ -388,6 +391,7 @@ STAGE = Stage(
     params=PlantsParams,
     run=run,
     check=check,
+    report=(ReportTable("Instances and triangles", instance_and_lod_tables),),
     source_dir=Path(__file__).parent,
     uses_seed=True,
     uses_opencl=True,

@@ -96,33 +96,89 @@ def interpret(modules: list[Module], spec, seed: int) -> Skeleton:
     """Run the turtle over a derived string. `spec` is the LSystemSpec (default
     length, angle, ratios, jitter, tropism) and the WoodSpec radius via
     spec_radius. Random turns (~) and jitter use a generator seeded by `seed`."""
-    ls = spec.lsystem
-    rng = random.Random(seed)
-    deg = math.pi / 180.0
-    aj = ls.angle_jitter * deg
-    lj = ls.length_jitter
-    trop = _norm(list(ls.tropism)) if any(ls.tropism) else [0.0, 0.0, 0.0]
-    trop_e = ls.tropism_strength
+    turtle = _Turtle(spec, seed)
+    n = len(modules)
+    i = 0
+    while i < n:
+        sym, params = modules[i]
+        i += 1
+        if sym == "%":
+            i = _skip_branch(modules, i)
+        elif sym == "@":
+            break
+        else:
+            turtle.step(sym, params)
+    return turtle.skeleton()
 
-    # state: [pos, H, L, U, length, radius, angle(rad), colour, last_seg, cont, order]
-    st = [[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0],
-          ls.length, spec.wood.radius, ls.angle * deg, 0, -1, False, 0]
-    stack: list = []
-    polys: list[list] = []
 
-    seg = {k: [] for k in ("p0", "p1", "h", "l", "u", "r", "parent", "cont", "order", "colour")}
-    leaf = {k: [] for k in ("pos", "h", "l", "u", "s", "parent")}
-    polygons, polygon_parent = [], []
+def _skip_branch(modules: list[Module], i: int) -> int:
+    """% cuts the rest of the branch: the index of its closing ] (or the end)."""
+    n = len(modules)
+    depth = 0
+    while i < n:
+        s2 = modules[i][0]
+        if s2 == "[":
+            depth += 1
+        elif s2 == "]":
+            if depth == 0:
+                break
+            depth -= 1
+        i += 1
+    return i
 
-    def angle_of(params, st):
-        a = params[0] * deg if params else st[6]
-        return a + (rng.uniform(-aj, aj) if aj > 0 else 0.0)
 
-    def bend(st, e):
+class _Turtle:
+    """The turtle's state and what it drew so far.
+
+    state: [pos, H, L, U, length, radius, angle(rad), colour, last_seg, cont, order]"""
+
+    def __init__(self, spec, seed: int):
+        ls = self.ls = spec.lsystem
+        self.rng = random.Random(seed)
+        self.deg = deg = math.pi / 180.0
+        self.aj = ls.angle_jitter * deg
+        self.lj = ls.length_jitter
+        self.trop = _norm(list(ls.tropism)) if any(ls.tropism) else [0.0, 0.0, 0.0]
+        self.trop_e = ls.tropism_strength
+        self.st = [[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0],
+                   ls.length, spec.wood.radius, ls.angle * deg, 0, -1, False, 0]
+        self.stack: list = []
+        self.polys: list[list] = []
+        self.seg = {k: [] for k in ("p0", "p1", "h", "l", "u", "r", "parent", "cont", "order", "colour")}
+        self.leaf = {k: [] for k in ("pos", "h", "l", "u", "s", "parent")}
+        self.polygons, self.polygon_parent = [], []
+
+    def step(self, sym: str, params) -> None:
+        """One module (but % and @, which the string's walk handles)."""
+        if sym in "FZ":
+            self.draw(sym, params)
+        elif sym in "fzg":
+            self.move(sym, params)
+        elif sym == ".":
+            if self.polys:
+                self.polys[-1].append(self.st[0])
+        elif sym in ("+", "-", "&", "^") or sym in "<>\\/":
+            self.turn(sym, params)
+        elif sym in ("|", "$", "~", "t"):
+            self.reorient(sym, params)
+        elif sym in ("!", "?", "'", '"', ":", ";", "c"):
+            self.rescale(sym, params)
+        elif sym in ("[", "]", "{", "}"):
+            self.bracket(sym)
+        elif sym == "L":
+            self.add_leaf(params)
+
+    def angle_of(self, params):
+        a = params[0] * self.deg if params else self.st[6]
+        return a + (self.rng.uniform(-self.aj, self.aj) if self.aj > 0 else 0.0)
+
+    def bend(self, e):
+        """Tropism: turn H toward the tropism vector by e * |H x T|."""
+        st = self.st
         if e <= 0:
             return
         h = st[1]
-        ax = _cross(h, trop)
+        ax = _cross(h, self.trop)
         mag = math.sqrt(ax[0] ** 2 + ax[1] ** 2 + ax[2] ** 2)
         if mag < 1e-9:
             return
@@ -130,60 +186,63 @@ def interpret(modules: list[Module], spec, seed: int) -> Skeleton:
         ang = e * mag
         st[1], st[2], st[3] = _axis_rot(st[1], ax, ang), _axis_rot(st[2], ax, ang), _axis_rot(st[3], ax, ang)
 
-    n = len(modules)
-    i = 0
-    while i < n:
-        sym, params = modules[i]
-        i += 1
-        if sym in "FZ":
-            ln = params[0] if params else st[4]
-            if sym == "Z":
-                ln *= 0.5
-            if lj > 0:
-                ln *= 1.0 + rng.uniform(-lj, lj)
-            if ln <= 0:
-                continue
-            p, h = st[0], st[1]
-            q = [p[0] + h[0] * ln, p[1] + h[1] * ln, p[2] + h[2] * ln]
-            seg["p0"].append(p)
-            seg["p1"].append(q)
-            seg["h"].append(h)
-            seg["l"].append(st[2])
-            seg["u"].append(st[3])
-            seg["r"].append(st[5])
-            seg["parent"].append(st[8])
-            seg["cont"].append(st[9])
-            seg["order"].append(st[10])
-            seg["colour"].append(st[7])
-            st[0] = q
-            st[8] = len(seg["p0"]) - 1
-            st[9] = True
-            bend(st, trop_e)
-            _orthonormalize(st)
-        elif sym in "fzg":
-            ln = params[0] if params else st[4]
-            if sym == "z":
-                ln *= 0.5
-            p, h = st[0], st[1]
-            st[0] = [p[0] + h[0] * ln, p[1] + h[1] * ln, p[2] + h[2] * ln]
-            st[8], st[9] = -1, False
-            if sym != "g" and polys:
-                polys[-1].append(st[0])
-        elif sym == ".":
-            if polys:
-                polys[-1].append(st[0])
-        elif sym == "+" or sym == "-":
-            a = angle_of(params, st)
+    def draw(self, sym: str, params) -> None:
+        """F (Z: half length): a segment forward, then tropism."""
+        st, seg = self.st, self.seg
+        ln = params[0] if params else st[4]
+        if sym == "Z":
+            ln *= 0.5
+        if self.lj > 0:
+            ln *= 1.0 + self.rng.uniform(-self.lj, self.lj)
+        if ln <= 0:
+            return
+        p, h = st[0], st[1]
+        q = [p[0] + h[0] * ln, p[1] + h[1] * ln, p[2] + h[2] * ln]
+        seg["p0"].append(p)
+        seg["p1"].append(q)
+        seg["h"].append(h)
+        seg["l"].append(st[2])
+        seg["u"].append(st[3])
+        seg["r"].append(st[5])
+        seg["parent"].append(st[8])
+        seg["cont"].append(st[9])
+        seg["order"].append(st[10])
+        seg["colour"].append(st[7])
+        st[0] = q
+        st[8] = len(seg["p0"]) - 1
+        st[9] = True
+        self.bend(self.trop_e)
+        _orthonormalize(st)
+
+    def move(self, sym: str, params) -> None:
+        """f (z: half length) moves without drawing, adding a polygon vertex; g adds none."""
+        st = self.st
+        ln = params[0] if params else st[4]
+        if sym == "z":
+            ln *= 0.5
+        p, h = st[0], st[1]
+        st[0] = [p[0] + h[0] * ln, p[1] + h[1] * ln, p[2] + h[2] * ln]
+        st[8], st[9] = -1, False
+        if sym != "g" and self.polys:
+            self.polys[-1].append(st[0])
+
+    def turn(self, sym: str, params) -> None:
+        """+ - turn, & ^ pitch, < > \\ / roll by the angle (jittered)."""
+        st = self.st
+        a = self.angle_of(params)
+        if sym == "+" or sym == "-":
             st[1], st[2] = _rot(st[1], st[2], a if sym == "+" else -a)
         elif sym == "&" or sym == "^":
-            a = angle_of(params, st)
             # pitch down: H toward -U
             st[1], st[3] = _rot(st[1], [-x for x in st[3]], a if sym == "&" else -a)
             st[3] = [-x for x in st[3]]
-        elif sym in "<>\\/":
-            a = angle_of(params, st)
+        else:
             st[2], st[3] = _rot(st[2], st[3], a if sym in "<\\" else -a)
-        elif sym == "|":
+
+    def reorient(self, sym: str, params) -> None:
+        """| turns around, $ rolls L horizontal, ~ turns at random, t bends by tropism."""
+        st, rng = self.st, self.rng
+        if sym == "|":
             st[1], st[2] = _rot(st[1], st[2], math.pi)
         elif sym == "$":
             h = st[1]
@@ -192,16 +251,20 @@ def interpret(modules: list[Module], spec, seed: int) -> Skeleton:
                 st[2] = _norm(l_)
                 st[3] = _cross(h, st[2])
         elif sym == "~":
-            a = params[0] * deg if params else st[6]
+            a = params[0] * self.deg if params else st[6]
             st[1], st[2] = _rot(st[1], st[2], rng.uniform(-a, a))
             h, mu = _rot(st[1], [-x for x in st[3]], rng.uniform(-a, a))
             st[1], st[3] = h, [-x for x in mu]
             st[2], st[3] = _rot(st[2], st[3], rng.uniform(-a, a))
             _orthonormalize(st)
-        elif sym == "t":
-            bend(st, params[0] if params else (trop_e or 0.2))
+        else:
+            self.bend(params[0] if params else (self.trop_e or 0.2))
             _orthonormalize(st)
-        elif sym == "!":
+
+    def rescale(self, sym: str, params) -> None:
+        """! ? width, ' " length, : ; angle times or over a ratio; c sets the colour."""
+        st, ls = self.st, self.ls
+        if sym == "!":
             st[5] *= params[0] if params else ls.width_ratio
         elif sym == "?":
             r = params[0] if params else ls.width_ratio
@@ -216,58 +279,52 @@ def interpret(modules: list[Module], spec, seed: int) -> Skeleton:
         elif sym == ";":
             r = params[0] if params else ls.angle_ratio
             st[6] = st[6] / r if r > 0 else st[6]
-        elif sym == "c":
+        else:
             st[7] = int(params[0]) if params else st[7] + 1
-        elif sym == "[":
-            stack.append(st)
-            st = list(st)
-            st[9] = False
-            st[10] = st[10] + 1
+
+    def bracket(self, sym: str) -> None:
+        """[ ] push and pop the state (a branch); { } open and close a polygon."""
+        if sym == "[":
+            self.stack.append(self.st)
+            self.st = list(self.st)
+            self.st[9] = False
+            self.st[10] = self.st[10] + 1
         elif sym == "]":
-            if stack:
-                st = stack.pop()
+            if self.stack:
+                self.st = self.stack.pop()
         elif sym == "{":
-            polys.append([])
-        elif sym == "}":
-            if polys:
-                pts = polys.pop()
-                if len(pts) >= 3:
-                    polygons.append(np.asarray(pts, dtype=np.float64))
-                    polygon_parent.append(st[8])
-        elif sym == "%":
-            depth = 0
-            while i < n:
-                s2 = modules[i][0]
-                if s2 == "[":
-                    depth += 1
-                elif s2 == "]":
-                    if depth == 0:
-                        break
-                    depth -= 1
-                i += 1
-        elif sym == "@":
-            break
-        elif sym == "L":
-            s = params[0] if params else 1.0
-            if s > 0:
-                leaf["pos"].append(st[0])
-                leaf["h"].append(st[1])
-                leaf["l"].append(st[2])
-                leaf["u"].append(st[3])
-                leaf["s"].append(s)
-                leaf["parent"].append(st[8])
+            self.polys.append([])
+        elif self.polys:
+            pts = self.polys.pop()
+            if len(pts) >= 3:
+                self.polygons.append(np.asarray(pts, dtype=np.float64))
+                self.polygon_parent.append(self.st[8])
 
-    def arr(x, shape=(0, 3), dtype=np.float64):
-        return np.asarray(x, dtype=dtype).reshape((-1,) + shape[1:]) if len(x) else np.zeros(shape, dtype)
+    def add_leaf(self, params) -> None:
+        st, leaf = self.st, self.leaf
+        s = params[0] if params else 1.0
+        if s > 0:
+            leaf["pos"].append(st[0])
+            leaf["h"].append(st[1])
+            leaf["l"].append(st[2])
+            leaf["u"].append(st[3])
+            leaf["s"].append(s)
+            leaf["parent"].append(st[8])
 
-    return Skeleton(
-        p0=arr(seg["p0"]), p1=arr(seg["p1"]), heading=arr(seg["h"]), left=arr(seg["l"]), up=arr(seg["u"]),
-        radius=arr(seg["r"], (0,)), parent=arr(seg["parent"], (0,), np.int64), cont=arr(seg["cont"], (0,), bool),
-        order=arr(seg["order"], (0,), np.int64), colour=arr(seg["colour"], (0,), np.int64),
-        leaf_pos=arr(leaf["pos"]), leaf_h=arr(leaf["h"]), leaf_l=arr(leaf["l"]), leaf_u=arr(leaf["u"]),
-        leaf_scale=arr(leaf["s"], (0,)), leaf_parent=arr(leaf["parent"], (0,), np.int64),
-        polygons=polygons, polygon_parent=polygon_parent,
-    )
+    def skeleton(self) -> Skeleton:
+        seg, leaf = self.seg, self.leaf
+
+        def arr(x, shape=(0, 3), dtype=np.float64):
+            return np.asarray(x, dtype=dtype).reshape((-1,) + shape[1:]) if len(x) else np.zeros(shape, dtype)
+
+        return Skeleton(
+            p0=arr(seg["p0"]), p1=arr(seg["p1"]), heading=arr(seg["h"]), left=arr(seg["l"]), up=arr(seg["u"]),
+            radius=arr(seg["r"], (0,)), parent=arr(seg["parent"], (0,), np.int64), cont=arr(seg["cont"], (0,), bool),
+            order=arr(seg["order"], (0,), np.int64), colour=arr(seg["colour"], (0,), np.int64),
+            leaf_pos=arr(leaf["pos"]), leaf_h=arr(leaf["h"]), leaf_l=arr(leaf["l"]), leaf_u=arr(leaf["u"]),
+            leaf_scale=arr(leaf["s"], (0,)), leaf_parent=arr(leaf["parent"], (0,), np.int64),
+            polygons=self.polygons, polygon_parent=self.polygon_parent,
+        )
 
 
 def pipe_radii(sk: Skeleton, tip_radius: float, exponent: float, leaf_weight: float) -> np.ndarray:

@@ -1,12 +1,16 @@
 """Host side of kernels.cl: the same functions and classes as reference.py,
-run on the OpenCL device. Buffers of the simulation and of the Poisson-disk
-sampler stay on the device across steps; only results are copied back.
+run on the OpenCL device `env` (a pipeline.opencl.CL), which each takes
+first; `on(env)` binds it, giving reference.py's signatures. Buffers of the
+simulation and of the Poisson-disk sampler stay on the device across steps;
+only results are copied back.
 
 `local` is the work-group size (None: the runtime chooses); results do not
 depend on it (the tests run several).
 """
 from __future__ import annotations
 
+import functools
+import types
 from pathlib import Path
 
 import numpy as np
@@ -19,10 +23,17 @@ KERNELS = Path(__file__).with_name("kernels.cl")
 F = np.float32
 
 
-def program(nb: int = 2):
+def on(env) -> types.SimpleNamespace:
+    """This module's functions and classes on the device `env`, with the
+    signatures of reference.py's (what the stage's backend is)."""
+    names = ("attributes", "moisture_filter", "suitability", "splat", "Sim", "Poisson", "grass_tufts")
+    return types.SimpleNamespace(**{n: functools.partial(globals()[n], env) for n in names})
+
+
+def program(env, nb: int = 2):
     from pipeline.opencl import load_program
 
-    return _Kernels(load_program(KERNELS, (f"-DNB={int(nb)}", f"-DPN={ref.PN}")))
+    return _Kernels(load_program(env, KERNELS, (f"-DNB={int(nb)}", f"-DPN={ref.PN}")))
 
 
 class _Kernels:
@@ -35,12 +46,12 @@ class _Kernels:
         return kernel(self.prg, name)
 
 
-def attributes(h, dx, kc, inv_kc2, dirs, steps, sun0, sun1, inv_direct, diffuse, local=None):
-    b = Buffers()
+def attributes(env, h, dx, kc, inv_kc2, dirs, steps, sun0, sun1, inv_direct, diffuse, local=None):
+    b = Buffers(env)
     h = np.ascontiguousarray(h, F)
     rows, cols = h.shape
     nd = len(dirs)
-    prg = program()
+    prg = program(env)
     hb = b.arr(h)
     sb = b.arr(np.ascontiguousarray(steps, F))
     hz = b.empty(nd * h.nbytes)
@@ -56,18 +67,18 @@ def attributes(h, dx, kc, inv_kc2, dirs, steps, sun0, sun1, inv_direct, diffuse,
     return tuple(b.get(o, (rows, cols), F) for o in outs)
 
 
-def moisture_filter(m, jitter, key, local=None):
-    b = Buffers()
+def moisture_filter(env, m, jitter, key, local=None):
+    b = Buffers(env)
     m = np.ascontiguousarray(m, F)
     rows, cols = m.shape
     out = b.empty(m.nbytes)
-    b.run(program().moisture_filter, (cols, rows), local, b.arr(m), np.int32(rows), np.int32(cols), F(jitter),
+    b.run(program(env).moisture_filter, (cols, rows), local, b.arr(m), np.int32(rows), np.int32(cols), F(jitter),
           np.uint32(key), out)
     return b.get(out, (rows, cols), F)
 
 
-def suitability(alt, slope, moist, sun, curv, blocked, prefs, local=None):
-    b = Buffers()
+def suitability(env, alt, slope, moist, sun, curv, blocked, prefs, local=None):
+    b = Buffers(env)
     shape = np.shape(alt)
     n = int(np.prod(shape))
     prefs = np.ascontiguousarray(prefs, F).reshape(-1, 4)
@@ -75,18 +86,18 @@ def suitability(alt, slope, moist, sun, curv, blocked, prefs, local=None):
     out = b.empty(max(nsp, 1) * n * 4)
     args = [b.arr(np.ascontiguousarray(a, F)) for a in (alt, slope, moist, sun, curv)]
     if nsp:
-        b.run(program().suitability, (n,), local, *args, b.arr(np.ascontiguousarray(blocked, np.uint8)),
+        b.run(program(env).suitability, (n,), local, *args, b.arr(np.ascontiguousarray(blocked, np.uint8)),
               np.int32(n), b.arr(prefs), np.int32(nsp), out)
     return b.get(out, (nsp,) + shape, F) if nsp else np.zeros((0,) + shape, F)
 
 
-def splat(alt, slope, grad, moist, water, p, local=None):
-    b = Buffers()
+def splat(env, alt, slope, grad, moist, water, p, local=None):
+    b = Buffers(env)
     shape = np.shape(alt)
     n = int(np.prod(shape))
     out = b.empty(n * 6 * 4)
     args = [b.arr(np.ascontiguousarray(a, F)) for a in (alt, slope, grad, moist)]
-    b.run(program().splat, (n,), local, *args, b.arr(np.ascontiguousarray(water, np.uint8)), np.int32(n),
+    b.run(program(env).splat, (n,), local, *args, b.arr(np.ascontiguousarray(water, np.uint8)), np.int32(n),
           b.arr(np.ascontiguousarray(p, F)), out)
     return b.get(out, shape + (6,), F)
 
@@ -94,8 +105,8 @@ def splat(alt, slope, grad, moist, water, p, local=None):
 class Sim:
     """reference.Sim on the device."""
 
-    def __init__(self, sp, birth, suit, tab, nb: int, local=None):
-        self.b = b = Buffers()
+    def __init__(self, env, sp, birth, suit, tab, nb: int, local=None):
+        self.b = b = Buffers(env)
         sp = np.ascontiguousarray(sp, np.int32)
         self.nz, self.nx = sp.shape
         self.n = n = self.nx * self.nz
@@ -103,7 +114,7 @@ class Sim:
         self.nsp = suit.shape[0]
         self.local = local
         self.local1 = None if local is None else (int(np.prod(local)),)
-        self.prg = program(nb=nb)
+        self.prg = program(env, nb=nb)
         self.sp = b.arr(sp, True)
         self.birth = b.arr(np.ascontiguousarray(birth, np.int32), True)
         self.suit = b.arr(suit)
@@ -154,11 +165,11 @@ class Sim:
 class Poisson:
     """reference.Poisson on the device."""
 
-    def __init__(self, nx, nz, c, wdom, ddom, rad, dx, margin, obs_start, obs, onx, onz, oc, local=None):
-        self.b = b = Buffers()
+    def __init__(self, env, nx, nz, c, wdom, ddom, rad, dx, margin, obs_start, obs, onx, onz, oc, local=None):
+        self.b = b = Buffers(env)
         self.nx, self.nz = nx, nz
         self.local = local
-        self.prg = program()
+        self.prg = program(env)
         rad = np.ascontiguousarray(rad, F)
         self.rows, self.cols = rad.shape
         self.pts = b.arr(np.zeros((nz * nx, 4), F), True)
@@ -184,11 +195,11 @@ class Poisson:
         return pts
 
 
-def grass_tufts(dens, dx, nx, nz, sp, jitter, wdom, ddom, key, local=None):
-    b = Buffers()
+def grass_tufts(env, dens, dx, nx, nz, sp, jitter, wdom, ddom, key, local=None):
+    b = Buffers(env)
     dens = np.ascontiguousarray(dens, F)
     rows, cols = dens.shape
     out = b.empty(nx * nz * 16)
-    b.run(program().grass_tufts, (nx, nz), local, b.arr(dens), np.int32(rows), np.int32(cols), F(dx),
+    b.run(program(env).grass_tufts, (nx, nz), local, b.arr(dens), np.int32(rows), np.int32(cols), F(dx),
           np.int32(nx), np.int32(nz), F(sp), F(jitter), F(wdom), F(ddom), np.uint32(key), out)
     return b.get(out, (nz * nx, 4), F)

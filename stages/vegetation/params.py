@@ -25,9 +25,8 @@ from pipeline.contract import Param, Params
 from pipeline.config import deep_merge
 
 # The Poisson-disk sampler's saturation constant: after the default 6 passes
-# a set of constant radius r holds at least KAPPA / r^2 points per m^2 (0.606
-# measured; 0.59 after 4 passes, 0.616 after 8)
-# (measured, see tests/stages/vegetation/test_vegetation_placement.py), and the
+# a set of constant radius r holds at least KAPPA / r^2 points per m^2
+# (tests/stages/vegetation/test_vegetation_placement.py checks it), and the
 # radius is chosen so the saturated set holds 1 / FILL times the target; the
 # selection keeps the target count out of it.
 KAPPA = 0.60

@@ -22,16 +22,19 @@ from __future__ import annotations
 
 import math
 import time
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from pipeline import exr
-from pipeline.contract import Artifact, Check, CheckContext, Input, ParamError, RunContext, Stage
+from pipeline.contract import (Artifact, Check, CheckContext, Input, ParamError, Relief, ReportMap, ReportWarning, RunContext,
+                               Stage, ValueRange)
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
-from worldlib.ground import SPLAT_CHANNELS
+from worldlib.ground import GROUND_MAP_COLOURS, SPLAT_CHANNELS
 from worldlib.plant_asset import prototype_prim
 from worldlib.terrain import TERRAIN_SOURCES
 from worldlib.terrain.hillshade import hillshade
@@ -45,11 +48,14 @@ ATTR_CHANNELS = ("attr.slope", "attr.aspect", "attr.curvature", "attr.sky_view",
 F = np.float32
 
 
-def backend_modules(use_opencl: bool = True):
-    if use_opencl:
+def backend_modules(env):
+    """The kernels with reference.py's signatures: on the OpenCL device
+    `env` (pipeline.opencl.CL; the stage's ctx.cl), or the numpy references
+    (env None)."""
+    if env is not None:
         from . import device
 
-        return device
+        return device.on(env)
     from . import reference
 
     return reference
@@ -185,195 +191,322 @@ def _species_report(params: VegetationParams, sets, placed, tuft_stats) -> dict[
     return species_report
 
 
-def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> dict[str, Any]:
-    from worldlib.terrain.mesh import build_terrain_mesh
+class _PhaseClock:
+    """Wall seconds per phase (rounded), and the process CPU seconds (the
+    OpenCL runtime's threads included) since the previous phase ended."""
 
-    T: dict[str, float] = {}
-    T_cpu: dict[str, float] = {}  # process CPU seconds (the OpenCL runtime's threads included) per phase
-    t_all = time.perf_counter()
-    cpu = [time.process_time()]
+    def __init__(self):
+        self.wall: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+        self.t_all = time.perf_counter()
+        self._cpu_mark = time.process_time()
 
-    def lap(name, t0):
-        T[name] = round(time.perf_counter() - t0, 4)
+    @contextmanager
+    def lap(self, name: str):
+        t0 = time.perf_counter()
+        yield
+        self.wall[name] = round(time.perf_counter() - t0, 4)
         now = time.process_time()
-        T_cpu[name.replace("_s", "_cpu_s")] = round(now - cpu[0], 4)
-        cpu[0] = now
+        self.cpu[name.replace("_s", "_cpu_s")] = round(now - self._cpu_mark, 4)
+        self._cpu_mark = now
 
-    h, nodata, dx, origin = _terrain(inputs["terrain"])
-    rows, cols = h.shape
-    be = backend_modules(True)
+
+@dataclass(frozen=True)
+class _Land:
+    """The terrain and what grows on it does not depend on."""
+    h: np.ndarray  # float32 height, no-data cells at the lowest height
+    nodata: np.ndarray  # bool
+    dx: float
+    origin: tuple[float, float]
+    attributes: dict  # attributes.compute's fields
+    moisture: np.ndarray  # float32 0..1
+    moisture_source: str
+    water: np.ndarray  # bool: lakes or rivers
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.h.shape
+
+
+@dataclass(frozen=True)
+class _Splat:
+    weights: np.ndarray  # float32 (rows, cols, 6)
+    moisture_filtered: np.ndarray
+    sums: np.ndarray  # float64 sum of the weights per cell
+    seed004_sum: np.ndarray  # the sum seed 004's unfixed weights would have
+
+
+@dataclass(frozen=True)
+class _Growth:
+    """Steps 3 to 5: suitability, competition, targets and placement."""
+    plants: list
+    grass_name: str | None
+    suit_all: np.ndarray  # (species to grow, rows, cols)
+    sim: Any  # the ecosystem simulation, None without plants
+    share: np.ndarray  # relative yield per plant species
+    dom: placement.Domain
+    n_t: np.ndarray  # target density per plant species (plants per m^2)
+    cap_info: dict
+    placed: dict
+
+    @property
+    def suit(self) -> np.ndarray:
+        return self.suit_all[: len(self.plants)]
+
+    @property
+    def grow(self) -> list:
+        return self.plants + ([self.grass_name] if self.grass_name else [])
+
+
+@dataclass(frozen=True)
+class _Grass:
+    cover: np.ndarray  # canopy cover 0..1
+    suit: np.ndarray | None
+    density: np.ndarray
+    height: np.ndarray
+    tufts: Any
+    stats: dict
+
+
+def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> dict[str, Any]:
+    clock = _PhaseClock()
+    terrain = _terrain(inputs["terrain"])
+    be = backend_modules(ctx.cl)
     seed = int(ctx.seed)
-
     ctx.progress(0.0, "attributes")
-    t0 = time.perf_counter()
-    a = attrs.compute(h, dx, params, be)
-    lap("attributes_s", t0)
-    moist, source = _moisture(ctx, inputs, h, dx, params)
-    water = _water(inputs, h.shape)
-    blocked = (water | nodata).astype(np.uint8)
-
+    land = _land(ctx, inputs, terrain, params, be, clock)
     ctx.progress(0.05, "splat weights")
-    t0 = time.perf_counter()
-    from .reference import stream_key
+    with clock.lap("splat_s"):
+        splat = _splat(land, params, seed, be)
+    growth = _grow(ctx, land, params, seed, be, clock)
+    ctx.progress(0.7, "grass")
+    with clock.lap("grass_s"):
+        grass_layer = _grass(land, growth, splat, params, seed, be)
+    ctx.progress(0.75, "instances")
+    with clock.lap("instances_s"):
+        sets, dropped, tints = _instances(land, growth, grass_layer, params, seed)
+    ctx.progress(0.8, "USD layer")
+    usd_path, ustats = _write_usd(ctx, land, sets, tints, params, clock)
+    ctx.progress(0.9, "maps")
+    with clock.lap("maps_s"):
+        species_maps = _species_maps(growth.plants, growth.grass_name, sets, growth.dom, growth.suit, growth.share,
+                                     growth.n_t, grass_layer.suit, grass_layer.density, _grid_maker(land))
+    report = _report(params, sets, growth, grass_layer, species_maps)
+    stats = _stats(land, splat, growth, grass_layer, sets, dropped, tints, ustats, clock)
+    ctx.metrics.update(_metrics(stats, report, growth))
+    ctx.progress(1.0, "done")
+    return _outputs(land, splat, growth, grass_layer, sets, usd_path, report, species_maps, stats)
 
-    mf = be.moisture_filter(moist, params.moisture_jitter_m / dx, stream_key(seed, "moisture-jitter"))
+
+def _land(ctx: RunContext, inputs: dict[str, Any], terrain: tuple, params: VegetationParams, be,
+          clock: _PhaseClock) -> _Land:
+    """Step 1: the terrain's (_terrain's) attributes, moisture and water."""
+    h, nodata, dx, origin = terrain
+    with clock.lap("attributes_s"):
+        a = attrs.compute(h, dx, params, be)
+    moist, source = _moisture(ctx, inputs, h, dx, params)
+    return _Land(h, nodata, dx, origin, a, moist, source, _water(inputs, h.shape))
+
+
+def _splat(land: _Land, params: VegetationParams, seed: int, be) -> _Splat:
+    """Step 2: the splat weights, checked to lie in [0, 1] and sum to 1."""
+    from .reference import seed004_sum, stream_key
+
+    a = land.attributes
+    mf = be.moisture_filter(land.moisture, params.moisture_jitter_m / land.dx, stream_key(seed, "moisture-jitter"))
     stab = splat_table(params)
-    splat = be.splat(h, a["slope"], a["grad"], mf, water.astype(np.uint8), stab)
+    splat = be.splat(land.h, a["slope"], a["grad"], mf, land.water.astype(np.uint8), stab)
     sums = splat.astype(np.float64).sum(axis=-1)
     if not (np.isfinite(splat).all() and splat.min() >= 0.0 and splat.max() <= 1.0 and np.abs(sums - 1).max() <= 1e-6):
         raise StageError(f"vegetation: splat weights out of [0, 1] or not summing to 1 (max |sum - 1| = "
                          f"{float(np.abs(sums - 1).max()):.3g})")
-    from .reference import seed004_sum
+    return _Splat(splat, mf, sums, seed004_sum(land.h, a["slope"], a["grad"], mf, stab))
 
-    thesis_sum = seed004_sum(h, a["slope"], a["grad"], mf, stab)
-    lap("splat_s", t0)
 
+def _grow(ctx: RunContext, land: _Land, params: VegetationParams, seed: int, be, clock: _PhaseClock) -> _Growth:
+    """Steps 3 to 5: suitability, the competition simulation, target densities and placement."""
+    rows, cols = land.shape
     ctx.progress(0.1, "suitability")
-    t0 = time.perf_counter()
-    plants = params.plant_species()
-    gname = params.grass_species()
-    grow = plants + ([gname] if gname else [])
-    suit_all = be.suitability(h, a["slope"], moist, a["sunlight"], a["curvature"], blocked,
-                              preference_table(params, grow)) if grow else np.zeros((0, rows, cols), F)
-    suit = suit_all[: len(plants)]
-    lap("suitability_s", t0)
-
+    with clock.lap("suitability_s"):
+        plants, gname = params.plant_species(), params.grass_species()
+        suit_all = _suitability(land, params, plants + ([gname] if gname else []), be)
     ctx.progress(0.15, "ecosystem simulation")
-    t0 = time.perf_counter()
-    sim = None
-    if plants:
-        grid = ecosystem.sim_grid(cols, rows, dx, params.sim_cell_m)
-        suit_sim = ecosystem.to_sim_grid(suit, dx, grid)
-        sim = ecosystem.simulate(suit_sim, grid, params, plants, seed, be,
-                                 progress=lambda f, m: ctx.progress(0.15 + 0.25 * f, m))
-        ctx.progress(0.4, "ecosystem calibration (each species alone)")
-        alone = ecosystem.alone_density(params, plants, grid.g, seed, be)
-        share = ecosystem.relative_yield(sim, params, suit_sim, alone, dx, (rows, cols))
-        sim.stats["alone_plants_per_ha_at_full_suitability"] = {
-            n: float(alone[s, -1] * 1e4 / grid.g ** 2) for s, n in enumerate(plants)}
-    else:
-        share = np.zeros((0, rows, cols))
-    lap("ecosystem_s", t0)
-
+    with clock.lap("ecosystem_s"):
+        sim, share = _compete(ctx, land, suit_all[: len(plants)], params, plants, seed, be)
     ctx.progress(0.45, "placement")
-    t0 = time.perf_counter()
-    dom = placement.Domain(rows, cols, dx, origin)
-    n_t, cap_info = placement.target_density(params, plants, suit, share, dx, origin, seed)
-    placed = placement.place_species(params, plants, n_t, dom, seed, be,
-                                     progress=lambda f, m: ctx.progress(0.45 + 0.25 * f, m))
-    lap("placement_s", t0)
+    with clock.lap("placement_s"):
+        dom = placement.Domain(rows, cols, land.dx, land.origin)
+        n_t, cap_info = placement.target_density(params, plants, suit_all[: len(plants)], share, land.dx,
+                                                 land.origin, seed)
+        placed = placement.place_species(params, plants, n_t, dom, seed, be,
+                                         progress=lambda f, m: ctx.progress(0.45 + 0.25 * f, m))
+    return _Growth(plants, gname, suit_all, sim, share, dom, n_t, cap_info, placed)
 
-    ctx.progress(0.7, "grass")
-    t0 = time.perf_counter()
-    cover = grass.canopy_cover(params, plants, n_t)
-    gsuit = suit_all[len(plants)] if gname else None
-    gdens, gheight = grass.grass_maps(params, gname, gsuit, splat, cover, mf, dx, origin, seed)
-    tufts, tuft_stats = grass.place_tufts(params, gname, gdens, dom, seed, be)
-    lap("grass_s", t0)
 
-    ctx.progress(0.75, "instances")
-    t0 = time.perf_counter()
-    mesh = build_terrain_mesh(Grid(h, dx, ("height",), origin), params.mesh_max_vertices)
+def _suitability(land: _Land, params: VegetationParams, grow: list, be) -> np.ndarray:
+    """(species to grow, rows, cols) suitability; water and no-data cells blocked."""
+    if not grow:
+        return np.zeros((0, *land.shape), F)
+    a = land.attributes
+    blocked = (land.water | land.nodata).astype(np.uint8)
+    return be.suitability(land.h, a["slope"], land.moisture, a["sunlight"], a["curvature"], blocked,
+                          preference_table(params, grow))
+
+
+def _compete(ctx: RunContext, land: _Land, suit: np.ndarray, params: VegetationParams, plants: list, seed: int, be):
+    """Step 4: the self-thinning simulation and each plant species' relative yield."""
+    rows, cols = land.shape
+    dx = land.dx
+    if not plants:
+        return None, np.zeros((0, rows, cols))
+    grid = ecosystem.sim_grid(cols, rows, dx, params.sim_cell_m)
+    suit_sim = ecosystem.to_sim_grid(suit, dx, grid)
+    sim = ecosystem.simulate(suit_sim, grid, params, plants, seed, be,
+                             progress=lambda f, m: ctx.progress(0.15 + 0.25 * f, m))
+    ctx.progress(0.4, "ecosystem calibration (each species alone)")
+    alone = ecosystem.alone_density(params, plants, grid.g, seed, be)
+    share = ecosystem.relative_yield(sim, params, suit_sim, alone, dx, (rows, cols))
+    sim.stats["alone_plants_per_ha_at_full_suitability"] = {
+        n: float(alone[s, -1] * 1e4 / grid.g ** 2) for s, n in enumerate(plants)}
+    return sim, share
+
+
+def _grass(land: _Land, growth: _Growth, splat: _Splat, params: VegetationParams, seed: int, be) -> _Grass:
+    """Step 6: grass density and height under the canopy, and its tufts."""
+    gname = growth.grass_name
+    cover = grass.canopy_cover(params, growth.plants, growth.n_t)
+    gsuit = growth.suit_all[len(growth.plants)] if gname else None
+    gdens, gheight = grass.grass_maps(params, gname, gsuit, splat.weights, cover, splat.moisture_filtered, land.dx,
+                                      land.origin, seed)
+    tufts, tuft_stats = grass.place_tufts(params, gname, gdens, growth.dom, seed, be)
+    return _Grass(cover, gsuit, gdens, gheight, tufts, tuft_stats)
+
+
+def _instances(land: _Land, growth: _Growth, grass_layer: _Grass, params: VegetationParams, seed: int):
+    """Instances on the terrain mesh, those outside the allowed cells dropped,
+    and per-instance colour variation (tint.py)."""
+    from worldlib.terrain.mesh import build_terrain_mesh
+
+    dom, gname = growth.dom, growth.grass_name
+    mesh = build_terrain_mesh(Grid(land.h, land.dx, ("height",), land.origin), params.mesh_max_vertices)
     sets: dict[str, placement.Instances] = {}
     dropped = {}
-    for s, name in enumerate(plants):
-        inst = placement.instances(placed[name], s, params, dom, mesh, sim, seed)
-        sets[name], dropped[name] = placement.keep_allowed(inst, n_t[s] > 0, dom)
-    if tufts is not None:
-        inst = grass.tuft_instances(tufts, params, gheight, dom, mesh, seed)
-        sets[gname], dropped[gname] = placement.keep_allowed(inst, gdens > 0, dom)
+    for s, name in enumerate(growth.plants):
+        inst = placement.instances(growth.placed[name], s, params, dom, mesh, growth.sim, seed)
+        sets[name], dropped[name] = placement.keep_allowed(inst, growth.n_t[s] > 0, dom)
+    if grass_layer.tufts is not None:
+        inst = grass.tuft_instances(grass_layer.tufts, params, grass_layer.height, dom, mesh, seed)
+        sets[gname], dropped[gname] = placement.keep_allowed(inst, grass_layer.density > 0, dom)
     tints = {}
-    for name, inst in sets.items():  # per-instance colour variation (tint.py)
+    for name, inst in sets.items():
         e = params.species[name]
-        tints[name] = tint.instance_tints(seed, name, inst.ids, moist[dom.world_cell(inst.positions)], inst.age,
-                                          e.maturity_years if e.kind == "plant" else 1.0, params.tint_variation)
-    lap("instances_s", t0)
+        tints[name] = tint.instance_tints(seed, name, inst.ids, land.moisture[dom.world_cell(inst.positions)],
+                                          inst.age, e.maturity_years if e.kind == "plant" else 1.0,
+                                          params.tint_variation)
+    return sets, dropped, tints
 
-    ctx.progress(0.8, "USD layer")
-    t0 = time.perf_counter()
-    usd_path = ctx.path("vegetation.instances")
-    size = max(cols, rows) * dx
-    written = {n: s for n, s in sets.items() if len(s)}
-    ustats = usd_layer.write(usd_path, ctx.provenance, written, {n: params.species[n].height_m for n in written},
-                             {n: params.species[n].kind for n in written}, origin[0], origin[1], size,
-                             params.tile_max_instances, params.tile_min_size_m, {n: tints[n] for n in written})
-    lap("usd_s", t0)
-    t0 = time.perf_counter()
+
+def _write_usd(ctx: RunContext, land: _Land, sets: dict, tints: dict, params: VegetationParams,
+               clock: _PhaseClock) -> tuple[Path, dict]:
+    """Step 7: the instances layer, written and validated."""
     from pipeline import usdio
 
-    errors = usdio.validate(usd_path)
-    if errors:
-        raise StageError("vegetation: the instances layer fails USD validation: " + "; ".join(errors[:10]))
-    lap("usd_validate_s", t0)
+    rows, cols = land.shape
+    with clock.lap("usd_s"):
+        usd_path = ctx.path("vegetation.instances")
+        size = max(cols, rows) * land.dx
+        written = {n: s for n, s in sets.items() if len(s)}
+        ustats = usd_layer.write(usd_path, ctx.provenance, written, {n: params.species[n].height_m for n in written},
+                                 {n: params.species[n].kind for n in written}, land.origin[0], land.origin[1], size,
+                                 params.tile_max_instances, params.tile_min_size_m, {n: tints[n] for n in written})
+    with clock.lap("usd_validate_s"):
+        errors = usdio.validate(usd_path)
+        if errors:
+            raise StageError("vegetation: the instances layer fails USD validation: " + "; ".join(errors[:10]))
+    return usd_path, ustats
 
-    # maps
-    ctx.progress(0.9, "maps")
-    t0 = time.perf_counter()
 
+def _grid_maker(land: _Land):
     def g(data, channels):
-        return Grid(np.ascontiguousarray(data, dtype=F), dx, channels, origin)
+        return Grid(np.ascontiguousarray(data, dtype=F), land.dx, channels, land.origin)
 
-    species_maps = _species_maps(plants, gname, sets, dom, suit, share, n_t, gsuit, gdens, g)
-    per_species_channels = list(species_maps.channels) if species_maps is not None else []
-    total_density = n_t.sum(axis=0) * HA if len(plants) else np.zeros((rows, cols))
-    lap("maps_s", t0)
+    return g
 
-    # statistics and the species report
-    errors_by_species = {}
-    for s, name in enumerate(plants):
-        errors_by_species[name] = placement.density_error(placed[name].x, placed[name].z, n_t[s], dom)
-    species_report = _species_report(params, sets, placed, tuft_stats)
+
+def _report(params: VegetationParams, sets: dict, growth: _Growth, grass_layer: _Grass, species_maps) -> dict:
+    """vegetation.species: which species were placed, their prototypes and the maps' channels."""
+    species_report = _species_report(params, sets, growth.placed, grass_layer.stats)
     placed_names = [n for n in params.grow if species_report[n]["placed"]]
-    unplaced = [n for n in params.grow if not species_report[n]["placed"]]
-    report = {
+    return {
         "placed": placed_names,
-        "unplaced": unplaced,
+        "unplaced": [n for n in params.grow if not species_report[n]["placed"]],
         "species": species_report,
         "prototypes": {n: prototype_prim(n) for n in placed_names},
-        "maps": {"file": SPECIES_MAPS, "channels": per_species_channels,
+        "maps": {"file": SPECIES_MAPS, "channels": list(species_maps.channels) if species_maps is not None else [],
                  "units": "suitability, yield (relative yield from the simulation): 1; density (target), placed: plants per ha; grass density: 1"},
     }
+
+
+def _stats(land: _Land, splat: _Splat, growth: _Growth, grass_layer: _Grass, sets: dict, dropped: dict,
+           tints: dict, ustats: dict, clock: _PhaseClock) -> dict:
+    rows, cols = land.shape
+    sim, placed, mf, moist = growth.sim, growth.placed, splat.moisture_filtered, land.moisture
+    errors_by_species = {name: placement.density_error(placed[name].x, placed[name].z, growth.n_t[s], growth.dom)
+                         for s, name in enumerate(growth.plants)}
     stats = {
-        "moisture_source": source,
-        "cells": int(rows * cols), "cell_size_m": dx,
-        "splat_max_sum_error": float(np.abs(sums - 1).max()),
-        "seed004_unfixed_sum_max": float(thesis_sum.max()),
-        "seed004_unfixed_cells_over_1": float((thesis_sum > 1 + 1e-6).mean()),
+        "moisture_source": land.moisture_source,
+        "cells": int(rows * cols), "cell_size_m": land.dx,
+        "splat_max_sum_error": float(np.abs(splat.sums - 1).max()),
+        "seed004_unfixed_sum_max": float(splat.seed004_sum.max()),
+        "seed004_unfixed_cells_over_1": float((splat.seed004_sum > 1 + 1e-6).mean()),
         "moisture_filter_mean_gain": float(mf.astype(np.float64).mean() / max(float(moist.astype(np.float64).mean()), 1e-12)),
         "ecosystem": dict(sim.stats) if sim else {},
         "ecosystem_history": sim.history if sim else [],
-        "placement": {n: {**placed[n].stats, **cap_info[n], "density_error": errors_by_species[n]} for n in plants},
-        "grass": tuft_stats,
+        "placement": {n: {**placed[n].stats, **growth.cap_info[n], "density_error": errors_by_species[n]}
+                      for n in growth.plants},
+        "grass": grass_layer.stats,
         "usd": ustats,
         "instances": {n: int(len(s)) for n, s in sets.items()},
         "dropped_at_cell_edges": dropped,
         "tint": {n: {"mean": [round(float(v), 4) for v in t.mean(axis=0)],
                      "std": [round(float(v), 4) for v in t.std(axis=0)]} for n, t in tints.items() if len(t)},
-        "timings": T,
+        "timings": clock.wall,
     }
-    stats["timings"]["total_s"] = round(time.perf_counter() - t_all, 4)
-    stats["timings"].update(T_cpu)
-    ctx.metrics.update({
-        "instances": stats["instances"], "unplaced": unplaced, "moisture_source": source,
+    stats["timings"]["total_s"] = round(time.perf_counter() - clock.t_all, 4)
+    stats["timings"].update(clock.cpu)
+    return stats
+
+
+def _metrics(stats: dict, report: dict, growth: _Growth) -> dict:
+    return {
+        "instances": stats["instances"], "unplaced": report["unplaced"], "moisture_source": stats["moisture_source"],
         "splat_max_sum_error": stats["splat_max_sum_error"],
-        "density_max_relative_error": {n: errors_by_species[n]["max_relative_error"] for n in plants},
+        "density_max_relative_error": {n: stats["placement"][n]["density_error"]["max_relative_error"]
+                                       for n in growth.plants},
         "ecosystem_plateau_relative_change": stats["ecosystem"].get("plateau_relative_change"),
         "ecosystem_species_shares": stats["ecosystem"].get("species_shares"),
-        "timings": T,
-    })
-    ctx.progress(1.0, "done")
+        "timings": stats["timings"],
+    }
+
+
+def _outputs(land: _Land, splat: _Splat, growth: _Growth, grass_layer: _Grass, sets: dict, usd_path: Path,
+             report: dict, species_maps, stats: dict) -> dict[str, Any]:
+    rows, cols = land.shape
+    a, g = land.attributes, _grid_maker(land)
+    total_density = growth.n_t.sum(axis=0) * HA if len(growth.plants) else np.zeros((rows, cols))
     return {
         "vegetation.attributes": g(np.stack([a["slope"], a["aspect"], a["curvature"], a["sky_view"], a["sunlight"],
-                                             moist], -1), ATTR_CHANNELS),
-        "vegetation.splat": g(splat, SPLAT_CHANNELS),
-        "vegetation.grass": g(np.stack([gdens, gheight], -1), ("grass.density", "grass.height")),
-        "vegetation.canopy": g(np.stack([cover, total_density], -1), ("canopy.cover", "canopy.density")),
+                                             land.moisture], -1), ATTR_CHANNELS),
+        "vegetation.splat": g(splat.weights, SPLAT_CHANNELS),
+        "vegetation.grass": g(np.stack([grass_layer.density, grass_layer.height], -1), ("grass.density", "grass.height")),
+        "vegetation.canopy": g(np.stack([grass_layer.cover, total_density], -1), ("canopy.cover", "canopy.density")),
         "vegetation.instances": usd_path,
         "vegetation.species": report,
         "vegetation.species_maps": species_maps,
-        "vegetation.placed": {"placed": placed_names, "prototypes": report["prototypes"]},
+        "vegetation.placed": {"placed": report["placed"], "prototypes": report["prototypes"]},
         "vegetation.stats": stats,
-        "vegetation.preview": preview(Grid(h, dx, ("height",), origin), splat, gdens, water, sets, dom, grow),
+        "vegetation.preview": preview(Grid(land.h, land.dx, ("height",), land.origin), splat.weights,
+                                      grass_layer.density, land.water, sets, growth.dom, growth.grow),
     }
 
 
@@ -466,6 +599,13 @@ STAGE = Stage(
     params=VegetationParams,
     run=run,
     check=check,
+    report=(ReportMap("vegetation.splat", "splat.{ground}", name="ground",
+                      title="Ground types ({artifact}, largest weight)", categories=tuple(GROUND_MAP_COLOURS.items()),
+                      relief=Relief(hillshade, TERRAIN_SOURCES, "height", strength=0.4)),
+            ReportMap("vegetation.species_maps", "density.{species}", name="density_{species}", title="Density: {species}",
+                      palette="greens", values=ValueRange(lo=0.0), relief=Relief(hillshade, TERRAIN_SOURCES, "height")),
+            ReportWarning("vegetation.species_maps", "suitability.{species}",
+                          "species {species} found no suitable land (suitability is 0 everywhere)")),
     source_dir=Path(__file__).resolve().parent,
     uses_seed=True,
     uses_opencl=True,

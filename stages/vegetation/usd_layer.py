@@ -106,7 +106,7 @@ def write(path: Path, provenance: dict, sets: dict[str, Instances], heights: dic
     """Write the layer; `sets` holds only species with instances; tints:
     per species (n, 3) per-instance colour factors (tint.py), written as
     primvars:tint (color3f[], interpolation vertex: one per instance)."""
-    from pxr import Gf, Kind, Sdf, Usd, UsdGeom, Vt
+    from pxr import Kind, Sdf, Usd, UsdGeom
 
     from pipeline import usdio
 
@@ -117,88 +117,122 @@ def write(path: Path, provenance: dict, sets: dict[str, Instances], heights: dic
     protos = stage.DefinePrim(VEGETATION_PROTOTYPES, "Scope")
     protos.SetSpecifier(Sdf.SpecifierClass)
     names = [n for n in sets if len(sets[n])]
-    bounds = {}
-    for k, name in enumerate(names):
-        h = float(heights[name])
-        cls = UsdGeom.Xform.Define(stage, prototype_prim(name))
-        Usd.ModelAPI(cls).SetKind(Kind.Tokens.component)
-        cls.GetPrim().SetCustomDataByKey("worldbake:asset", {"layer": "plants.usda", "prim": plant_asset_prim(name)})
-        cone = UsdGeom.Cone.Define(stage, prototype_prim(name) + "/Placeholder")
-        radius = (0.45 if kinds[name] == "grass" else 0.3) * h
-        cone.CreateHeightAttr(h)
-        cone.CreateRadiusAttr(radius)
-        cone.CreateAxisAttr(UsdGeom.Tokens.y)
-        cone.CreatePurposeAttr(UsdGeom.Tokens.proxy)
-        cone.CreateDisplayColorAttr(Vt.Vec3fArray([Gf.Vec3f(*colour(name, k))]))
-        cone.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-radius, -h / 2, -radius), Gf.Vec3f(radius, h / 2, radius)]))
-        UsdGeom.XformCommonAPI(cone).SetTranslate(Gf.Vec3d(0.0, h / 2, 0.0))
-        # a plant of height h and width at most h, at any orientation, lies within 1.25 h of its origin
-        bounds[name] = 1.25 * h
-
+    bounds = {name: _define_prototype(stage, name, k, float(heights[name]), kinds[name]) for k, name in enumerate(names)}
     root = build_quadtree({n: sets[n] for n in names}, x0, z0, size, max_instances, min_size)
     stats = {"tiles": 0, "leaf_tiles": 0, "instancers": 0, "max_depth": 0}
-
-    def emit(tile: Tile, parent: str) -> np.ndarray | None:
-        prim_path = f"{parent}/q{tile.path}"
-        x = UsdGeom.Xform.Define(stage, prim_path)
-        Usd.ModelAPI(x).SetKind(Kind.Tokens.group)
-        stats["tiles"] += 1
-        stats["max_depth"] = max(stats["max_depth"], len(tile.path))
-        ext = []
-        count = 0
-        if tile.children:
-            for child in tile.children:
-                e = emit(child, prim_path)
-                if e is not None:
-                    ext.append(e)
-        else:
-            stats["leaf_tiles"] += 1
-            # the leaf's instancers in a file of their own, loaded as a payload
-            tile_file = f"{TILES_DIR}/q{tile.path}.usdc"
-            tstage, _ = usdio.create_stage(path.parent / tile_file, provenance, root="/Tile", kind="group")
-            for name, ii in tile.index.items():
-                inst = sets[name]
-                ipath = f"/Tile/{name}"
-                pi = UsdGeom.PointInstancer.Define(tstage, ipath)
-                Usd.ModelAPI(pi).SetKind(Kind.Tokens.group)
-                scope = UsdGeom.Scope.Define(tstage, f"{ipath}/Prototypes")
-                Usd.ModelAPI(scope).SetKind(Kind.Tokens.group)
-                proto = UsdGeom.Xform.Define(tstage, f"{ipath}/Prototypes/{name}")
-                proto.GetPrim().GetInherits().AddInherit(prototype_prim(name))
-                # every tile's prototype is the same instance of the species' class: USD shares one
-                # prototype (one set of meshes) among all tiles instead of composing a copy per tile
-                proto.GetPrim().SetInstanceable(True)
-                pi.CreatePrototypesRel().SetTargets([proto.GetPath()])
-                n = len(ii)
-                pi.CreatePositionsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(inst.positions[ii])))
-                pi.CreateOrientationsAttr(Vt.QuathArray.FromNumpy(np.ascontiguousarray(inst.orientations[ii])))
-                pi.CreateScalesAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(inst.scales[ii])))
-                pi.CreateProtoIndicesAttr(Vt.IntArray.FromNumpy(np.zeros(n, np.int32)))
-                pi.CreateIdsAttr(Vt.Int64Array.FromNumpy(np.ascontiguousarray(inst.ids[ii])))
-                pv = UsdGeom.PrimvarsAPI(pi)
-                pv.CreatePrimvar("age", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
-                    Vt.FloatArray.FromNumpy(np.ascontiguousarray(inst.age[ii])))
-                pv.CreatePrimvar("random", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
-                    Vt.FloatArray.FromNumpy(np.ascontiguousarray(inst.random[ii])))
-                if tints is not None and name in tints:
-                    pv.CreatePrimvar("tint", Sdf.ValueTypeNames.Color3fArray, UsdGeom.Tokens.vertex).Set(
-                        Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(tints[name][ii], np.float32)))
-                e = _extent(inst, ii, bounds[name])
-                pi.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, e[0])), Gf.Vec3f(*map(float, e[1]))]))
-                ext.append(e)
-                count += n
-                stats["instancers"] += 1
-            tstage.GetRootLayer().Save()
-            x.GetPrim().GetPayloads().AddPayload(f"./{tile_file}")
-        if not ext:
-            return None
-        e = np.stack([np.min([a[0] for a in ext], axis=0), np.max([a[1] for a in ext], axis=0)])
-        UsdGeom.ModelAPI(x).SetExtentsHint(Vt.Vec3fArray([Gf.Vec3f(*map(float, e[0])), Gf.Vec3f(*map(float, e[1]))]))
-        x.GetPrim().SetCustomDataByKey("worldbake:bounds_xz_m", Vt.DoubleArray(
-            [tile.x0, tile.z0, tile.x0 + tile.size, tile.z0 + tile.size]))
-        return e
-
     if names:
-        emit(root, "/World/Vegetation")
+        _emit_tile(_TileLayer(stage, path, provenance, sets, tints, bounds, stats), root, "/World/Vegetation")
     stage.GetRootLayer().Save()
     return stats
+
+
+def _define_prototype(stage, name: str, k: int, h: float, kind: str) -> float:
+    """The species' class prim with a placeholder cone; returns the radius
+    around an instance's origin that holds the plant (m)."""
+    from pxr import Gf, Kind, Usd, UsdGeom, Vt
+
+    cls = UsdGeom.Xform.Define(stage, prototype_prim(name))
+    Usd.ModelAPI(cls).SetKind(Kind.Tokens.component)
+    cls.GetPrim().SetCustomDataByKey("worldbake:asset", {"layer": "plants.usda", "prim": plant_asset_prim(name)})
+    cone = UsdGeom.Cone.Define(stage, prototype_prim(name) + "/Placeholder")
+    radius = (0.45 if kind == "grass" else 0.3) * h
+    cone.CreateHeightAttr(h)
+    cone.CreateRadiusAttr(radius)
+    cone.CreateAxisAttr(UsdGeom.Tokens.y)
+    cone.CreatePurposeAttr(UsdGeom.Tokens.proxy)
+    cone.CreateDisplayColorAttr(Vt.Vec3fArray([Gf.Vec3f(*colour(name, k))]))
+    cone.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-radius, -h / 2, -radius), Gf.Vec3f(radius, h / 2, radius)]))
+    UsdGeom.XformCommonAPI(cone).SetTranslate(Gf.Vec3d(0.0, h / 2, 0.0))
+    # a plant of height h and width at most h, at any orientation, lies within 1.25 h of its origin
+    return 1.25 * h
+
+
+@dataclass(frozen=True)
+class _TileLayer:
+    """What every tile of the quadtree is written with."""
+    stage: object  # the layer's Usd.Stage
+    path: Path
+    provenance: dict
+    sets: dict
+    tints: dict | None
+    bounds: dict  # per species: the radius holding a plant (m)
+    stats: dict  # counts, updated as tiles are written
+
+
+def _emit_tile(layer: _TileLayer, tile: Tile, parent: str) -> np.ndarray | None:
+    """The tile's Xform (a leaf's instancers in a payload file); returns its extent, None when empty."""
+    from pxr import Gf, Kind, Usd, UsdGeom, Vt
+
+    stats = layer.stats
+    prim_path = f"{parent}/q{tile.path}"
+    x = UsdGeom.Xform.Define(layer.stage, prim_path)
+    Usd.ModelAPI(x).SetKind(Kind.Tokens.group)
+    stats["tiles"] += 1
+    stats["max_depth"] = max(stats["max_depth"], len(tile.path))
+    ext = []
+    if tile.children:
+        for child in tile.children:
+            e = _emit_tile(layer, child, prim_path)
+            if e is not None:
+                ext.append(e)
+    else:
+        stats["leaf_tiles"] += 1
+        ext = _write_leaf_tile(layer, tile, x)
+    if not ext:
+        return None
+    e = np.stack([np.min([a[0] for a in ext], axis=0), np.max([a[1] for a in ext], axis=0)])
+    UsdGeom.ModelAPI(x).SetExtentsHint(Vt.Vec3fArray([Gf.Vec3f(*map(float, e[0])), Gf.Vec3f(*map(float, e[1]))]))
+    x.GetPrim().SetCustomDataByKey("worldbake:bounds_xz_m", Vt.DoubleArray(
+        [tile.x0, tile.z0, tile.x0 + tile.size, tile.z0 + tile.size]))
+    return e
+
+
+def _write_leaf_tile(layer: _TileLayer, tile: Tile, x) -> list:
+    """The leaf's instancers in a file of their own, loaded as a payload; their extents."""
+    from pipeline import usdio
+
+    tile_file = f"{TILES_DIR}/q{tile.path}.usdc"
+    tstage, _ = usdio.create_stage(layer.path.parent / tile_file, layer.provenance, root="/Tile", kind="group")
+    ext = []
+    for name, ii in tile.index.items():
+        tint = layer.tints[name][ii] if layer.tints is not None and name in layer.tints else None
+        ext.append(_write_instancer(tstage, name, layer.sets[name], ii, tint, layer.bounds[name]))
+        layer.stats["instancers"] += 1
+    tstage.GetRootLayer().Save()
+    x.GetPrim().GetPayloads().AddPayload(f"./{tile_file}")
+    return ext
+
+
+def _write_instancer(tstage, name: str, inst: Instances, ii: np.ndarray, tint: np.ndarray | None,
+                     bound: float) -> np.ndarray:
+    """/Tile/<name>: a PointInstancer of the instances ii; returns its extent."""
+    from pxr import Gf, Kind, Sdf, Usd, UsdGeom, Vt
+
+    ipath = f"/Tile/{name}"
+    pi = UsdGeom.PointInstancer.Define(tstage, ipath)
+    Usd.ModelAPI(pi).SetKind(Kind.Tokens.group)
+    scope = UsdGeom.Scope.Define(tstage, f"{ipath}/Prototypes")
+    Usd.ModelAPI(scope).SetKind(Kind.Tokens.group)
+    proto = UsdGeom.Xform.Define(tstage, f"{ipath}/Prototypes/{name}")
+    proto.GetPrim().GetInherits().AddInherit(prototype_prim(name))
+    # every tile's prototype is the same instance of the species' class: USD shares one
+    # prototype (one set of meshes) among all tiles instead of composing a copy per tile
+    proto.GetPrim().SetInstanceable(True)
+    pi.CreatePrototypesRel().SetTargets([proto.GetPath()])
+    n = len(ii)
+    pi.CreatePositionsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(inst.positions[ii])))
+    pi.CreateOrientationsAttr(Vt.QuathArray.FromNumpy(np.ascontiguousarray(inst.orientations[ii])))
+    pi.CreateScalesAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(inst.scales[ii])))
+    pi.CreateProtoIndicesAttr(Vt.IntArray.FromNumpy(np.zeros(n, np.int32)))
+    pi.CreateIdsAttr(Vt.Int64Array.FromNumpy(np.ascontiguousarray(inst.ids[ii])))
+    pv = UsdGeom.PrimvarsAPI(pi)
+    pv.CreatePrimvar("age", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
+        Vt.FloatArray.FromNumpy(np.ascontiguousarray(inst.age[ii])))
+    pv.CreatePrimvar("random", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
+        Vt.FloatArray.FromNumpy(np.ascontiguousarray(inst.random[ii])))
+    if tint is not None:
+        pv.CreatePrimvar("tint", Sdf.ValueTypeNames.Color3fArray, UsdGeom.Tokens.vertex).Set(
+            Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(tint, np.float32)))
+    e = _extent(inst, ii, bound)
+    pi.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, e[0])), Gf.Vec3f(*map(float, e[1]))]))
+    return e

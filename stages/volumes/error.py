@@ -44,8 +44,9 @@ def compare(mesh_alpha, mesh_rgb, vol_alpha, vol_rgb) -> dict:
             "alpha_rmse": float(np.sqrt(np.mean((mesh_alpha.astype(np.float64) - vol_alpha) ** 2)))}
 
 
-def mesh_views(scene: Scene, cams: list[Camera], size: int, samples: int = 2):
-    prepared = Prepared(scene)
+def mesh_views(env, scene: Scene, cams: list[Camera], size: int, samples: int = 2):
+    """The mesh from each camera, rendered on the OpenCL device `env`."""
+    prepared = Prepared(env, scene)
     return [prepared.render(cam, Settings(size, size, samples=samples)) for cam in cams]
 
 

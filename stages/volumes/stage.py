@@ -49,8 +49,8 @@ class VolumesParams(Params):
                             "before (the finest's sides are padded to a multiple of 2^(levels-1))", ge=1, le=8)
     lod: int = Param(0, units="level", description="the plant asset's LOD that is voxelized", ge=0, le=7)
     samples_per_voxel: float = Param(1.5, units="samples", description="surface samples per voxel edge on every "
-                                     "triangle (point sampling of the card textures' alpha; 1.5 keeps the conifer's "
-                                     "IoU at 128 voxels within 0.002 of 2 or 3, with half the samples of 2)",
+                                     "triangle (point sampling of the card textures' alpha; 1.5 is as close to the mesh "
+                                     "as 2 or 3, with half the samples of 2)",
                                      ge=1.0, le=16.0)
     solid_columns: int = Param(4, units="columns", description="columns per voxel side that measure the woody solid's "
                                "occupancy", ge=1, le=16)
@@ -60,8 +60,8 @@ class VolumesParams(Params):
                              "error.HELD_OUT_VIEWS (the bake's default measures two; bench.volumes all four)",
                              ge=1, le=4)
     error_view_samples: int = Param(2, units="samples", description="n x n samples a pixel of the mesh renders the "
-                                    "volume is compared with (1 point-samples thin needles and costs the conifer 0.07 "
-                                    "of IoU)", ge=1, le=4)
+                                    "volume is compared with (1 point-samples thin needles, so a conifer's reference "
+                                    "loses coverage)", ge=1, le=4)
     use_opencl: bool = Param(True, description="voxelize and composite with the OpenCL kernels (false: the numpy "
                              "reference, small meshes only)")
     vdb: bool = Param(False, description="also write each level as OpenVDB (<species>.mip<k>.vdb, the fields of the "
@@ -92,13 +92,15 @@ def load_species(name: str, usdc: Path, params: VolumesParams):
     return asset
 
 
-def volume_species(name: str, asset, params: VolumesParams, out_dir: Path,
+def volume_species(env, name: str, asset, params: VolumesParams, out_dir: Path,
                    provenance: dict, t_load: float = 0.0) -> tuple[dict, list[volume.VolumeLevel]]:
-    """One species: its levels written beside the layer; returns its report and levels."""
+    """One species: its levels written beside the layer; returns its report
+    and levels. `env`: the OpenCL device (the stage's ctx.cl)."""
     t0 = time.perf_counter() - t_load
     t = time.perf_counter()
-    vox = voxelize(asset.scene, asset.parts, params.voxels, params.mip_levels, params.samples_per_voxel,
-                   use_opencl=params.use_opencl, solid_sub=params.solid_columns)
+    kernels_env = env if params.use_opencl else None  # None: the numpy references
+    vox = voxelize(kernels_env, asset.scene, asset.parts, params.voxels, params.mip_levels, params.samples_per_voxel,
+                   solid_sub=params.solid_columns)
     t_vox = time.perf_counter() - t
     chain = volume.mip_chain(vox.level, params.mip_levels)
     for k, lv in enumerate(chain):
@@ -117,8 +119,8 @@ def volume_species(name: str, asset, params: VolumesParams, out_dir: Path,
         lo, hi = asset.scene.positions.min(0), asset.scene.positions.max(0)
         cams = error.view_cameras(lo, hi, error.HELD_OUT_VIEWS[:params.error_views])
         # rendered once per view, compared with every mip level
-        meshes = error.mesh_views(asset.scene, cams, params.error_view_pixels, params.error_view_samples)
-    be = backend(params.use_opencl)
+        meshes = error.mesh_views(env, asset.scene, cams, params.error_view_pixels, params.error_view_samples)
+    be = backend(kernels_env)
     for k, lv in enumerate(chain):
         mean = lv.mean_density()
         entry: dict[str, Any] = {"mip": k, "grid": list(lv.shape_xyz), "voxel_m": lv.voxel_m, "bytes": lv.nbytes,
@@ -186,7 +188,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VolumesParams) -> dict[
             reports[name] = {**saved, "reused": True}
             chains[name] = [volume.read_atlas(ctx.out_dir / e["file"]) for e in saved["levels"]]
             continue
-        reports[name], chains[name] = volume_species(name, asset, params, ctx.out_dir, unit.provenance,
+        reports[name], chains[name] = volume_species(ctx.cl, name, asset, params, ctx.out_dir, unit.provenance,
                                                      time.perf_counter() - t0)
         unit.save(ctx.out_dir, [f for e in reports[name]["levels"] for f in (e["file"], e.get("vdb")) if f],
                   json.loads(json.dumps(reports[name])))

@@ -33,11 +33,17 @@ from .samples import Grid3, SurfaceSums, sample_table
 MAX_SAMPLES_PER_CHUNK = 2_000_000  # bounds the sample buffers (60 B a sample)
 
 
-def backend(use_opencl: bool):
-    if use_opencl:
+def backend(env):
+    """The volume kernels with the reference's signatures: on the OpenCL
+    device `env` (pipeline.opencl.CL), or the numpy references (env None)."""
+    if env is not None:
+        import functools
+        import types
+
         from . import device
 
-        return device
+        return types.SimpleNamespace(**{name: functools.partial(getattr(device, name), env)
+                                        for name in ("surface_samples", "composite", "composite_views")})
     from . import reference
 
     return reference
@@ -56,18 +62,19 @@ def plant_grid(scene: Scene, voxels: int, mip_levels: int) -> Grid3:
     return Grid3(origin, voxel, shape)
 
 
-def surface_sums(scene: Scene, triangles: np.ndarray, grid: Grid3, samples_per_voxel: float, alpha_threshold: float,
-                 use_opencl: bool = True) -> tuple[SurfaceSums, int]:
-    """Voxel sums of the surface samples of `triangles`, and the sample count."""
+def surface_sums(env, scene: Scene, triangles: np.ndarray, grid: Grid3, samples_per_voxel: float,
+                 alpha_threshold: float) -> tuple[SurfaceSums, int]:
+    """Voxel sums of the surface samples of `triangles`, and the sample
+    count: on the OpenCL device `env`, or the numpy reference (env None)."""
     sums = SurfaceSums.zeros(grid.count)
     if len(triangles) == 0:
         return sums, 0
     table = sample_table(scene, triangles, grid.voxel / samples_per_voxel)
-    if use_opencl:  # summed on the device: no sample leaves it
+    if env is not None:  # summed on the device: no sample leaves it
         from .device import surface_sums as device_sums
 
-        return device_sums(table, grid, scene.textures, alpha_threshold), int(table.offset[-1])
-    be = backend(use_opencl)
+        return device_sums(env, table, grid, scene.textures, alpha_threshold), int(table.offset[-1])
+    be = backend(env)
     lo, total = 0, 0
     while lo < len(table.m):
         # as many triangles as keep the chunk under the sample budget (at least one)
@@ -145,14 +152,15 @@ def solid_occupancy(tri_pos: np.ndarray, grid: Grid3, sub: int = 2) -> np.ndarra
     return np.minimum(out / (sub * sub), 1.0).reshape(nz, ny, nx)
 
 
-def voxelize(scene: Scene, parts: np.ndarray, voxels: int, mip_levels: int, samples_per_voxel: float = 3.0,
-             alpha_threshold: float = 0.5, use_opencl: bool = True, solid_sub: int = 2) -> Voxelized:
-    """The finest level of a plant's volume (module docstring)."""
+def voxelize(env, scene: Scene, parts: np.ndarray, voxels: int, mip_levels: int, samples_per_voxel: float = 3.0,
+             alpha_threshold: float = 0.5, solid_sub: int = 2) -> Voxelized:
+    """The finest level of a plant's volume (module docstring), sampled on
+    the OpenCL device `env` or with the numpy reference (env None)."""
     grid = plant_grid(scene, voxels, mip_levels)
     wood = np.nonzero(parts == "Wood")[0]
     foliage = np.nonzero(parts != "Wood")[0]
-    fol, n_fol = surface_sums(scene, foliage, grid, samples_per_voxel, alpha_threshold, use_opencl)
-    bark, n_bark = surface_sums(scene, wood, grid, samples_per_voxel, alpha_threshold, use_opencl)
+    fol, n_fol = surface_sums(env, scene, foliage, grid, samples_per_voxel, alpha_threshold)
+    bark, n_bark = surface_sums(env, scene, wood, grid, samples_per_voxel, alpha_threshold)
     nx, ny, nz = grid.shape
     h = grid.voxel
     vol = h ** 3

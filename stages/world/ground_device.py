@@ -16,7 +16,8 @@ class GroundAlbedo:
     """The splat weights and detail tables uploaded once, then any number of
     tiles baked from them (the default world bakes 16 tiles of 2048^2)."""
 
-    def __init__(self, splat: np.ndarray, tables: np.ndarray, local: tuple[int, int] | None = (16, 4)):
+    def __init__(self, env, splat: np.ndarray, tables: np.ndarray, local: tuple[int, int] | None = (16, 4)):
+        """`env`: the OpenCL device (pipeline.opencl.CL; the stage's ctx.cl)."""
         import pyopencl as cl
 
         from pipeline.clhost import Buffers, kernel
@@ -26,8 +27,8 @@ class GroundAlbedo:
         if types > MAX_TYPES or tables.shape[0] != types or len(GROUND_COLOURS) != types:
             raise ValueError(f"ground: {types} splat channels, {tables.shape[0]} detail tables, "
                              f"{len(GROUND_COLOURS)} colours (at most {MAX_TYPES})")
-        self.cl, self.buffers, self.local = cl, Buffers(), local
-        self.kernel = kernel(load_program(KERNELS), "tile_albedo")
+        self.kernel = kernel(load_program(env, KERNELS), "tile_albedo")
+        self.cl, self.buffers, self.local = cl, Buffers(env), local
         self.shape = (rows, cols, types)
         self.period = int(tables.shape[1])
         self.splat = self.buffers.arr(np.asarray(splat, np.float32))

@@ -17,7 +17,7 @@ import numpy as np
 
 from pipeline import usdio
 from worldlib import images
-from pipeline.contract import Artifact, Check, CheckContext, Input, Param, Params, RunContext, Stage
+from pipeline.contract import Artifact, Check, CheckContext, Input, Param, Params, ReportPicture, RunContext, Stage
 from pipeline.grid import Grid
 from worldlib.ground import SPLAT_CHANNELS
 from worldlib.plant_asset import plant_asset_prim
@@ -26,6 +26,7 @@ from worldlib.terrain import TERRAIN_SOURCES
 from worldlib.terrain.mesh import bilinear, build_terrain_mesh
 
 from .impostor_layer import IMPOSTOR_INPUT, bind_impostors
+from .report_view import world_picture
 from .volume_layer import SECTOR_VOLUMES
 
 # Upstream USD layers composed into the world, strongest first; absent when
@@ -193,13 +194,13 @@ def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, param
     tiles, texels = ground.udim_layout(size_m, params.ground_texel_m, params.ground_tile_texels)
     texel_m = size_m / (tiles * texels)
     n = params.texture_size
-    overview = GroundAlbedo(splat, ground.detail_tables(ctx.seed, size_m / n))
+    overview = GroundAlbedo(ctx.cl, splat, ground.detail_tables(ctx.seed, size_m / n))
     images.write_mipmapped_texture(albedo_path, overview.tile(dx, height.origin_m, 1, n, 0, 0, size_m / n), provenance)
     del overview
-    baker = GroundAlbedo(splat, ground.detail_tables(ctx.seed, texel_m))
+    baker = GroundAlbedo(ctx.cl, splat, ground.detail_tables(ctx.seed, texel_m))
 
     def write_tile(udim: int, tile: np.ndarray) -> int:
-        # zip level 1: 20 % less CPU than the default level for 5 % more bytes (the write is the tile's cost)
+        # zip level 1: the write is most of a tile's cost, and the lowest level writes fastest for little more disk
         images.write_mipmapped_texture(folder / f"ground.{udim}.exr", tile, provenance, compression="zip:1")
         return udim
 
@@ -349,6 +350,7 @@ STAGE = Stage(
     params=WorldParams,
     run=run,
     check=check,
+    report=(ReportPicture("view", world_picture),),
     source_dir=Path(__file__).parent,
     shared_params=("mesh_max_vertices",),
     uses_opencl=True,  # the ground albedo tiles (ground.cl)

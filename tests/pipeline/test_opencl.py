@@ -177,3 +177,24 @@ def test_devices_command_lists_a_working_device():
     working = [d for d in report["devices"] if d["probe"] == "ok"]
     assert working and report["used"] == working[0]["index"]
     assert all(d["error"] for d in report["devices"] if d["probe"] == "failed")
+
+
+def test_the_device_handle_travels_to_another_process_as_its_device(tmp_path):
+    """A pickled handle (a plants job for the worker process) opens the same
+    device there, in a context of that process's own."""
+    import pickle
+    import subprocess
+    import sys
+
+    env = get_cl()
+    script = "import pickle, sys; env = pickle.load(sys.stdin.buffer); print(env.fingerprint); env.queue.finish()"
+    out = subprocess.run([sys.executable, "-c", script], input=pickle.dumps(env), capture_output=True, check=True,
+                         cwd=Path(__file__).resolve().parents[2])
+    assert out.stdout.decode().strip() == env.fingerprint
+
+
+def test_code_that_needs_the_device_refuses_to_run_without_one():
+    from worldlib.flow import device as flow
+
+    with pytest.raises(opencl.OpenCLError, match="no OpenCL device handed in"):
+        flow.d8(None, np.zeros((4, 4), np.float32), np.zeros((4, 4), np.uint8), 1.0)

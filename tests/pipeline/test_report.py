@@ -1,15 +1,17 @@
-"""report.html's generic parts on a hand-made store (no bake): warnings,
-the stage table and the run time against error series come from whatever
-the runs' manifests hold, for any stage name."""
+"""report.html on a hand-made store (no bake): warnings, the stage table
+and the run time against error series come from whatever the runs'
+manifests hold, for any stage name; maps and warnings from what the stages
+declare (Stage.report)."""
 from __future__ import annotations
 
-import json
+from pathlib import Path
 
 import numpy as np
 
 from pipeline import exr
+from pipeline.contract import Params, ReportMap, ReportWarning, Stage, ValueRange
 from pipeline.grid import Grid
-from pipeline.report import World, stage_rows, time_error_series, warnings, write_report
+from pipeline.report import World, referenced_images, stage_rows, time_error_series, warnings, write_report
 from pipeline.store import Store, write_json
 
 
@@ -18,6 +20,11 @@ def _run(store: Store, stage: str, key: str, metrics: dict, outputs: dict | None
     folder.mkdir(parents=True)
     write_json(folder / "manifest.json", {"stage": stage, "key": key, "params": {}, "inputs": {}, "files": {},
                                           "outputs": outputs or {}, "timings": {"run_s": 1.5}, "metrics": metrics})
+
+
+def _stage(name: str, *report) -> Stage:
+    return Stage(name, 1, "a hand-made stage", (), (), Params, lambda ctx, inputs, params: {}, Path("."),
+                 report=tuple(report))
 
 
 def test_warnings_table_and_series_from_any_stage(tmp_path):
@@ -36,7 +43,9 @@ def test_warnings_table_and_series_from_any_stage(tmp_path):
                 "artifacts": [{"stage": "flora", "key": "k1"}, {"stage": "brandnew", "key": "k2"}],
                 "steps": [{"stage": "flora", "key": "k1", "status": "ran", "seconds": 1.6},
                           {"stage": "brandnew", "key": "k2", "status": "cached", "seconds": 0.0}]}
-    world = World(store, manifest)
+    stages = {"flora": _stage("flora", ReportWarning("flora.maps", "suitability.{plant}",
+                                                     "species {plant} found no suitable land"))}
+    world = World(store, manifest, stages)
     text = "\n".join(warnings(world))
     assert "cactus found no suitable land" in text and "fern" not in text
     assert "unplaced: cactus" in text and "lod_budget_ok is false" in text
@@ -48,45 +57,40 @@ def test_warnings_table_and_series_from_any_stage(tmp_path):
     assert series["stage"] == "flora" and series["points"] == [(0.1, 0.3), (0.4, 0.1)]
     out = tmp_path / "page"
     out.mkdir()
-    page = write_report(store, out, manifest, None).read_text()
+    page = write_report(store, out, manifest, None, stages).read_text()
     assert "<td>brandnew</td>" in page and "cactus found no suitable land" in page
 
 
-def test_lod_counts_count_what_a_renderer_draws_on_the_composed_prototype(tmp_path):
-    from pxr import Sdf, Usd, UsdGeom
-
-    from pipeline.report import lod_counts
-
-    path = tmp_path / "w.usda"
-    stage = Usd.Stage.CreateNew(str(path))
-    proto = stage.CreateClassPrim("/Protos/tree")  # abstract, like the world's prototype classes
-
-    def quads(prim_path, n, purpose=None):
-        mesh = UsdGeom.Mesh.Define(stage, prim_path)
-        mesh.CreateFaceVertexCountsAttr([4] * n)
-        if purpose:
-            mesh.CreatePurposeAttr(purpose)
-        return mesh
-
-    vset = proto.GetVariantSets().AddVariantSet("lod")
-    for name, n in (("LOD0", 10), ("LOD1", 3)):
-        vset.AddVariant(name)
-        vset.SetVariantSelection(name)
-        with vset.GetVariantEditContext():
-            quads(f"/Protos/tree/Geom_{name}", n, UsdGeom.Tokens.render)
-    vset.SetVariantSelection("LOD0")
-    proto.SetCustomDataByKey("worldbake:lod_switch_m", '{"ladder_m": {"LOD0": 0.0, "LOD1": 12.5}}')
-    quads("/Protos/tree/Proxy", 7, UsdGeom.Tokens.proxy)  # not drawn by a final render
-    quads("/Protos/tree/Off", 5).GetPrim().SetActive(False)
-    quads("/Protos/tree/Hidden", 5).CreateVisibilityAttr(UsdGeom.Tokens.invisible)
-    inst = UsdGeom.PointInstancer.Define(stage, "/World/Trees")
-    inst.CreatePrototypesRel().SetTargets([Sdf.Path("/World/Trees/Prototypes/tree")])
-    ref = stage.DefinePrim("/World/Trees/Prototypes/tree")
-    ref.GetInherits().AddInherit("/Protos/tree")
-    ref.SetInstanceable(True)
-    inst.CreateProtoIndicesAttr([0, 0, 0])
-    stage.GetRootLayer().Save()
-    instances, lods = lod_counts(path)
-    assert instances == [{"prototype": "tree", "instances": 3}]
-    assert lods == [{"asset": "tree", "lods": {"LOD0": 20, "LOD1": 6},  # the instance repeats no row
-                     "from_m": {"LOD0": 0.0, "LOD1": 12.5}}]
+def test_maps_are_what_the_stages_declare(tmp_path):
+    """A pattern gives a map per bound name; categories give one map with a
+    legend; a later stage's map of the same name replaces an earlier one."""
+    store = Store(tmp_path / "build")
+    rows, cols = 6, 8
+    ramp = np.linspace(0.0, 1.0, rows * cols, dtype=np.float32).reshape(rows, cols)
+    for stage, key, file in (("rough", "k1", "a.exr"), ("fine", "k2", "b.exr")):
+        channels = ["level", "cover.moss", "cover.rock"]
+        _run(store, stage, key, {}, {f"{stage}.grid": {"kind": "grid", "file": file, "channels": channels,
+                                                        "channel_units": {"level": "m"}}})
+        exr.write_grid(store.folder(stage, key) / file,
+                       Grid(np.stack([ramp * 100, ramp, 1 - ramp], -1), 5.0, tuple(channels)))
+    level = {s: ReportMap(f"{s}.grid", "level", name="level", title="Level ({artifact})") for s in ("rough", "fine")}
+    stages = {"rough": _stage("rough", level["rough"]),
+              "fine": _stage("fine", level["fine"],
+                             ReportMap("fine.grid", "cover.{kind}", name="cover_{kind}", title="Cover: {kind}",
+                                       palette="greens", values=ValueRange(0.0, 1.0)),
+                             ReportMap("fine.grid", "cover.{kind}", name="cover", title="Largest cover",
+                                       categories=(("moss", (20, 200, 20)),)))}
+    manifest = {"world": "w", "config": "c.toml", "seed": 1, "outputs": ["fine"], "params": {},
+                "artifacts": [{"stage": "rough", "key": "k1"}, {"stage": "fine", "key": "k2"}], "steps": []}
+    out = tmp_path / "page"
+    out.mkdir()
+    path = write_report(store, out, manifest, None, stages)
+    page = path.read_text()
+    assert "Level (fine.grid)" in page and "Level (rough.grid)" not in page
+    assert "Cover: moss" in page and "Cover: rock" in page and "Largest cover" in page
+    assert "rgb(20, 200, 20)" in page and "rgb(128, 128, 128)" in page  # rock has no colour: grey
+    assert "moss 50.0 %" in page and "100 m" in page  # the level's declared units
+    images = referenced_images(path)
+    assert {"report_level.png", "report_cover_moss.png", "report_cover_rock.png", "report_cover.png"} <= set(images)
+    assert all((out / i).is_file() for i in images)
+    assert "<h2>Warnings</h2><p class=\"ok\">none</p>" in page

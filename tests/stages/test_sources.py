@@ -187,6 +187,51 @@ def test_the_engine_names_no_stage():
                 assert node.value not in names, f"{path.relative_to(ROOT)}:{node.lineno} names {node.value!r}"
 
 
+def _domain_words() -> tuple[set[str], tuple[str, ...]]:
+    """Names the engine must not hold: the stages' declared channels, the
+    species (configs/species and the default world's), the ground types and
+    the plant assets' variant sets, variants and customData keys; and the
+    fixed heads of channel patterns ("density.") and of channel groups
+    ("splat.")."""
+    import tomllib
+
+    from worldlib.ground import GROUND_TYPES
+
+    channels = {c for s in STAGES.values() for a in s.outputs for c in a.channels} | \
+               {c for s in STAGES.values() for i in s.inputs for c in i.channels}
+    default = tomllib.loads((ROOT / "configs" / "default.toml").read_text())
+    species = {p.stem for p in (ROOT / "configs" / "species").glob("*.toml")} | \
+        set(default.get("vegetation", {}).get("species", {}))
+    variants = {"lod", "impostor", "worldbake:lod_switch_m", "worldbake:impostor"} | {f"LOD{i}" for i in range(10)}
+    names = {c for c in channels if "{" not in c} | species | set(GROUND_TYPES) | variants
+    heads = {c.split("{")[0] for c in channels if "{" in c} | {c.split(".")[0] + "." for c in channels if "." in c}
+    return names, tuple(sorted(heads))
+
+
+# The grid's one exception: a Grid made without channel names holds heights
+# (pipeline.grid.Grid's default, which dozens of stage calls rely on).
+GRID_DEFAULT = ("pipeline/grid.py", "height")
+
+
+def test_the_engine_names_no_channel_species_ground_type_or_variant():
+    """No string in pipeline/'s code (docstrings aside; dictionary keys
+    included) is a declared channel, begins with a channel pattern's fixed
+    head, or names a species, a ground type or a plant asset's variant: the
+    report, say, shows maps and tables because stages declare them."""
+    names, heads = _domain_words()
+    assert {"moisture", "broadleaf", "snow", "LOD0"} <= names and "density." in heads  # the lists are read
+    for path in sorted((ROOT / "pipeline").rglob("*.py")):
+        rel = path.relative_to(ROOT).as_posix()
+        tree = ast.parse(path.read_text())
+        skip = _docstring_nodes(tree)
+        for node in ast.walk(tree):
+            if not (isinstance(node, ast.Constant) and isinstance(node.value, str)) or (rel, node.value) == GRID_DEFAULT:
+                continue
+            if id(node) not in skip:
+                assert node.value not in names and not node.value.startswith(heads), \
+                    f"{rel}:{node.lineno} names {node.value!r}"
+
+
 def test_the_persisted_source_facts_give_the_same_keys_and_survive_corruption(tmp_path, monkeypatch):
     import pipeline.sources as sources
 

@@ -1,5 +1,6 @@
 """Host side of kernels.cl: depression filling, D8 directions, D8
-accumulation and the wetness map on the OpenCL device.
+accumulation and the wetness map on the OpenCL device `env` (a
+pipeline.opencl.CL, every function's first argument).
 
 Tile sizes are algorithm constants (not work-group sizes): one work-item
 runs one tile sequentially, which is what a CPU device does best and what
@@ -20,24 +21,18 @@ ACC_TILE = 64
 ACC_TILE_MAX = 128  # the tile's scratch lives in private memory: about 19 B per cell
 
 
-def _program(acc_type: str = "uint", extra: tuple[str, ...] = ()):
+def _program(env, acc_type: str = "uint", extra: tuple[str, ...] = ()):
     from pipeline.opencl import load_program
 
-    return load_program(KERNELS, (f"-DACC_T={acc_type}", *extra))
+    return load_program(env, KERNELS, (f"-DACC_T={acc_type}", *extra))
 
 
-def _env():
-    from pipeline.opencl import get_cl
-
-    return get_cl()
-
-
-def _buf(a: np.ndarray, write: bool = False):
+def _buf(env, a: np.ndarray, write: bool = False):
     from pipeline.clhost import Buffers
 
     # read-only inputs are used in place (no copy on a CPU device); the
     # buffer keeps a reference to the array, which nobody writes meanwhile
-    return Buffers().arr(a, write=write, in_place=not write)
+    return Buffers(env).arr(a, write=write, in_place=not write)
 
 
 def _ceil(n: int, local: int | None) -> tuple[int, ...]:
@@ -46,24 +41,24 @@ def _ceil(n: int, local: int | None) -> tuple[int, ...]:
     return global_size((n,), (local,) if local else None)
 
 
-def fill(h: np.ndarray, kind: np.ndarray, eps: bool, tile: int = FILL_TILE, local: int | None = None,
+def fill(env, h: np.ndarray, kind: np.ndarray, eps: bool, tile: int = FILL_TILE, local: int | None = None,
          stats: dict | None = None) -> np.ndarray:
     """The Priority-Flood fill (eps: Priority-Flood+epsilon) of canonical
-    float32 heights; no-data cells come back as NaN."""
+    float32 heights on the OpenCL device `env` (pipeline.opencl.CL); no-data
+    cells come back as NaN."""
     import pyopencl as cl
 
-    env = _env()
-    prg = _program()
+    prg = _program(env)
     rows, cols = h.shape
     tiles_x, tiles_y = -(-cols // tile), -(-rows // tile)
     nt = tiles_x * tiles_y
     h = np.ascontiguousarray(h, np.float32)
     W0 = np.where(kind == ref.INTERIOR, np.float32(np.inf), np.where(kind == ref.EDGE, h, np.float32(-np.inf))).astype(np.float32)
-    d_h, d_kind = _buf(h), _buf(kind)
-    d_W, d_pub = _buf(W0, True), _buf(W0, True)
+    d_h, d_kind = _buf(env, h), _buf(env, kind)
+    d_W, d_pub = _buf(env, W0, True), _buf(env, W0, True)
     active = np.ones(nt, np.uint8)
     changed = np.zeros(nt, np.uint8)
-    d_active, d_changed = _buf(active, True), _buf(changed, True)
+    d_active, d_changed = _buf(env, active, True), _buf(env, changed, True)
     k_fill = cl.Kernel(prg, "fill_tiles")
     k_pub = cl.Kernel(prg, "publish_tiles")
     i32 = np.int32
@@ -99,22 +94,21 @@ def fill(h: np.ndarray, kind: np.ndarray, eps: bool, tile: int = FILL_TILE, loca
     return W
 
 
-def breach(h: np.ndarray, kind: np.ndarray) -> np.ndarray:
+def breach(env, h: np.ndarray, kind: np.ndarray) -> np.ndarray:
     """Complete breaching (reference.breach, bit for bit) as one serial
     work-item: the priority queue is inherently serial, and compiled it runs
-    about 50x faster than the pure-Python heap. No-data cells come back NaN."""
+    far faster than the pure-Python heap. No-data cells come back NaN."""
     import pyopencl as cl
 
-    env = _env()
-    prg = _program()
+    prg = _program(env)
     rows, cols = h.shape
     n = rows * cols
     h = np.ascontiguousarray(h, np.float32)
     pit = ref.pits(h, kind)
     mf = cl.mem_flags
-    d_z = _buf(h, True)
+    d_z = _buf(env, h, True)
     scratch = [cl.Buffer(env.ctx, mf.READ_WRITE, n * size) for size in (4, 1, 4, 4)]  # back, done, heap keys, ids
-    d_kind, d_pit = _buf(kind), _buf(pit.astype(np.uint8))  # held until the kernel has run
+    d_kind, d_pit = _buf(env, kind), _buf(env, pit.astype(np.uint8))  # held until the kernel has run
     k = cl.Kernel(prg, "breach_serial")
     k.set_args(d_z, d_kind, d_pit, *scratch, np.int32(rows), np.int32(cols))
     cl.enqueue_nd_range_kernel(env.queue, k, (1,), None)
@@ -124,19 +118,19 @@ def breach(h: np.ndarray, kind: np.ndarray) -> np.ndarray:
     return out
 
 
-def merge_sweep(cells: np.ndarray, h: np.ndarray, term: np.ndarray, cols: int):
+def merge_sweep(env, cells: np.ndarray, h: np.ndarray, term: np.ndarray, cols: int):
     """The depressions' union-find sweep (reference.merge_tree_reference,
-    node for node) as one serial work-item: about 40x the Python loop."""
+    node for node) as one serial work-item: inherently serial, and far
+    faster compiled than the Python loop."""
     import pyopencl as cl
 
-    env = _env()
-    prg = _program()
+    prg = _program(env)
     n = h.size
     m = max(int(cells.size), 1)
     mf = cl.mem_flags
-    d_cells = _buf(np.ascontiguousarray(cells, np.int32) if cells.size else np.zeros(1, np.int32))
-    d_h = _buf(np.ascontiguousarray(h, np.float32).ravel())
-    d_term = _buf(np.ascontiguousarray(term, np.int32))
+    d_cells = _buf(env, np.ascontiguousarray(cells, np.int32) if cells.size else np.zeros(1, np.int32))
+    d_h = _buf(env, np.ascontiguousarray(h, np.float32).ravel())
+    d_term = _buf(env, np.ascontiguousarray(term, np.int32))
     uf, comp, cell_node = (cl.Buffer(env.ctx, mf.READ_WRITE, n * 4) for _ in range(3))
     node_bufs = [cl.Buffer(env.ctx, mf.READ_WRITE, 2 * m * 4) for _ in range(6)]  # at most 2 nodes per cell
     d_count = cl.Buffer(env.ctx, mf.READ_WRITE, 4)
@@ -160,17 +154,16 @@ def merge_sweep(cells: np.ndarray, h: np.ndarray, term: np.ndarray, cols: int):
                      entry_a.astype(i64), entry_b.astype(i64), cn.astype(i64))
 
 
-def d8(z: np.ndarray, kind: np.ndarray, dx: float, local: tuple[int, int] | None = None) -> np.ndarray:
+def d8(env, z: np.ndarray, kind: np.ndarray, dx: float, local: tuple[int, int] | None = None) -> np.ndarray:
     """D8 codes of a surface (see kernels.cl)."""
     import pyopencl as cl
 
     from pipeline.opencl import global_size
 
-    env = _env()
-    prg = _program()
+    prg = _program(env)
     rows, cols = z.shape
     code = np.empty((rows, cols), np.int8)
-    d_z, d_kind = _buf(np.ascontiguousarray(z, np.float32)), _buf(kind)
+    d_z, d_kind = _buf(env, np.ascontiguousarray(z, np.float32)), _buf(env, kind)
     d_code = cl.Buffer(env.ctx, cl.mem_flags.WRITE_ONLY, code.nbytes)
     k = cl.Kernel(prg, "d8")
     k.set_args(d_z, d_kind, d_code, np.int32(rows), np.int32(cols), np.float32(dx), np.float32(dx * np.sqrt(2.0)))
@@ -179,7 +172,7 @@ def d8(z: np.ndarray, kind: np.ndarray, dx: float, local: tuple[int, int] | None
     return code
 
 
-def accumulate(code: np.ndarray, weights: np.ndarray | None = None, tile: int = ACC_TILE,
+def accumulate(env, code: np.ndarray, weights: np.ndarray | None = None, tile: int = ACC_TILE,
                local: int | None = None) -> np.ndarray:
     """Exact D8 accumulation: uint32 cell counts (weights None) or int64 sums
     of integer weights. Codes < 0 end a path (outlet, no-data, pit); the
@@ -189,18 +182,17 @@ def accumulate(code: np.ndarray, weights: np.ndarray | None = None, tile: int = 
 
     if not 1 <= tile <= ACC_TILE_MAX:
         raise ValueError(f"accumulation tile {tile} outside 1..{ACC_TILE_MAX}")
-    env = _env()
     unit = weights is None
     dtype = np.uint32 if unit else np.int64
-    prg = _program("uint" if unit else "long", (f"-DACC_TILE={tile}",))
+    prg = _program(env, "uint" if unit else "long", (f"-DACC_TILE={tile}",))
     rows, cols = code.shape
     tiles_x, tiles_y = -(-cols // tile), -(-rows // tile)
     nt = tiles_x * tiles_y
     slots = nt * 4 * tile  # PMAX per tile
     mf = cl.mem_flags
     code = np.ascontiguousarray(code, np.int8)
-    d_code = _buf(code)
-    d_w = _buf(np.ascontiguousarray(weights, dtype)) if not unit else cl.Buffer(env.ctx, mf.READ_ONLY, 8)
+    d_code = _buf(env, code)
+    d_w = _buf(env, np.ascontiguousarray(weights, dtype)) if not unit else cl.Buffer(env.ctx, mf.READ_ONLY, 8)
     isz = np.dtype(dtype).itemsize
     d_exit = cl.Buffer(env.ctx, mf.READ_WRITE, slots * 4)
     d_sum = cl.Buffer(env.ctx, mf.READ_WRITE, slots * isz)
@@ -249,20 +241,19 @@ def quantize(weights: np.ndarray) -> tuple[np.ndarray, float]:
     return q, scale
 
 
-def wetness(h, kind, acc_m2, water, ext, dx, tan_min, twi_dry, twi_wet, local=None):
+def wetness(env, h, kind, acc_m2, water, ext, dx, tan_min, twi_dry, twi_wet, local=None):
     import pyopencl as cl
 
     from pipeline.opencl import global_size
 
-    env = _env()
-    prg = _program()
+    prg = _program(env)
     rows, cols = h.shape
-    f = lambda a: _buf(np.ascontiguousarray(a, np.float32))
+    f = lambda a: _buf(env, np.ascontiguousarray(a, np.float32))
     d_twi = cl.Buffer(env.ctx, cl.mem_flags.WRITE_ONLY, rows * cols * 4)
     d_m = cl.Buffer(env.ctx, cl.mem_flags.WRITE_ONLY, rows * cols * 4)
     k = cl.Kernel(prg, "wetness")
     f32 = np.float32
-    keep = (f(h), _buf(kind), f(acc_m2), f(water), f(ext))  # the kernel does not hold references
+    keep = (f(h), _buf(env, kind), f(acc_m2), f(water), f(ext))  # the kernel does not hold references
     k.set_args(*keep, d_twi, d_m, np.int32(rows), np.int32(cols),
                f32(dx), f32(dx), f32(dx * np.sqrt(2.0)), f32(tan_min), f32(twi_dry), f32(twi_wet))
     cl.enqueue_nd_range_kernel(env.queue, k, global_size((cols, rows), local), local)

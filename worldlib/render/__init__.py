@@ -2,18 +2,19 @@
 crown measurements, impostor atlases, volume error views, report pictures).
 
 Ray casting through a BVH (bvh.py) in an OpenCL kernel (kernels.cl), with a
-brute-force numpy reference (reference.py) for tiny scenes:
+brute-force numpy reference (reference.py) for tiny scenes. `env` is the
+OpenCL device (pipeline.opencl.CL; a stage's ctx.cl), None for the reference:
 
-    img = render(scene, Camera(eye, forward, ortho_height_m=2.0), Settings(256, 256, samples=3, ao_rays=8))
+    img = render(env, scene, Camera(eye, forward, ortho_height_m=2.0), Settings(256, 256, samples=3, ao_rays=8))
     img.albedo, img.alpha, img.normal, img.depth, img.ao
 
 Many views of one scene (atlas frames, held-out views, measures): prepare
 it once, so its BVH is built and its buffers uploaded once, then render:
 
-    prepared = Prepared(scene)
+    prepared = Prepared(env, scene)
     images = [prepared.render(camera, settings) for camera in cameras]
 
-`render(scene, ...)` prepares the scene for that one view. The kernel
+`render(env, scene, ...)` prepares the scene for that one view. The kernel
 traverses a four-wide BVH (bvh.widen), so the images do not depend on the
 tree: of hits at equal distance the lowest scene triangle id wins, as in
 the reference.
@@ -47,12 +48,12 @@ STACK = 80  # the kernel's traversal stack (kernels.cl)
 _KERNEL: dict = {}
 
 
-def _kernel():
+def _kernel(env):
     import pyopencl as cl
 
     from pipeline.opencl import load_program
 
-    prg = load_program(KERNELS)
+    prg = load_program(env, KERNELS)
     if id(prg) not in _KERNEL:
         _KERNEL[id(prg)] = cl.Kernel(prg, "render")
     return _KERNEL[id(prg)]
@@ -86,22 +87,21 @@ def triangle_blocks(scene: Scene, slots: np.ndarray) -> np.ndarray:
 
 
 class Prepared:
-    """A scene's BVH and device buffers, to render many views of one scene:
-    build one per scene and call render() per view (the BVH build costs
-    more than a small view's rays)."""
+    """A scene's BVH and buffers on the OpenCL device `env`
+    (pipeline.opencl.CL), to render many views of one scene: build one per
+    scene and call render() per view (the BVH build costs more than a small
+    view's rays)."""
 
-    def __init__(self, scene: Scene, leaf_size: int = LEAF_SIZE):
+    def __init__(self, env, scene: Scene, leaf_size: int = LEAF_SIZE):
         import pyopencl as cl
 
-        from pipeline.opencl import get_cl
-
-        self.scene = scene
+        self.env, self.scene = env, scene
+        _kernel(env)  # built now: a missing device is named before the BVH is built
         if not 1 <= leaf_size <= 4:
             raise ValueError(f"leaf_size {leaf_size}: the kernel's leaves hold 1 to 4 triangles")
         tree = _bvh.widen(_bvh.build(scene.positions, scene.triangles, leaf_size))
         if 3 * tree.depth + 4 > STACK:  # a node pops one entry and pushes at most four
             raise ValueError(f"the scene's BVH ({tree.depth} levels) is deeper than the kernel's stack")
-        env = get_cl()
         mf = cl.mem_flags
 
         def buf(a):
@@ -121,9 +121,9 @@ class Prepared:
     def render(self, camera: Camera, settings: Settings, local: tuple[int, int] | None = LOCAL) -> Image:
         import pyopencl as cl
 
-        from pipeline.opencl import get_cl, global_size
+        from pipeline.opencl import global_size
 
-        env = get_cl()
+        env = self.env
         W, H = settings.width, settings.height
         _, th, tw, _ = self.scene.textures.shape
         mf = cl.mem_flags
@@ -131,7 +131,7 @@ class Prepared:
         outs = [np.zeros((H, W, 3), np.float32), np.zeros((H, W), np.float32), np.zeros((H, W, 3), np.float32),
                 np.zeros((H, W), np.float32), np.zeros((H, W), np.float32)]
         dev = [cl.Buffer(env.ctx, mf.WRITE_ONLY, a.nbytes) for a in outs]
-        k = _kernel()
+        k = _kernel(env)
         k(env.queue, global_size((W, H), local), local, np.int32(W), np.int32(H), np.int32(settings.samples),
           np.int32(settings.ao_rays), np.float32(settings.ao_radius_m), np.float32(settings.alpha_threshold),
           np.uint32(settings.seed & 0xFFFFFFFF), np.int32(tw), np.int32(th), cam, *self.buffers, *dev)
@@ -141,17 +141,18 @@ class Prepared:
         return Image(*outs)
 
 
-def render(scene: Scene, camera: Camera, settings: Settings, device: bool = True,
+def render(env, scene: Scene, camera: Camera, settings: Settings,
            local: tuple[int, int] | None = LOCAL) -> Image:
-    """Render one view: on the OpenCL device (default) or with the numpy
-    reference (device=False; tiny scenes only). `local` is the work-group
-    size (None lets the runtime choose); the image does not depend on it."""
+    """Render one view: on the OpenCL device `env` (pipeline.opencl.CL) or,
+    with env None, with the numpy reference (tiny scenes only). `local` is
+    the work-group size (None lets the runtime choose); the image does not
+    depend on it."""
     if settings.width < 1 or settings.height < 1 or settings.samples < 1:
         raise ValueError(f"render size {settings.width}x{settings.height} with {settings.samples}^2 samples")
-    if not device:
+    if env is None:
         return reference.render(scene, camera, settings)
     if scene.n_triangles == 0:
         W, H = settings.width, settings.height
         return Image(np.zeros((H, W, 3), np.float32), np.zeros((H, W), np.float32), np.zeros((H, W, 3), np.float32),
                      np.full((H, W), np.inf, np.float32), np.ones((H, W), np.float32))
-    return Prepared(scene).render(camera, settings, local)
+    return Prepared(env, scene).render(camera, settings, local)

@@ -89,69 +89,12 @@ def build(positions: np.ndarray, triangles: np.ndarray, leaf_size: int = 4) -> B
     cen = 0.5 * (lo + hi)
     order = np.arange(m, dtype=np.int64)
     # node table, grown a level at a time; a level's nodes are in increasing start order
-    starts, counts, child = [np.array([0])], [np.array([m])], []
+    starts, counts = [np.array([0])], [np.array([m])]
     level_ids, level_st, level_ct = np.array([0]), np.array([0]), np.array([m])
     n_nodes, depth = 1, 0
     child_of = {}  # level -> (split node ids, their first child)
     while len(level_ids):
-        idx, pos = _segments(level_st, level_ct)
-        tris = order[pos]
-        c = cen[tris]
-        k = len(level_ids)
-        offsets = np.cumsum(level_ct) - level_ct
-        cmin = np.minimum.reduceat(c, offsets, axis=0)
-        cmax = np.maximum.reduceat(c, offsets, axis=0)
-        extent = cmax - cmin
-        # fine bins while nodes are large; deep levels hold many small nodes, where the per-bin arrays
-        # (nodes x bins) outweigh the triangles and coarse bins choose nearly as well
-        bins = BINS if level_ct.mean() > 64 else BINS // 2
-        # bin of every triangle along every axis (3 columns)
-        scale = np.where(extent > 0, bins / np.where(extent > 0, extent, 1.0), 0.0)
-        b = np.clip(((c - cmin[idx]) * scale[idx]).astype(np.int64), 0, bins - 1)
-        # per (coordinate, bin, node, axis) triangle bounds: 1-D scatters (numpy's fast path)
-        lo_t, hi_t = lo[tris], hi[tris]
-        blo = np.full((3, bins * k * 3), np.inf, np.float32)
-        bhi = np.full((3, bins * k * 3), -np.inf, np.float32)
-        keys = (b * k + idx[:, None]) * 3 + np.arange(3)  # (n, axis)
-        for ax in range(3):
-            for co in range(3):
-                np.minimum.at(blo[co], keys[:, ax], lo_t[:, co])
-                np.maximum.at(bhi[co], keys[:, ax], hi_t[:, co])
-        cnt = np.bincount(keys.ravel(), minlength=bins * k * 3).reshape(bins, k, 3)
-        blo, bhi = blo.reshape(3, bins, k, 3), bhi.reshape(3, bins, k, 3)
-        # sweep: left side = bins [0, p), right side = bins [p, bins), p = 1 .. bins-1
-        l_cnt = np.cumsum(cnt, axis=0)[:-1]
-        r_cnt = np.cumsum(cnt[::-1], axis=0)[::-1][1:]
-        l_area, r_area = _sweep_areas(blo, bhi)
-        cost = np.where((l_cnt > 0) & (r_cnt > 0), l_area * l_cnt + r_area * r_cnt, np.inf)  # (plane, node, axis)
-        cost = cost.transpose(1, 2, 0).reshape(k, -1)
-        best = np.argmin(cost, axis=1)  # first minimum: deterministic
-        best_cost = cost[np.arange(k), best]
-        axis, plane = best // (bins - 1), best % (bins - 1) + 1
-        sah = np.isfinite(best_cost) & (level_ct > leaf_size)  # a leaf costs one 4-wide test: fill it
-        if depth >= MEDIAN_DEPTH:
-            sah[:] = False
-        median = ~sah & (level_ct > leaf_size)
-        split = sah | median
-        # partition: SAH nodes by their plane, median nodes by the longest centroid axis at the middle triangle
-        side = np.zeros(len(pos), np.int64)
-        s_el = sah[idx]
-        side[s_el] = (b[s_el, axis[idx[s_el]]] >= plane[idx[s_el]]).astype(np.int64)
-        m_el = median[idx]
-        if m_el.any():  # the lower half along the longest centroid axis (ties by triangle id) goes left
-            sub = np.nonzero(m_el)[0]
-            along = c[sub, np.argmax(extent, axis=1)[idx[sub]]]
-            ranked = sub[np.lexsort((tris[sub], along, idx[sub]))]  # grouped by node, increasing idx
-            med = np.nonzero(median)[0]
-            first_rank = np.zeros(k, np.int64)
-            first_rank[med] = np.cumsum(level_ct[med]) - level_ct[med]
-            local = np.empty(len(pos), np.int64)
-            local[ranked] = np.arange(len(ranked)) - first_rank[idx[ranked]]
-            side[sub] = (local[sub] >= level_ct[idx[sub]] // 2).astype(np.int64)
-        key2 = idx * 2 + side
-        perm = np.argsort(key2, kind="stable")
-        order[pos] = tris[perm]
-        left_n = np.bincount(idx, weights=(side == 0), minlength=k).astype(np.int64)
+        split, left_n = _split_level(level_st, level_ct, cen, lo, hi, order, depth, leaf_size)
         # children of this level's split nodes, two by two, in the level's order
         s_ids = level_ids[split]
         first_child = n_nodes + 2 * np.arange(len(s_ids))
@@ -165,7 +108,96 @@ def build(positions: np.ndarray, triangles: np.ndarray, leaf_size: int = 4) -> B
         level_ids = np.arange(first_child[0], n_nodes) if len(s_ids) else np.zeros(0, np.int64)
         level_st, level_ct = new_st, new_ct
         depth += 1
-    starts_a, counts_a = np.concatenate(starts), np.concatenate(counts)
+    nodes = _node_table(lo, hi, order, np.concatenate(starts), np.concatenate(counts), child_of, n_nodes)
+    return BVH(nodes, order.astype(np.int32), depth - 1)
+
+
+def _split_level(level_st: np.ndarray, level_ct: np.ndarray, cen: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                 order: np.ndarray, depth: int, leaf_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Split one level's nodes (triangles order[start:start + count]): by the
+    SAH's binned plane, or at the median below MEDIAN_DEPTH or where no plane
+    separates. Reorders `order` in place, each node's left side first;
+    returns which nodes split and their left sides' triangle counts."""
+    idx, pos = _segments(level_st, level_ct)
+    tris = order[pos]
+    c = cen[tris]
+    k = len(level_ct)
+    offsets = np.cumsum(level_ct) - level_ct
+    cmin = np.minimum.reduceat(c, offsets, axis=0)
+    cmax = np.maximum.reduceat(c, offsets, axis=0)
+    extent = cmax - cmin
+    # fine bins while nodes are large; deep levels hold many small nodes, where the per-bin arrays
+    # (nodes x bins) outweigh the triangles and coarse bins choose nearly as well
+    bins = BINS if level_ct.mean() > 64 else BINS // 2
+    # bin of every triangle along every axis (3 columns)
+    scale = np.where(extent > 0, bins / np.where(extent > 0, extent, 1.0), 0.0)
+    b = np.clip(((c - cmin[idx]) * scale[idx]).astype(np.int64), 0, bins - 1)
+    best_cost, axis, plane = _sah_planes(b, idx, lo[tris], hi[tris], k, bins)
+    sah = np.isfinite(best_cost) & (level_ct > leaf_size)  # a leaf costs one 4-wide test: fill it
+    if depth >= MEDIAN_DEPTH:
+        sah[:] = False
+    median = ~sah & (level_ct > leaf_size)
+    # partition: SAH nodes by their plane, median nodes by the longest centroid axis at the middle triangle
+    side = np.zeros(len(pos), np.int64)
+    s_el = sah[idx]
+    side[s_el] = (b[s_el, axis[idx[s_el]]] >= plane[idx[s_el]]).astype(np.int64)
+    _median_sides(side, median, idx, tris, c, extent, level_ct)
+    key2 = idx * 2 + side
+    perm = np.argsort(key2, kind="stable")
+    order[pos] = tris[perm]
+    left_n = np.bincount(idx, weights=(side == 0), minlength=k).astype(np.int64)
+    return sah | median, left_n
+
+
+def _sah_planes(b: np.ndarray, idx: np.ndarray, lo_t: np.ndarray, hi_t: np.ndarray, k: int,
+                bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per node the cheapest binned plane by the surface area heuristic:
+    its cost (inf where no plane has triangles on both sides), axis and
+    plane (left side = bins [0, plane))."""
+    # per (coordinate, bin, node, axis) triangle bounds: 1-D scatters (numpy's fast path)
+    blo = np.full((3, bins * k * 3), np.inf, np.float32)
+    bhi = np.full((3, bins * k * 3), -np.inf, np.float32)
+    keys = (b * k + idx[:, None]) * 3 + np.arange(3)  # (n, axis)
+    for ax in range(3):
+        for co in range(3):
+            np.minimum.at(blo[co], keys[:, ax], lo_t[:, co])
+            np.maximum.at(bhi[co], keys[:, ax], hi_t[:, co])
+    cnt = np.bincount(keys.ravel(), minlength=bins * k * 3).reshape(bins, k, 3)
+    blo, bhi = blo.reshape(3, bins, k, 3), bhi.reshape(3, bins, k, 3)
+    # sweep: left side = bins [0, p), right side = bins [p, bins), p = 1 .. bins-1
+    l_cnt = np.cumsum(cnt, axis=0)[:-1]
+    r_cnt = np.cumsum(cnt[::-1], axis=0)[::-1][1:]
+    l_area, r_area = _sweep_areas(blo, bhi)
+    cost = np.where((l_cnt > 0) & (r_cnt > 0), l_area * l_cnt + r_area * r_cnt, np.inf)  # (plane, node, axis)
+    cost = cost.transpose(1, 2, 0).reshape(k, -1)
+    best = np.argmin(cost, axis=1)  # first minimum: deterministic
+    best_cost = cost[np.arange(k), best]
+    return best_cost, best // (bins - 1), best % (bins - 1) + 1
+
+
+def _median_sides(side: np.ndarray, median: np.ndarray, idx: np.ndarray, tris: np.ndarray, c: np.ndarray,
+                  extent: np.ndarray, level_ct: np.ndarray) -> None:
+    """Into `side` (changed): the lower half of each median node's triangles
+    along its longest centroid axis (ties by triangle id) goes left (0)."""
+    m_el = median[idx]
+    if not m_el.any():
+        return
+    k = len(level_ct)
+    sub = np.nonzero(m_el)[0]
+    along = c[sub, np.argmax(extent, axis=1)[idx[sub]]]
+    ranked = sub[np.lexsort((tris[sub], along, idx[sub]))]  # grouped by node, increasing idx
+    med = np.nonzero(median)[0]
+    first_rank = np.zeros(k, np.int64)
+    first_rank[med] = np.cumsum(level_ct[med]) - level_ct[med]
+    local = np.empty(len(idx), np.int64)
+    local[ranked] = np.arange(len(ranked)) - first_rank[idx[ranked]]
+    side[sub] = (local[sub] >= level_ct[idx[sub]] // 2).astype(np.int64)
+
+
+def _node_table(lo: np.ndarray, hi: np.ndarray, order: np.ndarray, starts_a: np.ndarray, counts_a: np.ndarray,
+                child_of: dict, n_nodes: int) -> np.ndarray:
+    """(n_nodes, 8) float32: bounds min, then the first triangle (leaf) or
+    child (inner node) as int32; bounds max, then the triangle count (0 inner)."""
     child_a = np.full(n_nodes, -1, np.int64)
     for s_ids, first_child in child_of.values():
         child_a[s_ids] = first_child
@@ -188,7 +220,7 @@ def build(positions: np.ndarray, triangles: np.ndarray, leaf_size: int = 4) -> B
     ints = nodes.view(np.int32)
     ints[:, 3] = np.where(leaf, starts_a, child_a)
     ints[:, 7] = np.where(leaf, counts_a, 0)
-    return BVH(nodes, order.astype(np.int32), depth - 1)
+    return nodes
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,9 @@
 (terrain, water) with their materials' colour textures, and every
 PointInstancer's instances, rendered with this package's ray caster.
 
-    rgba = render_world("build/worlds/default/world.usda", width=1600, height=900)
+    rgba = render_world(env, "build/worlds/default/world.usda", width=1600, height=900)
+
+(`env`: the OpenCL device, a pipeline.opencl.CL.)
     save_png("world.png", rgba)
 
 Only what USD says is read: meshes and their bound UsdPreviewSurface
@@ -33,6 +35,7 @@ import numpy as np
 
 from pipeline.exr import srgb8
 
+from . import Prepared
 from .scene import Camera, Image, Scene, Settings
 from .usd_asset import load_texture, resized, subtree_scene, with_stack
 
@@ -47,11 +50,9 @@ class _Billboard:
     y1: float
 
 
-def _bake_billboards(protos: dict, cells_per_side: int, cell_px: int, tex_stacks: dict) -> tuple[np.ndarray, dict]:
+def _bake_billboards(env, protos: dict, cells_per_side: int, cell_px: int, tex_stacks: dict) -> tuple[np.ndarray, dict]:
     """Render each prototype's scene from +z, from +x and from above
     (orthographic, AO) into atlas cells 3k, 3k + 1 and 3k + 2."""
-    from . import Prepared
-
     atlas = np.zeros((ATLAS_SIZE, ATLAS_SIZE, 4), np.float32)  # cells_per_side * cell_px <= ATLAS_SIZE
     boards = {}
     for k, (name, scene) in enumerate(protos.items()):
@@ -59,7 +60,7 @@ def _bake_billboards(protos: dict, cells_per_side: int, cell_px: int, tex_stacks
         r = float(np.sqrt(p[:, 0] ** 2 + p[:, 2] ** 2).max()) * 1.02
         y0, y1 = float(p[:, 1].min()), float(p[:, 1].max())
         h = max(y1 - y0, 1e-3)
-        prepared = Prepared(scene)
+        prepared = Prepared(env, scene)
         for view, (eye, fwd, up) in enumerate((((0.0, 0.5 * (y0 + y1), 10 * r + 1), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0)),
                                                ((10 * r + 1, 0.5 * (y0 + y1), 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
                                                ((0.0, y1 + 10 * r + 1, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0)))):
@@ -139,7 +140,7 @@ def default_camera(lo: np.ndarray, hi: np.ndarray, azimuth_deg: float = 200.0, e
     return Camera(tuple(eye), tuple(-back), (0.0, 1.0, 0.0), fov_y_deg=fov_y_deg)
 
 
-def build_world_scene(world_usda: str | Path, min_instance_height_m: float = 0.8, max_instances: int | None = None,
+def build_world_scene(env, world_usda: str | Path, min_instance_height_m: float = 0.8, max_instances: int | None = None,
                       progress=print) -> tuple[Scene, dict]:
     """The world as one render Scene (meshes + billboard instances) and a
     summary (instances per prototype, triangles, bounds)."""
@@ -203,7 +204,7 @@ def build_world_scene(world_usda: str | Path, min_instance_height_m: float = 0.8
     cells = max(1, math.ceil(math.sqrt(3 * max(len(keep), 1))))
     cell_px = min(ATLAS_SIZE // cells, 256)  # a billboard is a few pixels tall in a view of the whole world
     progress(f"world view: billboards of {sorted(keep)} ({cell_px} px cells)")
-    atlas, boards = _bake_billboards({n: proto_scene[n] for n in keep}, cells, cell_px, proto_tex)
+    atlas, boards = _bake_billboards(env, {n: proto_scene[n] for n in keep}, cells, cell_px, proto_tex)
     # the texture stack: the meshes' textures, then the atlas
     stack = [np.zeros((ATLAS_SIZE, ATLAS_SIZE, 4), np.float32)] * (len(textures) + 1)
     udim_tiles = {}
@@ -228,10 +229,10 @@ def build_world_scene(world_usda: str | Path, min_instance_height_m: float = 0.8
     return scene, summary
 
 
-_CACHE: dict = {}  # (path, mtime) -> (Scene, summary, Prepared): several views of one world build it once
+_CACHE: dict = {}  # (device, path, mtime) -> (Scene, summary, Prepared): several views of one world build it once
 
 
-def render_world(world_usda: str | Path, width: int = 1600, height: int = 900, camera: Camera | None = None,
+def render_world(env, world_usda: str | Path, width: int = 1600, height: int = 900, camera: Camera | None = None,
                  samples: int = 2, ao_rays: int = 2, sun=(-0.45, 0.75, 0.5), azimuth_deg: float = 200.0,
                  elevation_deg: float = 32.0, zoom: float = 1.0, stats: dict | None = None,
                  progress=print) -> np.ndarray:
@@ -243,14 +244,12 @@ def render_world(world_usda: str | Path, width: int = 1600, height: int = 900, c
     cached, so more views of it cost only their rendering."""
     import time
 
-    from . import Prepared
-
     t0 = time.perf_counter()
-    key = (str(Path(world_usda).resolve()), Path(world_usda).stat().st_mtime_ns)
+    key = (env, str(Path(world_usda).resolve()), Path(world_usda).stat().st_mtime_ns)
     if key not in _CACHE:
         _CACHE.clear()
-        scene, summary = build_world_scene(world_usda, progress=progress)
-        _CACHE[key] = (scene, summary, Prepared(scene))
+        scene, summary = build_world_scene(env, world_usda, progress=progress)
+        _CACHE[key] = (scene, summary, Prepared(env, scene))
     scene, summary, prepared = _CACHE[key]
     t1 = time.perf_counter()
     lo, hi = np.asarray(summary["bounds"][0]), np.asarray(summary["bounds"][1])

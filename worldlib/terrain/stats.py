@@ -1,7 +1,7 @@
 """Terrain statistics: does a height field read as eroded land?
 
-Numbers a geomorphologist would check on a DEM (REFERENCES.md, "What real
-land measures"), computed from the final height and its D8 flow tree:
+Numbers a geomorphologist would check on a DEM, computed from the final
+height and its D8 flow tree:
 
 - grid_anisotropy: share of the 2-to-16-cell band's spectral power lying on
   the grid's axes and diagonals, over the share of that band's wavenumbers

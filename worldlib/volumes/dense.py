@@ -41,6 +41,8 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.errors import InputError
+
 CHANNELS = ("albedo.R", "albedo.G", "albedo.B", "density", "normal.x", "normal.y", "normal.z", "surface")
 CHANNEL_UNITS = ("1/m", "1/m", "1/m", "1/m", "1", "1", "1", "1/m")
 SOLID_OPTICAL_DEPTH = math.log(1000.0)  # a full solid voxel lets 0.1 % of the light through its edge
@@ -246,8 +248,6 @@ def read_channels(inp, path: Path | str, what: str) -> tuple[np.ndarray, dict[st
     attributes; `what` names the format in the error for other channels."""
     import OpenImageIO as oiio
 
-    from pipeline.errors import InputError
-
     spec = inp.spec()
     names = tuple(spec.channelnames)
     if sorted(names) != sorted(CHANNELS):
@@ -258,11 +258,9 @@ def read_channels(inp, path: Path | str, what: str) -> tuple[np.ndarray, dict[st
 
 
 def read_atlas(path: Path | str) -> VolumeLevel:
-    """A level written by write_atlas (or by worldlib.volumes.sparse.write_runs,
-    as a dense level), its header attributes in `attributes`."""
+    """A level written by write_atlas, its header attributes in `attributes`
+    (worldlib.volumes.sparse.read_level reads column runs files too)."""
     import OpenImageIO as oiio
-
-    from pipeline.errors import InputError
 
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
@@ -273,10 +271,8 @@ def read_atlas(path: Path | str) -> VolumeLevel:
         inp.close()
     if "volume_grid" not in attrs:
         raise InputError(f"{path}: no worldbake:volume_grid attribute; not a volume atlas")
-    if attrs.get("volume_layout") == "column runs":  # a sparse level (worldlib.volumes.sparse)
-        from .sparse import read_runs
-
-        return read_runs(path).to_dense()
+    if attrs.get("volume_layout") == "column runs":
+        raise InputError(f"{path}: a column runs volume; worldlib.volumes.sparse.read_level reads it")
     level = from_atlas(np.ascontiguousarray(pixels), tuple(attrs["volume_grid"]),
                        attrs["volume_bbox_min"], attrs["volume_voxel_m"])
     level.attributes = attrs

@@ -2,12 +2,12 @@
 the EXR "column runs" file it is stored in.
 
 A forest sector is mostly air: a canopy a few voxels thick over sloping
-ground (the default world's sectors at 8 m: 3.8 % of their clipped box
-occupied, 3.8 occupied voxels per occupied (x, z) column). A SparseLevel
-holds the occupied voxels of a grid (density or surface above 0): their
-flat indices (z * ny + y) * nx + x, ascending, and their channels, with the
-grid's shape, origin and voxel edge; the channels and units are those of
-worldlib.volumes.dense.VolumeLevel, and to_dense() gives that level back.
+ground fills a few percent of its clipped box, a few voxels per occupied
+(x, z) column. A SparseLevel holds the occupied voxels of a grid (density
+or surface above 0): their flat indices (z * ny + y) * nx + x, ascending,
+and their channels, with the grid's shape, origin and voxel edge; the
+channels and units are those of worldlib.volumes.dense.VolumeLevel, and
+to_dense() gives that level back.
 
 Column runs (the file): every (x, z) column of the grid holds its occupied
 voxels in one run along y, from its lowest to its highest occupied voxel
@@ -27,10 +27,9 @@ voxels in one run along y, from its lowest to its highest occupied voxel
 
 Voxel (x, y, z) is pixel run.offset + y - run.y0 of part 0 where
 run.y0 <= y < run.y0 + run.length, and air elsewhere: one 2-D texture fetch
-and one buffer fetch, as a shader reads a height-field volume. Against
-8^3 or 4^3 bricks (OpenVDB leaves) it stores only the canopy's own
-voxels: on a default-world sector (132 x 92 x 132 voxels, 61 k occupied)
-zip EXRs take 1.80 MB dense, 1.63 MB as 4^3 bricks, 0.98 MB as runs.
+and one buffer fetch, as a shader reads a height-field volume. Unlike
+8^3 or 4^3 bricks (OpenVDB leaves) it stores only the canopy's own voxels,
+not the air that shares a brick with them.
 
 Mips sum each 2 x 2 x 2 block of occupied voxels (np.bincount in voxel
 order: deterministic), as worldlib.volumes.dense.downsample does on a dense grid.
@@ -44,7 +43,9 @@ from typing import Any
 
 import numpy as np
 
-from .dense import CHANNEL_UNITS, CHANNELS, HALF_MAX, VolumeLevel, read_channels
+from pipeline.errors import InputError
+
+from .dense import CHANNEL_UNITS, CHANNELS, HALF_MAX, VolumeLevel, header_attributes, read_atlas, read_channels
 
 RUNS_WIDTH = 256  # pixels a row of the voxels part
 RUN_CHANNELS = ("run.y0", "run.length", "run.offset")
@@ -235,8 +236,6 @@ def read_runs(path: Path | str) -> SparseLevel:
     """A level written by write_runs, its header attributes in `attributes`."""
     import OpenImageIO as oiio
 
-    from pipeline.errors import InputError
-
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise InputError(f"{path}: cannot read: {oiio.geterror()}")
@@ -267,3 +266,18 @@ def read_runs(path: Path | str) -> SparseLevel:
     return SparseLevel(index, np.ascontiguousarray(vals[:, 3]), np.ascontiguousarray(vals[:, 0:3]),
                        np.ascontiguousarray(vals[:, 4:7]), np.ascontiguousarray(vals[:, 7]), (nx, ny, nz),
                        np.asarray(attrs["volume_bbox_min"], np.float64), float(attrs["volume_voxel_m"]), attrs)
+
+
+def read_level(path: Path | str) -> VolumeLevel:
+    """A dense level from either volume file: a Z-slice atlas
+    (worldlib.volumes.dense.write_atlas) or column runs (write_runs)."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise InputError(f"{path}: cannot read: {oiio.geterror()}")
+    try:
+        layout = header_attributes(inp.spec()).get("volume_layout")
+    finally:
+        inp.close()
+    return read_runs(path).to_dense() if layout == "column runs" else read_atlas(path)

@@ -8,6 +8,7 @@ import numpy as np
 
 from pipeline.contract import RunContext
 from pipeline.grid import Grid
+from pipeline.opencl import get_cl
 from stages.erosion import STAGE, ErosionParams
 from stages.erosion.physics import Physics
 from stages.erosion.reference import synthetic_world
@@ -31,7 +32,7 @@ def physics(dx: float, boundary: str = "closed", **over) -> Physics:
 def run_stage(height: np.ndarray, dx: float, tmp_path: Path, **params):
     """STAGE.run on a height array; returns (outputs, metrics, progress calls)."""
     calls = []
-    ctx = RunContext(stage=STAGE, key="test", out_dir=tmp_path, seed=0, provenance={}, project_root=tmp_path,
+    ctx = RunContext(cl=get_cl(), stage=STAGE, key="test", out_dir=tmp_path, seed=0, provenance={}, project_root=tmp_path,
                      progress=lambda f, m: calls.append((f, m)))
     out = STAGE.run(ctx, {"height": Grid(np.asarray(height, np.float32), cell_size_m=dx)}, ErosionParams(**params))
     return out, ctx.metrics, calls

@@ -23,11 +23,11 @@ TOL = 1e-6
 
 
 @pytest.mark.parametrize("boundary", ["closed", "open"])
-def test_budgets_close_after_1000_steps_at_256(boundary):
+def test_budgets_close_after_1000_steps_at_256(cl_env, boundary):
     h, dx = world(256, size_m=8000.0, relief_m=1200.0)
     ph = physics(dx, boundary)
     plan = simulate.Plan(thermal_iterations=0, max_steps=1000)
-    m = simulate.run(DeviceSim(h, ph), ph, plan)
+    m = simulate.run(DeviceSim(cl_env, h, ph), ph, plan)
     assert m["steps"] == 1000
     assert m["water_budget_residual_rel"] <= TOL, m
     assert m["mass_budget_residual_rel"] <= TOL, m
@@ -42,10 +42,10 @@ def test_budgets_close_after_1000_steps_at_256(boundary):
     assert abs(stored - expected) <= TOL * max(stored, m["budget_rain"])
 
 
-def test_thermal_weathering_conserves_mass():
+def test_thermal_weathering_conserves_mass(cl_env):
     h, dx = world(128)
     ph = physics(dx, "closed")
-    sim = DeviceSim(h * 3.0, ph)
+    sim = DeviceSim(cl_env, h * 3.0, ph)
     m = simulate.run(sim, ph, simulate.Plan(thermal_iterations=300, duration_s=0.0))
     d = sim.fields()["dT"].astype(np.float64)
     assert np.abs(d).max() > 10.0
@@ -67,14 +67,14 @@ def _bowl(n: int, quantized: bool):
 
 
 @pytest.mark.parametrize("quantized", [True, False])
-def test_lake_at_rest_stays_at_rest(quantized):
+def test_lake_at_rest_stays_at_rest(cl_env, quantized):
     """Flat water over a basin, no rain, 1000 steps: largest speed at most
     1e-6 m/s and no erosion. With dyadic heights the surface is exactly flat
     in float32 and nothing moves at all; with arbitrary heights the surface is
     flat only to one ulp (2e-6 m at 30 m depth) and the flow stays below 1e-6 m/s."""
     T, W = _bowl(64, quantized)
     ph = physics(10.0, "closed", rain=0.0, evaporation=0.0)
-    sim = DeviceSim(T, ph, water=W)
+    sim = DeviceSim(cl_env, T, ph, water=W)
     m = simulate.run(sim, ph, simulate.Plan(thermal_iterations=0, max_steps=1000))
     f = sim.fields()
     speed = np.sqrt(f["vx"].astype(np.float64) ** 2 + f["vz"].astype(np.float64) ** 2)

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from pipeline.opencl import get_cl, x86_avx512
+from pipeline.opencl import x86_avx512
 from stages.erosion import simulate
 from stages.erosion.device import DeviceSim
 from stages.erosion.reference import synthetic_world
@@ -24,22 +24,22 @@ from stages.erosion.reference import synthetic_world
 from .helpers import physics, run_stage, world
 
 
-def _fields(h, ph, local, vw=None, steps=150, thermal=5, **code_path):
-    sim = DeviceSim(h, ph, local=local, vw=vw, **code_path)
+def _fields(cl_env, h, ph, local, vw=None, steps=150, thermal=5, **code_path):
+    sim = DeviceSim(cl_env, h, ph, local=local, vw=vw, **code_path)
     simulate.run(sim, ph, simulate.Plan(thermal_iterations=thermal, max_steps=steps))
     return sim.fields()
 
 
 @pytest.mark.every_device
 @pytest.mark.parametrize("boundary", ["open", "periodic"])
-def test_identical_across_runs_work_group_sizes_and_vector_widths(boundary):
+def test_identical_across_runs_work_group_sizes_and_vector_widths(cl_env, boundary):
     h, dx = world(96)
     h = h[:80, :90].copy()  # not a multiple of any work-group size
     ph = physics(dx, boundary, bank_diffusivity=2.0)  # bank slumping on too
-    base = _fields(h, ph, (8, 1))  # the defaults: 16 (or 8) cells per work-item in the storm, 8 in the talus rule
+    base = _fields(cl_env, h, ph, (8, 1))  # the defaults: 16 (or 8) cells per work-item in the storm, 8 in the talus rule
     variants = [((8, 1), 8), ((1, 1), 8), ((4, 4), 8), ((32, 1), 8), ((2, 8), 8), ((4, 1), 16), ((1, 2), 16)]
     for local, vw in variants:
-        other = _fields(h, ph, local, vw)
+        other = _fields(cl_env, h, ph, local, vw)
         for name in base:
             assert np.array_equal(base[name], other[name]), f"{name} differs with local {local}, vw {vw}"
     # the storm's code paths: tiles of nr rows by at most nv vectors (values shared inside a
@@ -47,10 +47,10 @@ def test_identical_across_runs_work_group_sizes_and_vector_widths(boundary):
     # where this CPU has it
     paths = [dict(nv=1), dict(nv=3, vw=8), dict(nv=2, avx512=False), dict(nv=1, avx512=False, vw=16),
              dict(nr=1), dict(nr=3, nv=2), dict(nr=7, nv=1, vw=8), dict(nr=80)]
-    if x86_avx512(get_cl().device):
+    if x86_avx512(cl_env.device):
         paths += [dict(nv=1, avx512=True), dict(nv=4, avx512=True, vw=8)]
     for path in paths:
-        other = _fields(h, ph, (8, 1), **path)
+        other = _fields(cl_env, h, ph, (8, 1), **path)
         for name in base:
             assert np.array_equal(base[name], other[name]), f"{name} differs with {path}"
     assert np.abs(base["dT"]).max() > 0 and base["W"].max() > 0

@@ -58,34 +58,35 @@ def test_rho8_picks_downhill_and_mixes_axes_with_diagonals():
     assert (code[~interior] == -1).all()
 
 
-def test_landscape_evolution_keeps_its_budget_and_carves_valleys():
+def test_landscape_evolution_keeps_its_budget_and_carves_valleys(cl_env):
     from stages.heightmap.stage import HeightmapParams, heights
 
-    h, _ = heights(HeightmapParams(resolution=96, size_m=1536.0, wavelength_m=768.0), 4)
+    h, _ = heights(cl_env, HeightmapParams(resolution=96, size_m=1536.0, wavelength_m=768.0), 4)
     h = h.astype(np.float64)
     dx = 16.0
-    res = sp.run(h, dx, years=2e5, dt_years=2e4, k=2e-5, m=0.45, n_exp=1.0, uplift_m_per_year=5e-4,
+    res = sp.run(cl_env, h, dx, years=2e5, dt_years=2e4, k=2e-5, m=0.45, n_exp=1.0, uplift_m_per_year=5e-4,
                  routing="rho8", diffusivity_m2_per_year=1e-2, breach=True)
     assert res.steps == 10 and res.eroded_m3 > 0
     assert res.budget_relative_error <= 1e-12
     assert res.stats["stream_power_volume_budget_relative_error"] <= 1e-9
     assert np.isfinite(res.height).all()
     # deterministic
-    again = sp.run(h, dx, years=2e5, dt_years=2e4, k=2e-5, m=0.45, n_exp=1.0, uplift_m_per_year=5e-4,
+    again = sp.run(cl_env, h, dx, years=2e5, dt_years=2e4, k=2e-5, m=0.45, n_exp=1.0, uplift_m_per_year=5e-4,
                    routing="rho8", diffusivity_m2_per_year=1e-2, breach=True)
     np.testing.assert_array_equal(res.height, again.height)
     assert np.isfinite(grid_anisotropy(res.height))
 
 
+@pytest.mark.every_device  # stream_power.cl's mfd_area and mfd_solve against their reference on each runtime
 @pytest.mark.parametrize("p_exp, channel_area", [(1.1, 0.0), (4.0, 2000.0)])
-def test_mfd_kernels_equal_reference(p_exp, channel_area):
+def test_mfd_kernels_equal_reference(cl_env, p_exp, channel_area):
     from worldlib.flow import reference as ref
 
     rng = np.random.default_rng(11)
     h = rng.random((19, 26)) * 120.0
     kind = ref.cell_kinds(h.astype(np.float32))
-    z = sp.routing_surface(h, kind, "distance")
-    got, area = sp._DeviceMFDSolver(19, 26).step(h, z, kind == ref.INTERIOR, 10.0, 5e-3, 0.45, p_exp, channel_area)
+    z = sp.routing_surface(cl_env, h, kind, "distance")
+    got, area = sp._DeviceMFDSolver(cl_env, 19, 26).step(h, z, kind == ref.INTERIOR, 10.0, 5e-3, 0.45, p_exp, channel_area)
     want, area_ref = sp.mfd_reference_step(h, z, kind == ref.INTERIOR, 10.0, 5e-3, 0.45, p_exp, channel_area)
     np.testing.assert_allclose(area, area_ref, rtol=1e-12)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
@@ -94,7 +95,7 @@ def test_mfd_kernels_equal_reference(p_exp, channel_area):
     assert area[kind != ref.INTERIOR].sum() == pytest.approx(h.size * 100.0, rel=1e-12)
 
 
-def test_distance_routing_drains_every_cell_and_converges_on_the_outlet():
+def test_distance_routing_drains_every_cell_and_converges_on_the_outlet(cl_env):
     """A round closed basin: every interior cell has a strictly lower
     neighbour on the routing surface, and the surface over the filled lake
     falls toward the outlet with the Euclidean distance."""
@@ -106,7 +107,7 @@ def test_distance_routing_drains_every_cell_and_converges_on_the_outlet():
     h = 100.0 + 0.5 * np.minimum(rad, 25.0) ** 1.2 + 0.05 * (n - c)  # a bowl inside a tilted plane
     h[30, 55:] = h[30, 54] - 0.01 * np.arange(1, 7)  # a notch: the outlet to the east edge
     kind = ref.cell_kinds(h.astype(np.float32))
-    z = sp.routing_surface(h, kind, "distance").astype(np.float64)
+    z = sp.routing_surface(cl_env, h, kind, "distance").astype(np.float64)
     zp = np.pad(z, 1, constant_values=np.inf)
     lower = np.zeros((n, n), bool)
     for k in range(8):
@@ -118,14 +119,14 @@ def test_distance_routing_drains_every_cell_and_converges_on_the_outlet():
     assert z[10, 30] == pytest.approx(z[50, 30], abs=0.02)  # symmetric about the outlet's row
 
 
-def test_mfd_landscape_evolution_budget_no_pits_and_determinism():
+def test_mfd_landscape_evolution_budget_no_pits_and_determinism(cl_env):
     from stages.heightmap.stage import HeightmapParams, heights
 
-    h, _ = heights(HeightmapParams(resolution=80, size_m=1280.0, wavelength_m=640.0), 6)
+    h, _ = heights(cl_env, HeightmapParams(resolution=80, size_m=1280.0, wavelength_m=640.0), 6)
     h = h.astype(np.float64)
     kw = dict(routing="mfd", diffusivity_m2_per_year=1e-2, mfd_exponent=1.1, flat_routing="distance",
               fill_lakes=True)
-    res = sp.run(h, 16.0, 2e5, 4e4, 2e-5, 0.45, 1.0, 5e-4, **kw)
+    res = sp.run(cl_env, h, 16.0, 2e5, 4e4, 2e-5, 0.45, 1.0, 5e-4, **kw)
     assert res.stats["stream_power_volume_budget_relative_error"] <= 1e-9
     assert res.stats["lake_fill_m3"] > 0  # the noise's depressions were filled
     z = res.height
@@ -134,9 +135,9 @@ def test_mfd_landscape_evolution_budget_no_pits_and_determinism():
     for k in range(8):
         lower |= zp[1 + sp.DR[k]:1 + sp.DR[k] + 80, 1 + sp.DC[k]:1 + sp.DC[k] + 80] < z
     assert lower[1:-1, 1:-1].all()  # no pit: every cell drains
-    again = sp.run(h, 16.0, 2e5, 4e4, 2e-5, 0.45, 1.0, 5e-4, **kw)
+    again = sp.run(cl_env, h, 16.0, 2e5, 4e4, 2e-5, 0.45, 1.0, 5e-4, **kw)
     np.testing.assert_array_equal(res.height, again.height)
-    ref_run = sp.run(h, 16.0, 2e5, 4e4, 2e-5, 0.45, 1.0, 5e-4, mfd_step_fn=sp.mfd_reference_step, **kw)
+    ref_run = sp.run(cl_env, h, 16.0, 2e5, 4e4, 2e-5, 0.45, 1.0, 5e-4, mfd_step_fn=sp.mfd_reference_step, **kw)
     np.testing.assert_allclose(res.height, ref_run.height, rtol=0, atol=1e-6)
 
 

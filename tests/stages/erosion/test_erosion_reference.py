@@ -35,9 +35,9 @@ def _start(boundary: str, rows: int = 29, cols: int = 37):
 
 
 @pytest.mark.parametrize("boundary", ["closed", "open", "periodic"])
-def test_steps_match_reference_bit_for_bit(boundary):
+def test_steps_match_reference_bit_for_bit(cl_env, boundary):
     h, dx, w0, s0, ph = _start(boundary)
-    dev = DeviceSim(h, ph, water=w0, sediment=s0)
+    dev = DeviceSim(cl_env, h, ph, water=w0, sediment=s0)
     ref = ReferenceSim(h, ph, water=w0, sediment=s0)
     for n in range(40):
         k = step_constants(ph, 0.3 + 0.01 * (n % 7))
@@ -58,7 +58,7 @@ def test_steps_match_reference_bit_for_bit(boundary):
 
 
 @pytest.mark.parametrize("cols", [37, 40, 8, 1])
-def test_diagnostics_count_non_finite_cells_and_leave_them_out(cols):
+def test_diagnostics_count_non_finite_cells_and_leave_them_out(cl_env, cols):
     """The diagnostics kernel reads 8 cells at a time: rows whose length is not
     a multiple of 8 end in lanes past the grid, which must count for nothing.
     Non-finite cells are counted and left out of the sums, the same as numpy."""
@@ -67,7 +67,7 @@ def test_diagnostics_count_non_finite_cells_and_leave_them_out(cols):
     w0[7, 0] = np.inf
     s0[11, cols // 2] = -np.inf
     s0[3, cols - 1] = np.nan  # the same cell twice: counted once
-    dev = DeviceSim(h, ph, water=w0, sediment=s0)
+    dev = DeviceSim(cl_env, h, ph, water=w0, sediment=s0)
     ref = ReferenceSim(h, ph, water=w0, sediment=s0)
     dd, dr = dev.diag(), ref.diag()
     assert dd.nonfinite == dr.nonfinite == 3
@@ -78,21 +78,21 @@ def test_diagnostics_count_non_finite_cells_and_leave_them_out(cols):
 
 
 @pytest.mark.parametrize("boundary", ["closed", "periodic"])
-def test_thermal_matches_reference_bit_for_bit(boundary):
+def test_thermal_matches_reference_bit_for_bit(cl_env, boundary):
     h, dx, _, _, ph = _start(boundary)
     h = h * 4.0  # steep: most cells exceed the talus angle
-    dev, ref = DeviceSim(h, ph), ReferenceSim(h, ph)
+    dev, ref = DeviceSim(cl_env, h, ph), ReferenceSim(h, ph)
     dev.thermal(25)
     ref.thermal(25)
     np.testing.assert_array_equal(dev.fields()["dT"], ref.fields()["dT"])
     assert np.abs(ref.dT).max() > 1.0  # something happened
 
 
-def test_whole_run_matches_reference():
+def test_whole_run_matches_reference(cl_env):
     """The same driver (adaptive dt, checks, thermal phase) over both backends."""
     h, dx, _, _, ph = _start("open", 24, 24)
     plan = simulate.Plan(thermal_iterations=3, duration_s=0.0, max_steps=120, check_every=16)
-    md = simulate.run(DeviceSim(h, ph), ph, plan)
+    md = simulate.run(DeviceSim(cl_env, h, ph), ph, plan)
     mr = simulate.run(ReferenceSim(h, ph), ph, plan)
     for key in ("steps", "simulated_seconds", "dt_min_s", "dt_max_s", "courant_max", "budget_water_stored",
                 "budget_outflow", "budget_sediment_suspended"):

@@ -17,13 +17,13 @@ def channel(n_cells: int) -> np.ndarray:
 
 
 @pytest.mark.parametrize("n_exp", [1.0, 2.0, 4.0])
-def test_steady_state_slope(n_exp):
+def test_steady_state_slope(cl_env, n_exp):
     """S = (U/K)^(1/n) A^(-m/n) along the river at steady state (rtol 1e-5,
     fastscapelib's tolerance): the discrete slope (h_i - h_r) / dx."""
     dx, k, m, u = 100.0, 1e-4, 0.4, 1e-3
     code = channel(50)
-    area = flow.accumulate(code).astype(np.float64) * dx * dx
-    solver = sp._DeviceSolver(1, 50)
+    area = flow.accumulate(cl_env, code).astype(np.float64) * dx * dx
+    solver = sp._DeviceSolver(cl_env, 1, 50)
     h = np.zeros((1, 50))
     dt = 1e5
     for _ in range(400):
@@ -36,15 +36,15 @@ def test_steady_state_slope(n_exp):
 
 @pytest.mark.every_device
 @pytest.mark.parametrize("n_exp", [1.0, 1.5, 4.0])
-def test_kernel_equals_reference(n_exp):
+def test_kernel_equals_reference(cl_env, n_exp):
     rng = np.random.default_rng(5)
     h = rng.random((23, 31)) * 200.0
     from worldlib.flow import reference as ref
 
     kind = ref.cell_kinds(h.astype(np.float32))
-    code = flow.d8(flow.fill(ref.canonical(h.astype(np.float32)), kind, eps=True), kind, 10.0)
-    area = flow.accumulate(code).astype(np.float64) * 100.0
-    got, it_dev = sp._DeviceSolver(23, 31).step(h, code, area, 10.0, 3e-3, 0.5, n_exp)
+    code = flow.d8(cl_env, flow.fill(cl_env, ref.canonical(h.astype(np.float32)), kind, eps=True), kind, 10.0)
+    area = flow.accumulate(cl_env, code).astype(np.float64) * 100.0
+    got, it_dev = sp._DeviceSolver(cl_env, 23, 31).step(h, code, area, 10.0, 3e-3, 0.5, n_exp)
     want, it_ref = sp.reference_step(h, code, area, 10.0, 3e-3, 0.5, n_exp)
     # same float64 operations; pow may differ in the last ulp between libms
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)
@@ -52,26 +52,26 @@ def test_kernel_equals_reference(n_exp):
     assert (got <= h + 1e-9).all()  # the solve never raises a cell
 
 
-def test_mass_balance_and_run():
+def test_mass_balance_and_run(cl_env):
     """Eroded volume arrives at base level (exact integer accumulation); the
     terrain volume changes by uplift - outflow in float64."""
     from stages.heightmap.stage import HeightmapParams, heights
 
-    h, _ = heights(HeightmapParams(resolution=64, size_m=6400.0, wavelength_m=3200.0), 3)
+    h, _ = heights(cl_env, HeightmapParams(resolution=64, size_m=6400.0, wavelength_m=3200.0), 3)
     h = h.astype(np.float64)
-    res = sp.run(h, 100.0, years=2e5, dt_years=2e4, k=2e-5, m=0.45, n_exp=1.0, uplift_m_per_year=1e-3)
+    res = sp.run(cl_env, h, 100.0, years=2e5, dt_years=2e4, k=2e-5, m=0.45, n_exp=1.0, uplift_m_per_year=1e-3)
     assert res.steps == 10 and res.eroded_m3 > 0
     assert res.budget_relative_error <= 1e-12
     dvol = float((res.height - h).sum()) * 100.0 * 100.0
     assert abs(dvol - (res.uplifted_m3 - res.out_m3)) <= 1e-9 * max(res.uplifted_m3, res.out_m3)
     # the same run through the pure-Python solve
-    ref_res = sp.run(h, 100.0, years=2e5, dt_years=2e4, k=2e-5, m=0.45, n_exp=1.0, uplift_m_per_year=1e-3,
+    ref_res = sp.run(cl_env, h, 100.0, years=2e5, dt_years=2e4, k=2e-5, m=0.45, n_exp=1.0, uplift_m_per_year=1e-3,
                      step_fn=sp.reference_step)
     np.testing.assert_allclose(res.height, ref_res.height, rtol=0, atol=1e-6)
 
 
 @pytest.mark.parametrize("n_exp", [1.0, 2.0])
-def test_extreme_k_dt_and_hole(n_exp):
+def test_extreme_k_dt_and_hole(cl_env, n_exp):
     """K = 1e8 and dt = 1e8 (fastscapelib's stress values) over a -1000 m
     hole: finite; without uplift the plateau is cut down to base level
     (500 m at the edges) and the hole, a depression, is not eroded; with
@@ -79,17 +79,17 @@ def test_extreme_k_dt_and_hole(n_exp):
     h = np.full((20, 20), 500.0)
     h[5:9, 5:9] = 900.0
     h[10:14, 10:14] = -1000.0
-    res = sp.run(h, 10.0, years=2e8, dt_years=1e8, k=1e8, m=0.5, n_exp=n_exp, uplift_m_per_year=0.0)
+    res = sp.run(cl_env, h, 10.0, years=2e8, dt_years=1e8, k=1e8, m=0.5, n_exp=n_exp, uplift_m_per_year=0.0)
     assert np.isfinite(res.height).all()
     np.testing.assert_array_equal(res.height[10:14, 10:14], -1000.0)
     assert res.height[5:9, 5:9].max() < 500.0 + 1e-3  # cut down to (nearly) base level
-    up = sp.run(h, 10.0, years=2e8, dt_years=1e8, k=1e8, m=0.5, n_exp=n_exp, uplift_m_per_year=1e-3)
+    up = sp.run(cl_env, h, 10.0, years=2e8, dt_years=1e8, k=1e8, m=0.5, n_exp=n_exp, uplift_m_per_year=1e-3)
     assert np.isfinite(up.height).all() and up.height.min() >= -1000.0
     assert up.budget_relative_error <= 1e-12
 
 
 @pytest.mark.parametrize("n_exp", [1.0, 2.0])
-def test_equals_fastscapelib_on_a_draining_surface(n_exp):
+def test_equals_fastscapelib_on_a_draining_surface(cl_env, n_exp):
     """fastscapelib (RasterGrid with fixed-value edges, SingleFlowRouter +
     PFloodSinkResolver, SPLEroder) on a rough cone with no depression, 5
     steps with uplift: the same heights to 1e-9 m. (Where the terrain has
@@ -110,6 +110,6 @@ def test_equals_fastscapelib_on_a_draining_surface(n_exp):
         up = h + dt * uplift
         graph.update_routes(up)
         h = up - eroder.erode(up, graph.accumulate(1.0), dt)
-    ours = sp.run(h0, dx, years=5 * dt, dt_years=dt, k=k, m=m, n_exp=n_exp, uplift_m_per_year=u)
+    ours = sp.run(cl_env, h0, dx, years=5 * dt, dt_years=dt, k=k, m=m, n_exp=n_exp, uplift_m_per_year=u)
     assert np.abs(ours.height - h).max() <= 1e-9
     assert (h0 + 5 * dt * uplift - h).max() > 10.0  # real incision happened

@@ -171,7 +171,7 @@ class _Sabotaged:
     ("nan_water", r"erosion: water budget drifted by .* at step 48 \(rain_mm_per_hour / dt_s / cfl\)"),
     ("mass", r"erosion: terrain \+ sediment budget drifted by .* at step 48"),
 ])
-def test_a_blow_up_stops_the_stage_naming_the_step(what, message):
+def test_a_blow_up_stops_the_stage_naming_the_step(cl_env, what, message):
     from stages.erosion import simulate
     from stages.erosion.device import DeviceSim
 
@@ -179,6 +179,6 @@ def test_a_blow_up_stops_the_stage_naming_the_step(what, message):
 
     h, dx = world(64)
     ph = physics(dx, "closed")
-    sim = _Sabotaged(DeviceSim(h, ph), at=40, what=what)
+    sim = _Sabotaged(DeviceSim(cl_env, h, ph), at=40, what=what)
     with pytest.raises(StageError, match=message):
         simulate.run(sim, ph, simulate.Plan(max_steps=200))

@@ -32,13 +32,13 @@ def scene():
 GRID = ((12, 6, 12), (0.0, -0.5, 0.0), 0.5)
 
 
-def test_the_kernel_equals_the_reference_for_any_work_group(scene):
+def test_the_kernel_equals_the_reference_for_any_work_group(cl_env, scene):
     src, pos, rot, scale = scene
     ref = np.zeros((8, 12 * 6 * 12), np.int64)
     reference.splat(*GRID, src, pos, rot, scale, ref)
     assert (ref[0] > 0).sum() > 100
     for local in (1, 7, 64, None):
-        dev = splat.DeviceSplat(*GRID, local=local)
+        dev = splat.DeviceSplat(cl_env, *GRID, local=local)
         dev.add(src, pos[:25], rot[:25], scale[:25])  # two launches into one sector
         dev.add(src, pos[25:], rot[25:], scale[25:])
         got = dev.result()
@@ -50,9 +50,9 @@ def test_the_kernel_equals_the_reference_for_any_work_group(scene):
             assert np.array_equal(got, first), local  # integer sums: the same for every work-group size
 
 
-def test_the_splat_keeps_each_instance_s_projected_area(scene):
+def test_the_splat_keeps_each_instance_s_projected_area(cl_env, scene):
     src, pos, rot, scale = scene
-    dev = splat.DeviceSplat((32, 32, 32), (-5.0, -8.0, -5.0), 0.5)  # holds every instance whole
+    dev = splat.DeviceSplat(cl_env, (32, 32, 32), (-5.0, -8.0, -5.0), 0.5)  # holds every instance whole
     dev.add(src, pos, rot, scale)
     total = dev.result()[0].sum() / splat.FIXED * 0.5 ** 3
     expect = (scale ** 2).sum() * src.density.astype(np.float64).sum() * src.voxel_m ** 3

@@ -36,104 +36,104 @@ def dem_params(path, res, **kw):
 
 @pytest.mark.parametrize("res", [100, 23])  # up- and downsampling
 @pytest.mark.parametrize("ext,fmt", [("exr", "float"), ("tif", "float"), ("exr", "half")])
-def test_float_dem_ramp_stays_a_ramp(tmp_path, ext, fmt, res):
+def test_float_dem_ramp_stays_a_ramp(cl_env, tmp_path, ext, fmt, res):
     src = ramp()
     path = tmp_path / f"dem.{ext}"
     write(path, src.astype(np.float32), fmt)
-    h, _ = heights(dem_params(path, res), seed=0)
+    h, _ = heights(cl_env, dem_params(path, res), seed=0)
     assert h.dtype == np.float32 and h.shape == (res, res)
     tol = 0.13 if fmt == "half" else 1e-3  # half: 11-bit mantissa at values up to 270 m
     np.testing.assert_allclose(h, expected_ramp(40, res), atol=tol)
 
 
-def test_16bit_png_maps_to_metres(tmp_path):
+def test_16bit_png_maps_to_metres(cl_env, tmp_path):
     n = 40
     src = ramp(n)  # values 72 .. 267 m
     lo, hi = 0.0, 500.0
     path = tmp_path / "dem.png"
     write(path, ((src - lo) / (hi - lo)).astype(np.float32), "uint16")  # OIIO quantises to 0..65535
-    h, _ = heights(dem_params(path, 64, dem_min_m=lo, dem_max_m=hi), seed=0)
+    h, _ = heights(cl_env, dem_params(path, 64, dem_min_m=lo, dem_max_m=hi), seed=0)
     np.testing.assert_allclose(h, expected_ramp(n, 64), atol=(hi - lo) / 65535)
 
 
-def test_16bit_tiff_and_normalised_float(tmp_path):
+def test_16bit_tiff_and_normalised_float(cl_env, tmp_path):
     src = ramp(32)
     t = (src - 0.0) / 400.0
     write(tmp_path / "a.tif", t.astype(np.float32), "uint16")
     write(tmp_path / "b.exr", t.astype(np.float32), "float")
-    a, _ = heights(dem_params(tmp_path / "a.tif", 50, dem_min_m=0.0, dem_max_m=400.0), seed=0)
-    b, _ = heights(dem_params(tmp_path / "b.exr", 50, dem_min_m=0.0, dem_max_m=400.0), seed=0)
+    a, _ = heights(cl_env, dem_params(tmp_path / "a.tif", 50, dem_min_m=0.0, dem_max_m=400.0), seed=0)
+    b, _ = heights(cl_env, dem_params(tmp_path / "b.exr", 50, dem_min_m=0.0, dem_max_m=400.0), seed=0)
     want = expected_ramp(32, 50)
     np.testing.assert_allclose(a, want, atol=400.0 / 65535)
     np.testing.assert_allclose(b, want, atol=1e-3)
 
 
-def test_identity_resolution_returns_the_pixels(tmp_path):
+def test_identity_resolution_returns_the_pixels(cl_env, tmp_path):
     src = np.random.default_rng(0).normal(500.0, 100.0, (37, 37)).astype(np.float32)
     write(tmp_path / "d.exr", src, "float")
-    h, _ = heights(dem_params(tmp_path / "d.exr", 37), seed=0)
+    h, _ = heights(cl_env, dem_params(tmp_path / "d.exr", 37), seed=0)
     np.testing.assert_array_equal(h, src)
 
 
-def test_dem_window_equals_crop(tmp_path):
+def test_dem_window_equals_crop(cl_env, tmp_path):
     src = np.random.default_rng(1).normal(500.0, 100.0, (50, 50)).astype(np.float32)
     write(tmp_path / "d.exr", src, "float")
-    whole, _ = heights(dem_params(tmp_path / "d.exr", 300), seed=0)
-    tile, _ = heights(dem_params(tmp_path / "d.exr", 300, window=(17, 260, 283, 40)), seed=0)
+    whole, _ = heights(cl_env, dem_params(tmp_path / "d.exr", 300), seed=0)
+    tile, _ = heights(cl_env, dem_params(tmp_path / "d.exr", 300, window=(17, 260, 283, 40)), seed=0)
     assert tile.tobytes() == np.ascontiguousarray(whole[260:300, 17:300]).tobytes()
 
 
-def test_corrupt_file(tmp_path):
+def test_corrupt_file(cl_env, tmp_path):
     path = tmp_path / "corrupt.png"
     path.write_bytes(np.random.default_rng(2).bytes(4096))
     with pytest.raises(InputError, match="corrupt.png"):
-        heights(dem_params(path, 16), seed=0)
+        heights(cl_env, dem_params(path, 16), seed=0)
 
 
-def test_truncated_png(tmp_path):
+def test_truncated_png(cl_env, tmp_path):
     good = tmp_path / "good.png"
     write(good, np.random.default_rng(3).random((64, 64)).astype(np.float32), "uint16")
     bad = tmp_path / "truncated.png"
     bad.write_bytes(good.read_bytes()[:300])
     with pytest.raises(InputError, match="truncated.png"):
-        heights(dem_params(bad, 16, dem_min_m=0.0, dem_max_m=1.0), seed=0)
+        heights(cl_env, dem_params(bad, 16, dem_min_m=0.0, dem_max_m=1.0), seed=0)
 
 
-def test_missing_file(tmp_path):
+def test_missing_file(cl_env, tmp_path):
     with pytest.raises(InputError, match="missing_dem.exr"):
-        heights(dem_params(tmp_path / "missing_dem.exr", 16), seed=0)
+        heights(cl_env, dem_params(tmp_path / "missing_dem.exr", 16), seed=0)
 
 
-def test_nan_in_exr(tmp_path):
+def test_nan_in_exr(cl_env, tmp_path):
     src = ramp(20).astype(np.float32)
     src[3, 7] = np.nan
     path = tmp_path / "has_nan.exr"
     write(path, src, "float")
     with pytest.raises(InputError, match=r"has_nan.exr.*NaN.*row 3, column 7"):
-        heights(dem_params(path, 16), seed=0)
+        heights(cl_env, dem_params(path, 16), seed=0)
 
 
-def test_inf_in_tiff(tmp_path):
+def test_inf_in_tiff(cl_env, tmp_path):
     src = ramp(20).astype(np.float32)
     src[0, 0] = np.inf
     path = tmp_path / "has_inf.tif"
     write(path, src, "float")
     with pytest.raises(InputError, match="has_inf.tif"):
-        heights(dem_params(path, 16), seed=0)
+        heights(cl_env, dem_params(path, 16), seed=0)
 
 
-def test_integer_dem_needs_range(tmp_path):
+def test_integer_dem_needs_range(cl_env, tmp_path):
     path = tmp_path / "norange.png"
     write(path, np.zeros((8, 8), np.float32), "uint16")
     with pytest.raises(InputError, match="norange.png.*dem_min_m and dem_max_m"):
-        heights(dem_params(path, 16), seed=0)
+        heights(cl_env, dem_params(path, 16), seed=0)
 
 
-def test_non_square_dem(tmp_path):
+def test_non_square_dem(cl_env, tmp_path):
     path = tmp_path / "wide.exr"
     write(path, np.zeros((8, 16), np.float32), "float")
     with pytest.raises(InputError, match="wide.exr.*16x8"):
-        heights(dem_params(path, 16), seed=0)
+        heights(cl_env, dem_params(path, 16), seed=0)
 
 
 def test_text_file_with_image_extension(tmp_path):
@@ -143,13 +143,13 @@ def test_text_file_with_image_extension(tmp_path):
         dem.read_dem(path)
 
 
-def test_run_resolves_dem_path_against_project_root(tmp_path):
+def test_run_resolves_dem_path_against_project_root(cl_env, tmp_path):
     from pipeline.contract import RunContext
     from stages.heightmap import STAGE
 
     (tmp_path / "data").mkdir()
     write(tmp_path / "data" / "dem.exr", ramp(16).astype(np.float32), "float")
-    ctx = RunContext(stage=STAGE, key="k", out_dir=tmp_path / "out", seed=0, provenance={}, project_root=tmp_path)
+    ctx = RunContext(cl=cl_env, stage=STAGE, key="k", out_dir=tmp_path / "out", seed=0, provenance={}, project_root=tmp_path)
     p = HeightmapParams(generator="dem", dem_path="data/dem.exr", resolution=16, size_m=160.0)
     g = STAGE.run(ctx, {}, p)["heightmap.height"]
     np.testing.assert_allclose(g.data, ramp(16), atol=1e-3)
@@ -165,7 +165,7 @@ def _exr_with_cell_size(path, data, cell):
     out.close()
 
 
-def test_dem_stating_its_cell_size_is_baked_at_its_own_cells(tmp_path):
+def test_dem_stating_its_cell_size_is_baked_at_its_own_cells(cl_env, tmp_path):
     """A 40 x 30 DEM with worldbake:cell_size_m: the world is its 30 rows x 40
     columns at that cell size, the heights its values; the config's
     dem_cell_size_m overrides the file's; resolution and size_m are unused."""
@@ -176,7 +176,7 @@ def test_dem_stating_its_cell_size_is_baked_at_its_own_cells(tmp_path):
     path = tmp_path / "rect.exr"
     _exr_with_cell_size(path, src, 12.5)
     assert dem.dem_cell_size(path) == 12.5
-    ctx = RunContext(stage=STAGE, key="k", out_dir=tmp_path / "out", seed=0, provenance={}, project_root=tmp_path)
+    ctx = RunContext(cl=cl_env, stage=STAGE, key="k", out_dir=tmp_path / "out", seed=0, provenance={}, project_root=tmp_path)
     g = STAGE.run(ctx, {}, dem_params(path, 16))["heightmap.height"]
     assert g.shape == (30, 40) and g.cell_size_m == 12.5 and g.size_m == (500.0, 375.0)
     np.testing.assert_array_equal(g.data, src.astype(np.float32))
@@ -187,13 +187,13 @@ def test_dem_stating_its_cell_size_is_baked_at_its_own_cells(tmp_path):
     assert window.origin_m == (5 * 12.5, 4 * 12.5)
 
 
-def test_geotiff_pixel_scale_is_the_cell_size(tmp_path):
+def test_geotiff_pixel_scale_is_the_cell_size(cl_env, tmp_path):
     tifffile = pytest.importorskip("tifffile")
     src = np.random.default_rng(0).random((30, 40)).astype(np.float32) * 100
     for name, scale, big in (("geo.tif", (10.0, 10.0, 0.0), False), ("big.tif", (2.5, 2.5, 0.0), True)):
         tifffile.imwrite(tmp_path / name, src, bigtiff=big, extratags=[(33550, 12, 3, scale, False)])
         assert dem.dem_cell_size(tmp_path / name) == scale[0]
-        h, info = heights(dem_params(tmp_path / name, 16), seed=0)
+        h, info = heights(cl_env, dem_params(tmp_path / name, 16), seed=0)
         assert h.shape == (30, 40) and info["dem_cell_size_m"] == scale[0]
     tifffile.imwrite(tmp_path / "plain.tif", src)
     assert dem.dem_cell_size(tmp_path / "plain.tif") is None

@@ -5,14 +5,16 @@ from scipy.ndimage import gaussian_filter
 
 from stages.heightmap import noise
 from stages.heightmap.stage import HeightmapParams, heights
+from pipeline.opencl import get_cl
 
 
 def lowpassed_difference(kw, coarse, fine, sigma=2.0, seed=3):
     """Relative RMS difference between the coarse map and the fine map
     box-downsampled to the coarse grid, both Gaussian blurred by sigma coarse
     cells: rms(a - b) / std(a)."""
-    hc, _ = heights(HeightmapParams(resolution=coarse, **kw), seed)
-    hf, _ = heights(HeightmapParams(resolution=fine, **kw), seed)
+    cl_env = get_cl()  # the device a bake would use (an every_device test's, when it runs)
+    hc, _ = heights(cl_env, HeightmapParams(resolution=coarse, **kw), seed)
+    hf, _ = heights(cl_env, HeightmapParams(resolution=fine, **kw), seed)
     k = fine // coarse
     hf = hf.astype(np.float64).reshape(coarse, k, coarse, k).mean(axis=(1, 3))
     a = gaussian_filter(hc.astype(np.float64), sigma, mode="nearest")
@@ -41,10 +43,10 @@ def test_resolution_independence_512_vs_2048_default_generator():
     assert err < 0.0125, err  # measured 0.005
 
 
-def test_different_seed_is_a_different_map():
+def test_different_seed_is_a_different_map(cl_env):
     """Sanity of the metric: the same comparison between two seeds is large."""
-    hc, _ = heights(HeightmapParams(resolution=128), 3)
-    hd, _ = heights(HeightmapParams(resolution=128), 4)
+    hc, _ = heights(cl_env, HeightmapParams(resolution=128), 3)
+    hd, _ = heights(cl_env, HeightmapParams(resolution=128), 4)
     a, b = (gaussian_filter(h.astype(np.float64), 2.0, mode="nearest") for h in (hc, hd))
     assert np.sqrt(np.mean((a - b) ** 2)) / a.std() > 0.5
 
@@ -61,7 +63,7 @@ def radial_power_spectrum(h):
 
 
 @pytest.mark.parametrize("hurst", [0.5, 1.0])
-def test_fbm_spectral_slope(hurst):
+def test_fbm_spectral_slope(cl_env, hurst):
     """A 2D fBm surface with Hurst exponent H has a radially averaged power
     spectrum P(k) ~ k^-(2H+2). The map is tileable (periodic, so no leakage
     from the borders); the slope is fitted over k = 8..64 cycles per map
@@ -74,7 +76,7 @@ def test_fbm_spectral_slope(hurst):
     for seed in (0, 1):
         s = noise.make_spec(seed=seed, generator="fbm", size_m=float(n), resolution=n, wavelength_m=n / 2.0, octaves=16,
                             lacunarity=2.0, hurst=hurst, relief_m=1.0, base_m=0.0, tileable=True)
-        h, _ = noise.bake(s, (0, 0, n, n))
+        h, _ = noise.bake(cl_env, s, (0, 0, n, n))
         k, p = radial_power_spectrum(h.astype(np.float64))
         m = (k >= 8) & (k <= 64)
         slopes.append(np.polyfit(np.log(k[m]), np.log(p[m]), 1)[0])

@@ -80,9 +80,9 @@ def test_window_from_toml_list():
 
 
 @pytest.mark.parametrize("generator", ["fbm", "ridged", "warped", "fault"])
-def test_run(tmp_path, generator):
+def test_run(cl_env, tmp_path, generator):
     calls = []
-    ctx = RunContext(stage=STAGE, key="test", out_dir=tmp_path, seed=123, provenance={}, project_root=tmp_path,
+    ctx = RunContext(cl=cl_env, stage=STAGE, key="test", out_dir=tmp_path, seed=123, provenance={}, project_root=tmp_path,
                      progress=lambda f, m: calls.append(f))
     p = HeightmapParams(generator=generator, resolution=64, size_m=2048.0, wavelength_m=1024.0, window=(8, 4, 40, 30))
     out = STAGE.run(ctx, {}, p)
@@ -98,18 +98,18 @@ def test_run(tmp_path, generator):
     assert list(tmp_path.iterdir()) == []  # run() writes nothing itself
 
 
-def test_seed_changes_map_and_same_seed_does_not(tmp_path):
+def test_seed_changes_map_and_same_seed_does_not(cl_env, tmp_path):
     def bake(seed):
-        ctx = RunContext(stage=STAGE, key="k", out_dir=tmp_path, seed=seed, provenance={}, project_root=tmp_path)
+        ctx = RunContext(cl=cl_env, stage=STAGE, key="k", out_dir=tmp_path, seed=seed, provenance={}, project_root=tmp_path)
         return STAGE.run(ctx, {}, HeightmapParams(resolution=32))["heightmap.height"].data
     a, b, c = bake(1), bake(1), bake(2)
     assert a.tobytes() == b.tobytes()
     assert not np.array_equal(a, c)
 
 
-def test_negative_and_huge_seeds(tmp_path):
+def test_negative_and_huge_seeds(cl_env, tmp_path):
     for seed in (-5, 2**63 + 17):
-        ctx = RunContext(stage=STAGE, key="k", out_dir=tmp_path, seed=seed, provenance={}, project_root=tmp_path)
+        ctx = RunContext(cl=cl_env, stage=STAGE, key="k", out_dir=tmp_path, seed=seed, provenance={}, project_root=tmp_path)
         h = STAGE.run(ctx, {}, HeightmapParams(resolution=16))["heightmap.height"].data
         assert np.isfinite(h).all()
 
@@ -122,8 +122,8 @@ def test_negative_and_huge_seeds(tmp_path):
     dict(size_m=1e6, resolution=2, wavelength_m=1e6, generator="fault", fault_count=20000, fault_softness_m=1e-3),
     dict(relief_m=1e5, base_m=-1e5, resolution=8, generator="ridged", ridge_offset=2.0, ridge_gain=8.0),
 ])
-def test_extreme_params_stay_finite_and_bounded(tmp_path, kw):
-    ctx = RunContext(stage=STAGE, key="k", out_dir=tmp_path, seed=7, provenance={}, project_root=tmp_path)
+def test_extreme_params_stay_finite_and_bounded(cl_env, tmp_path, kw):
+    ctx = RunContext(cl=cl_env, stage=STAGE, key="k", out_dir=tmp_path, seed=7, provenance={}, project_root=tmp_path)
     p = HeightmapParams(**kw)
     h = STAGE.run(ctx, {}, p)["heightmap.height"].data
     assert np.isfinite(h).all()

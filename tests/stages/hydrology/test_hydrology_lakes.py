@@ -1,4 +1,6 @@
 """Lakes: volume budget, flat surfaces, spilling and merging."""
+import functools
+
 import numpy as np
 import pytest
 
@@ -7,13 +9,15 @@ from stages.hydrology import lakes
 from worldlib.flow import reference as ref
 
 
-def solve(h, depth_m, area=4.0, accumulate=dev.accumulate, merge_sweep=dev.merge_sweep):
+def solve(cl_env, h, depth_m, area=4.0, accumulate=None, merge_sweep=None):
+    accumulate = accumulate or functools.partial(dev.accumulate, cl_env)
+    merge_sweep = merge_sweep or functools.partial(dev.merge_sweep, cl_env)
     h = ref.canonical(h)
     kind = ref.cell_kinds(h)
     raw = np.nan_to_num(h, nan=0.0)
-    F = dev.fill(h, kind, False)
-    code = dev.d8(np.nan_to_num(dev.fill(h, kind, True), nan=0.0), kind, 2.0)
-    code_raw = dev.d8(raw, kind, 2.0)
+    F = dev.fill(cl_env, h, kind, False)
+    code = dev.d8(cl_env, np.nan_to_num(dev.fill(cl_env, h, kind, True), nan=0.0), kind, 2.0)
+    code_raw = dev.d8(cl_env, raw, kind, 2.0)
     runoff = np.where(np.isfinite(h), depth_m * area, 0.0)
     return lakes.solve_lakes(h, kind, F, code, code_raw, runoff, area, accumulate, merge_sweep), h, F
 
@@ -38,14 +42,14 @@ def check(res, h, F):
 
 
 @pytest.mark.parametrize("depth_m", [0.0, 0.01, 0.3, 1.0, 3.0, 50.0])
-def test_budget_and_flat_surfaces(depth_m):
-    res, h, F = solve(two_basins(), depth_m)
+def test_budget_and_flat_surfaces(cl_env, depth_m):
+    res, h, F = solve(cl_env, two_basins(), depth_m)
     check(res, h, F)
 
 
-def test_spill_reaches_downstream_basin():
+def test_spill_reaches_downstream_basin(cl_env):
     # rain only fills A beyond its saddle at 8 m when it has enough water; B lower gets the excess
-    res, h, F = solve(two_basins(), 3.0)  # A (capacity 960 m^3) receives at least 120 cells * 12 m^3
+    res, h, F = solve(cl_env, two_basins(), 3.0)  # A (capacity 960 m^3) receives at least 120 cells * 12 m^3
     a = res.level[9, 8]
     b = res.level[9, 30]
     assert a == pytest.approx(8.0)  # A is full to its saddle
@@ -59,26 +63,26 @@ def test_spill_reaches_downstream_basin():
     assert res.stats["depressions"] == 1 and res.stats["basins"] == 2  # A spills into its sibling B
 
 
-def test_merge_into_one_lake():
-    res, h, F = solve(two_basins(), 50.0)
+def test_merge_into_one_lake(cl_env):
+    res, h, F = solve(cl_env, two_basins(), 50.0)
     assert res.stats["lakes"] == 1
     lv = res.level[res.depth > 0]
     assert np.ptp(lv) == 0 and lv[0] == pytest.approx(10.0)  # both basins and the channel under one level
 
 
-def test_random_terrain_and_reference_accumulation():
+def test_random_terrain_and_reference_accumulation(cl_env):
     rng = np.random.default_rng(2)
     h = (rng.random((25, 31)) * 10).astype(np.float32)
     h[rng.random(h.shape) < 0.03] = np.nan
-    res_d, h2, F = solve(h, 0.7)
+    res_d, h2, F = solve(cl_env, h, 0.7)
     check(res_d, h2, F)
-    res_r, _, _ = solve(h, 0.7, accumulate=lambda c, w: ref.accumulate(c, w))
+    res_r, _, _ = solve(cl_env, h, 0.7, accumulate=lambda c, w: ref.accumulate(c, w))
     np.testing.assert_array_equal(res_d.depth, res_r.depth)
 
 
-def test_no_depressions():
+def test_no_depressions(cl_env):
     yy, xx = np.mgrid[0:10, 0:12]
-    res, h, F = solve((xx + yy).astype(np.float32), 1.0)
+    res, h, F = solve(cl_env, (xx + yy).astype(np.float32), 1.0)
     assert res.stats["lakes"] == 0 and (res.depth == 0).all()
 
 
@@ -121,13 +125,13 @@ def test_hack_exponent_matches_brute_force():
     assert got["longest_flow_path_m"] == pytest.approx(L.max())
 
 
-def merge_inputs(h):
+def merge_inputs(cl_env, h):
     h = ref.canonical(h)
     kind = ref.cell_kinds(h)
-    F = dev.fill(h, kind, False)
+    F = dev.fill(cl_env, h, kind, False)
     D = (kind == ref.INTERIOR) & (F > h)
-    code = dev.d8(np.nan_to_num(dev.fill(h, kind, True), nan=0.0), kind, 2.0)
-    code_lake = np.where(D, dev.d8(np.nan_to_num(h, nan=0.0), kind, 2.0), code).astype(np.int8)
+    code = dev.d8(cl_env, np.nan_to_num(dev.fill(cl_env, h, kind, True), nan=0.0), kind, 2.0)
+    code_lake = np.where(D, dev.d8(cl_env, np.nan_to_num(h, nan=0.0), kind, 2.0), code).astype(np.int8)
     term = lakes.terminals(ref.receivers(code_lake))
     cells = np.flatnonzero(D.ravel())
     cells = cells[np.lexsort((cells, h.astype(np.float64).ravel()[cells]))]
@@ -148,12 +152,12 @@ def merge_cases():
 
 
 @pytest.mark.parametrize("name,h", list(merge_cases()), ids=[c[0] for c in merge_cases()])
-def test_merge_sweep_kernel_equals_reference(name, h):
-    args = merge_inputs(h)
+def test_merge_sweep_kernel_equals_reference(cl_env, name, h):
+    args = merge_inputs(cl_env, h)
     want = lakes.merge_tree_reference(*args)
-    got = dev.merge_sweep(*args)
+    got = dev.merge_sweep(cl_env, *args)
     for f in ("parent", "child_a", "child_b", "birth", "entry_a", "entry_b", "cell_node"):
         np.testing.assert_array_equal(getattr(got, f), getattr(want, f), err_msg=f)
-    res_dev, _, _ = solve(h, 0.5)
-    res_ref, _, _ = solve(h, 0.5, merge_sweep=lakes.merge_tree_reference)
+    res_dev, _, _ = solve(cl_env, h, 0.5)
+    res_ref, _, _ = solve(cl_env, h, 0.5, merge_sweep=lakes.merge_tree_reference)
     np.testing.assert_array_equal(res_dev.depth, res_ref.depth)

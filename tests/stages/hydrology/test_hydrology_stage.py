@@ -8,6 +8,7 @@ from pipeline.contract import Params, RunContext, Stage
 from pipeline.errors import InputError
 from pipeline.grid import Grid
 from stages.hydrology import STAGE, HydrologyParams
+from pipeline.opencl import get_cl
 
 
 def test_contract():
@@ -36,16 +37,18 @@ def test_strict_toml_types():
 
 
 def bake(tmp_path, h, dx=8.0, **kw):
-    ctx = RunContext(stage=STAGE, key="t", out_dir=tmp_path, seed=0, provenance={"stage": "hydrology"},
+    cl_env = get_cl()  # the device a bake would use (an every_device test's, when it runs)
+    ctx = RunContext(cl=cl_env, stage=STAGE, key="t", out_dir=tmp_path, seed=0, provenance={"stage": "hydrology"},
                      project_root=tmp_path)
     out = STAGE.run(ctx, {"terrain": Grid(np.asarray(h, np.float32), dx)}, HydrologyParams(**kw))
     return out, ctx.metrics
 
 
 def small_world(n=96):
+    cl_env = get_cl()  # the device a bake would use (an every_device test's, when it runs)
     from stages.heightmap.stage import HeightmapParams, heights
 
-    h, _ = heights(HeightmapParams(resolution=n, size_m=8 * n, wavelength_m=4 * n), 20261123)
+    h, _ = heights(cl_env, HeightmapParams(resolution=n, size_m=8 * n, wavelength_m=4 * n), 20261123)
     return h
 
 
@@ -153,9 +156,9 @@ def test_all_nodata_is_refused(tmp_path):
         bake(tmp_path, np.full((4, 4), np.nan, np.float32))
 
 
-def test_erosion_moisture_input(tmp_path):
+def test_erosion_moisture_input(cl_env, tmp_path):
     h = small_world(32)
-    ctx = RunContext(stage=STAGE, key="t", out_dir=tmp_path, seed=0, provenance={}, project_root=tmp_path)
+    ctx = RunContext(cl=cl_env, stage=STAGE, key="t", out_dir=tmp_path, seed=0, provenance={}, project_root=tmp_path)
     wet = Grid(np.full(h.shape, 1.0, np.float32), 8.0, ("moisture",))
     out = STAGE.run(ctx, {"terrain": Grid(h, 8.0), "erosion_moisture": wet}, HydrologyParams())
     assert np.allclose(out["hydrology.moisture"].data, 1.0)
@@ -165,14 +168,14 @@ def test_erosion_moisture_input(tmp_path):
     assert (mixed >= dry - 1e-6).all() and (mixed > dry + 1e-3).any()  # wetter where the storm left water
 
 
-def test_hack_law_on_the_default_terrain(tmp_path):
+def test_hack_law_on_the_default_terrain(cl_env, tmp_path):
     """Drainage-network sanity (issue 4, point 6) on the default world's
     terrain (8192 m, default heightmap and seed) at 256^2: the stage's Hack's
     law fits over the channel network lie in 0.5..0.7. The 1024^2 default
     bake reports its own figures in stats.json (0.511 / 0.545 measured)."""
     from stages.heightmap.stage import HeightmapParams, heights
 
-    h, _ = heights(HeightmapParams(resolution=256), 20261123)
+    h, _ = heights(cl_env, HeightmapParams(resolution=256), 20261123)
     _, m = bake(tmp_path, h, dx=8192.0 / 256)
     assert 0.5 <= m["hack_exponent"] <= 0.7, m["hack_exponent"]
     assert 0.5 <= m["hack_exponent_mainstem"] <= 0.7, m["hack_exponent_mainstem"]

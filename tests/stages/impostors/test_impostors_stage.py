@@ -14,15 +14,17 @@ from stages.impostors import STAGE
 from stages.impostors.stage import ImpostorsParams
 
 from .helpers import make_plants
+from pipeline.opencl import get_cl
 
 SMALL = {"frames": 6, "atlas_px": 256, "min_frame_px": 32, "small_plant_frame_px": 32, "samples": 1, "ao_rays": 1,
          "slice_px": 32, "grass_slice_px": 32, "card_px": 32, "heldout_px": 48, "heldout_samples": 2, "heldout_stride": 54}
 
 
 def _run(folder: Path, plants: Path, placed, params=SMALL, units=None):
+    cl_env = get_cl()  # the device a bake would use (an every_device test's, when it runs)
     folder.mkdir(parents=True, exist_ok=True)
     p = ImpostorsParams.model_validate(params)
-    ctx = RunContext(stage=STAGE, key="test", out_dir=folder, seed=7,
+    ctx = RunContext(cl=cl_env, stage=STAGE, key="test", out_dir=folder, seed=7,
                      provenance={"stage": "impostors", "version": 1, "key": "test", "params": canonical_params(p),
                                  "seed": 7}, project_root=Path("."), units=units)
     inputs = {"plants": plants}

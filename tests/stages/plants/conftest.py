@@ -2,6 +2,8 @@
 once at its default size; everything else uses small L-systems)."""
 import pytest
 
+from pipeline.opencl import get_cl
+
 from stages.plants.plant import Settings, build_plant
 from stages.plants.stage import PRESETS
 
@@ -11,7 +13,7 @@ SEED = 20261123
 @pytest.fixture(scope="session")
 def preset_builds():
     """Every preset at full size, world seed SEED, default settings."""
-    return {name: build_plant(name, spec, SEED, Settings()) for name, spec in sorted(PRESETS.items())}
+    return {name: build_plant(name, spec, SEED, Settings(cl=get_cl())) for name, spec in sorted(PRESETS.items())}
 
 
 @pytest.fixture(scope="session")

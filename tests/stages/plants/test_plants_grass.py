@@ -32,10 +32,10 @@ def test_control_point_sits_above_the_root():
 
 
 @pytest.mark.parametrize("n", range(1, 11))
-def test_blades_have_2n_minus_1_good_triangles(n):
+def test_blades_have_2n_minus_1_good_triangles(cl_env, n):
     g = GrassSpec(blades=50, segments=n)
     rec = grass.blade_records(g, np.random.default_rng(2))
-    part = grass.blades(rec, n, g.taper)
+    part = grass.blades(cl_env, rec, n, g.taper)
     assert part.n_tris == 50 * (2 * n - 1)
     pos, f = part.welded()
     tri = pos[f]
@@ -52,16 +52,16 @@ def test_blades_have_2n_minus_1_good_triangles(n):
     assert tips.sum() == 50
 
 
-def test_rows_follow_curvature_and_beat_uniform_rows():
+def test_rows_follow_curvature_and_beat_uniform_rows(cl_env):
     g = GrassSpec(blades=48)
     rec = grass.blade_records(g, np.random.default_rng(3))
     rows = grass.row_parameters(rec, 2)
     assert np.all(rows[:, 0] == 0) and np.all(rows[:, -1] == 1) and np.all(np.diff(rows, axis=1) > 0)
-    ref = grass.blades(rec, 32, g.taper).welded()
-    adaptive = lod.hausdorff(ref, grass.blades(rec, 2, g.taper).welded(), 5000)["max"]
+    ref = grass.blades(cl_env, rec, 32, g.taper).welded()
+    adaptive = lod.hausdorff(ref, grass.blades(cl_env, rec, 2, g.taper).welded(), 5000)["max"]
     from stages.plants import geometry
     uniform_rows = np.tile(np.linspace(0, 1, 3, dtype=np.float32), (len(rec), 1))
-    uni = Part(geometry.grass_blades(rec, uniform_rows, g.taper), grass.blade_triangles(len(rec), 2), np.arange(len(rec) * 5))
+    uni = Part(geometry.grass_blades(cl_env, rec, uniform_rows, g.taper), grass.blade_triangles(len(rec), 2), np.arange(len(rec) * 5))
     assert adaptive < lod.hausdorff(ref, uni.welded(), 5000)["max"]
 
 

@@ -11,6 +11,7 @@ from stages.plants import cards, measure, textures
 from stages.plants.mesh import Part
 from stages.plants.reference import VERT
 from stages.plants.stage import PRESETS
+from pipeline.opencl import get_cl
 
 TREES = ("broadleaf", "conifer")
 
@@ -22,12 +23,13 @@ def _rgba(res):
 @pytest.fixture(scope="module")
 def looks(preset_builds):
     """Crown opacity and areas of every preset at every LOD."""
+    cl_env = get_cl()  # the device a bake would use (an every_device test's, when it runs)
     out = {}
     for name in TREES + ("shrub",):
         res = preset_builds[name]
         cov = res.cards.coverage if res.cards is not None else None
         rgba = _rgba(res) if res.cards is not None else None
-        out[name] = [{"opacity": measure.crown_opacity(parts, PRESETS[name], rgba)["mean"],
+        out[name] = [{"opacity": measure.crown_opacity(cl_env, parts, PRESETS[name], rgba)["mean"],
                       "foliage": measure.foliage_area(parts, cov, measure.cards_per_cluster(PRESETS[name], cov is not None)),
                       "wood": measure.surface_area(parts.get("Wood"))}
                      for parts in res.lods]
@@ -58,23 +60,23 @@ def _square(x0, x1, y0=0.0, y1=1.0, z=0.0):
     return Part(v, np.array([[0, 1, 2], [0, 2, 3]]), np.arange(4))
 
 
-def test_crown_opacity_of_two_squares_with_a_gap_is_two_thirds():
+def test_crown_opacity_of_two_squares_with_a_gap_is_two_thirds(cl_env):
     """Two opaque unit squares one width apart, seen face on: the hull is
     3 x 1, two thirds of it covered."""
     leaves = Part.concat([_square(0.0, 1.0), _square(2.0, 3.0)])
     parts = {"Leaves": leaves}
     spec = PRESETS["shrub"].model_copy(update={})
     opaque = np.ones((8, 8, 4), np.float32)
-    co = measure.crown_opacity(parts, spec, opaque, azimuths=1, size=240)
+    co = measure.crown_opacity(cl_env, parts, spec, opaque, azimuths=1, size=240)
     assert abs(co["mean"] - 2.0 / 3.0) < 0.02
     # a texture transparent on its right half halves each square: hull 2.5 wide, 1 covered
     half = opaque.copy()
     half[:, 4:, 3] = 0.0
-    co = measure.crown_opacity(parts, spec, half, azimuths=1, size=240)
+    co = measure.crown_opacity(cl_env, parts, spec, half, azimuths=1, size=240)
     assert abs(co["mean"] - 1.0 / 2.5) < 0.02
 
 
-def test_the_opposite_azimuth_measures_what_a_render_from_there_would():
+def test_the_opposite_azimuth_measures_what_a_render_from_there_would(cl_env):
     """crown_opacity renders half of an even number of azimuths: the other
     half (opposite views, the same lines of sight) must equal the value of
     the plant turned by 180 degrees seen from the first azimuth."""
@@ -86,11 +88,11 @@ def test_the_opposite_azimuth_measures_what_a_render_from_there_would():
     spec = PRESETS["shrub"].model_copy(update={})
     cut = np.ones((8, 8, 4), np.float32)
     cut[2:5, 5:, 3] = 0.0
-    two = measure.crown_opacity({"Leaves": leaves}, spec, cut, azimuths=2, size=96)
+    two = measure.crown_opacity(cl_env, {"Leaves": leaves}, spec, cut, azimuths=2, size=96)
     turned = Part(leaves.verts.copy(), leaves.tris, leaves.weld)
     turned.verts[:, [0, 2]] *= -1.0
     turned.verts[:, [3, 5]] *= -1.0
-    one = measure.crown_opacity({"Leaves": turned}, spec, cut, azimuths=1, size=96)
+    one = measure.crown_opacity(cl_env, {"Leaves": turned}, spec, cut, azimuths=1, size=96)
     assert 0.05 < one["mean"] < 0.95
     assert two["per_azimuth"][1] == pytest.approx(one["mean"], abs=0.01)
 
@@ -103,14 +105,14 @@ def test_foliage_area_counts_card_coverage():
 
 
 @pytest.mark.parametrize("name", ["conifer", "broadleaf", "shrub", "meadow_flower"])
-def test_card_bake_is_a_textured_cluster(name):
-    b = cards.bake(PRESETS[name], 7, size=64)
+def test_card_bake_is_a_textured_cluster(cl_env, name):
+    b = cards.bake(cl_env, PRESETS[name], 7, size=64)
     assert 0.05 < b.coverage < 0.95
     assert b.alpha.min() == 0.0 and b.alpha.max() == 1.0
     assert np.allclose(np.linalg.norm(b.normal, axis=-1), 1.0, atol=1e-4) and (b.normal[..., 2] >= 0).all()
     green = b.albedo[b.alpha >= 0.5]
     assert np.median(green[:, 1]) > np.median(green[:, 0])  # foliage is green
-    again = cards.bake(PRESETS[name], 7, size=64)
+    again = cards.bake(cl_env, PRESETS[name], 7, size=64)
     assert np.array_equal(b.albedo, again.albedo) and np.array_equal(b.alpha, again.alpha)
     uv = b.template.rows[:, 6:8]
     assert uv.min() == 0.0 and uv.max() == 1.0

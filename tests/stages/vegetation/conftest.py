@@ -19,10 +19,10 @@ def synthetic_height(rows: int, cols: int, dx: float, seed: int = 0) -> np.ndarr
     return h.astype(np.float32)
 
 
-def on_pocl() -> bool:
-    return "portable computing language" in get_cl().device.platform.name.lower()
+def on_pocl(env) -> bool:
+    return "portable computing language" in env.device.platform.name.lower()
 
 
 @pytest.fixture(scope="session")
 def pocl() -> bool:
-    return on_pocl()
+    return on_pocl(get_cl())

@@ -61,7 +61,7 @@ def test_parallel_rounds_equal_the_sequential_rule():
     assert (d >= (r[:, None, 2] + r[None, :, 2]) * (1 - 1e-6)).all()
 
 
-def test_population_reaches_a_plateau_and_species_coexist():
+def test_population_reaches_a_plateau_and_species_coexist(cl_env):
     """Two identical species on a uniform suitable field: the population
     settles (self-thinning) and neither takes over."""
     base = VegetationParams().species["conifer"]
@@ -69,7 +69,7 @@ def test_population_reaches_a_plateau_and_species_coexist():
     p = VegetationParams(species={"a": base.model_dump(), "b": twin.model_dump()}, grow=["a", "b"],
                          years=300, step_years=10)
     suit = np.ones((2, 48, 48), np.float32)
-    res = eco.simulate(suit, eco.SimGrid(48, 48, 8.0), p, ["a", "b"], 3, dev)
+    res = eco.simulate(suit, eco.SimGrid(48, 48, 8.0), p, ["a", "b"], 3, dev.on(cl_env))
     st = res.stats
     assert st["population_after_first_thinning"] < st["population_start"]  # it thins itself
     assert st["plateau_relative_std"] < 0.05
@@ -77,7 +77,7 @@ def test_population_reaches_a_plateau_and_species_coexist():
     assert st["share_evenness"] > 0.95
 
 
-def test_relative_yield_follows_the_winner():
+def test_relative_yield_follows_the_winner(cl_env):
     """Where one species is more suitable it wins (its strength scales with
     suitability): its relative yield is high and the other's low; alone, a
     species' relative yield is about 1."""
@@ -87,15 +87,15 @@ def test_relative_yield_follows_the_winner():
     suit = np.zeros((2, 40, 80), np.float32)
     suit[0, :, :40], suit[1, :, :40] = 1.0, 0.3
     suit[0, :, 40:], suit[1, :, 40:] = 0.3, 1.0
-    res = eco.simulate(suit, eco.SimGrid(80, 40, 8.0), p, names, 11, dev)
-    alone = eco.alone_density(p, names, 8.0, 11, dev)
+    res = eco.simulate(suit, eco.SimGrid(80, 40, 8.0), p, names, 11, dev.on(cl_env))
+    alone = eco.alone_density(p, names, 8.0, 11, dev.on(cl_env))
     assert (np.diff(alone, axis=1) >= -0.05).all() and (alone[:, -1] > 0.3).all()  # more suitable, denser
     ry = eco.relative_yield(res, p, suit, alone, 8.0, (40, 80))
     assert ry.min() >= 0 and ry.max() <= 1
     assert ry[0, 5:35, 5:30].mean() > 0.7 > 0.4 > ry[1, 5:35, 5:30].mean()
     assert ry[1, 5:35, 50:75].mean() > 0.7 > 0.4 > ry[0, 5:35, 50:75].mean()
     solo = p.model_copy(update={"grow": ["conifer"]})
-    one = eco.simulate(suit[:1], eco.SimGrid(80, 40, 8.0), solo, ["conifer"], 11, dev)
+    one = eco.simulate(suit[:1], eco.SimGrid(80, 40, 8.0), solo, ["conifer"], 11, dev.on(cl_env))
     ry1 = eco.relative_yield(one, solo, suit[:1], alone[:1], 8.0, (40, 80))
     assert abs(ry1[0, 5:35, 5:75].mean() - 1.0) < 0.15
     assert math.isfinite(res.stats["plateau_relative_change"])

@@ -24,8 +24,8 @@ pytestmark = pytest.mark.every_device  # kernels against their references on eac
 DX = 8.0
 
 
-def same(a, b, atol=0.0):
-    if on_pocl() and atol == 0.0:
+def same(env, a, b, atol=0.0):
+    if on_pocl(env) and atol == 0.0:
         np.testing.assert_array_equal(a, b)
     else:
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=max(atol, 1e-5))
@@ -41,20 +41,20 @@ def terrain():
     return synthetic_height(37, 45, DX, seed=3)
 
 
-def test_attributes_match_reference(terrain):
+def test_attributes_match_reference(cl_env, terrain):
     want = ref.attributes(*attr_args(terrain))
     for local in (None, (8, 4)):
-        got = dev.attributes(*attr_args(terrain), local=local)
+        got = dev.attributes(cl_env, *attr_args(terrain), local=local)
         for name, g, w in zip(("slope", "aspect", "grad", "curvature", "sky", "sun"), got, want):
             if name in ("slope", "aspect"):
                 np.testing.assert_allclose(g, w, atol=1e-4, rtol=0, err_msg=name)
             else:
-                same(g, w)
+                same(cl_env, g, w)
 
 
-def test_attributes_physics():
+def test_attributes_physics(cl_env):
     flat = np.full((20, 24), 500.0, np.float32)
-    slope, aspect, grad, curv, sky, sun = dev.attributes(*attr_args(flat))
+    slope, aspect, grad, curv, sky, sun = dev.attributes(cl_env, *attr_args(flat))
     assert np.all(slope == 0) and np.all(curv == 0)
     np.testing.assert_allclose(sky, 1.0, atol=1e-6)
     np.testing.assert_allclose(sun, 1.0, atol=1e-5)  # open flat ground is the reference
@@ -62,8 +62,8 @@ def test_attributes_physics():
     z = (np.arange(30) + 0.5)[:, None] * DX * np.ones((1, 30))
     south = (1000.0 - np.tan(np.radians(30)) * z).astype(np.float32)
     north = (np.tan(np.radians(30)) * z).astype(np.float32)
-    s_s = dev.attributes(*attr_args(south))
-    s_n = dev.attributes(*attr_args(north))
+    s_s = dev.attributes(cl_env, *attr_args(south))
+    s_n = dev.attributes(cl_env, *attr_args(north))
     np.testing.assert_allclose(s_s[0][5:-5, 5:-5], 30.0, atol=1e-3)
     np.testing.assert_allclose(s_s[1][5:-5, 5:-5], 180.0, atol=1e-3)  # faces south
     np.testing.assert_allclose(s_n[1][5:-5, 5:-5] % 360.0, 0.0, atol=1e-3)  # faces north
@@ -71,21 +71,21 @@ def test_attributes_physics():
     # a bowl sees less sky at its bottom than at its rim, and its bottom is concave
     r = np.hypot(*np.meshgrid(np.arange(41) - 20.0, np.arange(41) - 20.0)) * DX
     bowl = (0.002 * r ** 2).astype(np.float32)
-    b = dev.attributes(*attr_args(bowl))
+    b = dev.attributes(cl_env, *attr_args(bowl))
     assert b[4][20, 20] < b[4][20, 35] <= 1.0 and b[3][20, 20] > 0
 
 
-def test_moisture_filter_matches_reference_and_is_normalised(terrain):
+def test_moisture_filter_matches_reference_and_is_normalised(cl_env, terrain):
     m = np.random.default_rng(1).random(terrain.shape).astype(np.float32)
     want = ref.moisture_filter(m, 1.0, 77)
     for local in (None, (4, 4)):
-        same(dev.moisture_filter(m, 1.0, 77, local=local), want)
+        same(cl_env, dev.moisture_filter(cl_env, m, 1.0, 77, local=local), want)
     const = np.full((16, 16), 0.4, np.float32)
     # the weights (4 centre, 2 diagonal, 1 axial) sum to 16: a constant stays itself (the thesis's /12 gave 4/3 of it)
-    np.testing.assert_array_equal(dev.moisture_filter(const, 1.0, 5), const)
+    np.testing.assert_array_equal(dev.moisture_filter(cl_env, const, 1.0, 5), const)
 
 
-def test_suitability_matches_reference_and_respects_ranges(terrain):
+def test_suitability_matches_reference_and_respects_ranges(cl_env, terrain):
     p = VegetationParams()
     names = ["conifer", "broadleaf", "shrub", "grass"]
     tab = preference_table(p, names)
@@ -95,7 +95,7 @@ def test_suitability_matches_reference_and_respects_ranges(terrain):
     blocked[5:9, 5:9] = 1
     want = ref.suitability(terrain, slope, moist, sun, curv, blocked, tab)
     for local in (None, (16,)):
-        same(dev.suitability(terrain, slope, moist, sun, curv, blocked, tab, local=local), want)
+        same(cl_env, dev.suitability(cl_env, terrain, slope, moist, sun, curv, blocked, tab, local=local), want)
     assert np.all(want[:, 5:9, 5:9] == 0)
     for s, name in enumerate(names):
         e = p.species[name]
@@ -109,7 +109,7 @@ def test_suitability_matches_reference_and_respects_ranges(terrain):
     assert one[0, 0] == 1.0
 
 
-def test_splat_matches_reference_and_sums_to_one(terrain):
+def test_splat_matches_reference_and_sums_to_one(cl_env, terrain):
     p = VegetationParams(snow_min_m=900.0, snow_max_m=1100.0, rock_min_m=1000.0, rock_max_m=1300.0)
     slope, _, grad, _, _, _ = ref.attributes(*attr_args(terrain))
     moist = np.random.default_rng(3).random(terrain.shape).astype(np.float32)
@@ -118,7 +118,7 @@ def test_splat_matches_reference_and_sums_to_one(terrain):
     tab = splat_table(p)
     want = ref.splat(terrain, slope, grad, moist, water, tab)
     for local in (None, (32,)):
-        same(dev.splat(terrain, slope, grad, moist, water, tab, local=local), want)
+        same(cl_env, dev.splat(cl_env, terrain, slope, grad, moist, water, tab, local=local), want)
     assert want.min() >= 0.0 and want.max() <= 1.0
     assert np.abs(want.astype(np.float64).sum(-1) - 1.0).max() <= 1e-6
     assert np.all(want[:3, :, 4] == 1.0)  # water is mud
@@ -154,19 +154,19 @@ def _small_sim(backend, local=None, seed=7, **over):
     return eco.simulate(suit, grid, p, names, seed, backend, **kw)
 
 
-def test_ecosystem_kernels_match_reference():
+def test_ecosystem_kernels_match_reference(cl_env):
     want = _small_sim(ref)
     for local in (None, (8, 4)):
-        got = _small_sim(dev, local)
+        got = _small_sim(dev.on(cl_env), local)
         np.testing.assert_array_equal(got.sp, want.sp)
         np.testing.assert_array_equal(got.birth, want.birth)
         assert got.history == want.history
     assert want.history[-1] != want.history[0]  # something happened
-    other = _small_sim(dev, seed=8)
+    other = _small_sim(dev.on(cl_env), seed=8)
     assert not np.array_equal(other.sp, want.sp)
 
 
-def test_poisson_kernel_matches_reference():
+def test_poisson_kernel_matches_reference(cl_env):
     dom = pl.Domain(40, 52, 4.0, (0.0, 0.0))
     rng = np.random.default_rng(4)
     rad = np.where(rng.random((40, 52)) < 0.8, 4.0 + 4.0 * rng.random((40, 52)), 0.0).astype(np.float32)
@@ -176,17 +176,17 @@ def test_poisson_kernel_matches_reference():
     obst = pl._obstacles([(prev, 1.5)], 0.5, dom, 4.0 / np.sqrt(2))
     want, wc, _ = pl.poisson_sample(rad, 4.0, dom, 5, 99, ref, obst)
     for local in (None, (4, 2)):
-        got, gc, _ = pl.poisson_sample(rad, 4.0, dom, 5, 99, dev, obst, local=local)
+        got, gc, _ = pl.poisson_sample(rad, 4.0, dom, 5, 99, dev.on(cl_env), obst, local=local)
         np.testing.assert_array_equal(got, want)
         np.testing.assert_array_equal(gc, wc)
     assert len(want) > 50
 
 
-def test_grass_tufts_match_reference():
+def test_grass_tufts_match_reference(cl_env):
     dens = np.random.default_rng(6).random((30, 33)).astype(np.float32)
     args = (dens, 4.0, 40, 35, 3.1, 0.8, 32 * 4.0, 29 * 4.0, 1234)
     want = ref.grass_tufts(*args)
     for local in (None, (8, 5)):
-        same(dev.grass_tufts(*args, local=local), want)
+        same(cl_env, dev.grass_tufts(cl_env, *args, local=local), want)
     kept = want[want[:, 3] > 0]
     assert 0.3 < len(kept) / len(want) < 0.7  # density is uniform 0..1: about half kept

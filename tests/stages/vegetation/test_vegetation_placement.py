@@ -12,6 +12,7 @@ from worldlib.terrain.mesh import build_terrain_mesh, height_on_mesh
 from pipeline.grid import Grid
 
 from .conftest import synthetic_height
+from pipeline.opencl import get_cl
 
 DX = 4.0
 N = 192
@@ -35,19 +36,20 @@ def targets(p: VegetationParams) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def placed():
+    cl_env = get_cl()  # the device a bake would use (an every_device test's, when it runs)
     p = VegetationParams()
     dom = pl.Domain(N, N, DX, (100.0, 200.0))
     n_t = targets(p)
-    return p, dom, n_t, pl.place_species(p, NAMES, n_t, dom, 42, dev)
+    return p, dom, n_t, pl.place_species(p, NAMES, n_t, dom, 42, dev.on(cl_env))
 
 
-def test_saturation_constant():
+def test_saturation_constant(cl_env):
     """A saturated set of constant radius r holds at least KAPPA / r^2 points
     per m^2 after the default passes (the radius rule relies on it)."""
     p = VegetationParams()
     dom = pl.Domain(151, 151, 4.0, (0.0, 0.0))
     r = 5.0
-    pts, _, _ = pl.poisson_sample(np.full((151, 151), r, np.float32), r, dom, p.poisson_passes, 3, dev)
+    pts, _, _ = pl.poisson_sample(np.full((151, 151), r, np.float32), r, dom, p.poisson_passes, 3, dev.on(cl_env))
     kappa = len(pts) * r * r / (dom.width * dom.depth)
     assert KAPPA <= kappa < KAPPA + 0.05
 
@@ -89,17 +91,17 @@ def test_nothing_where_the_target_is_zero(placed):
         assert (n_t[s][tr, tc] > 0).all()
 
 
-def test_deterministic_and_seeded(placed):
+def test_deterministic_and_seeded(cl_env, placed):
     p, dom, n_t, done = placed
-    again = pl.place_species(p, NAMES, n_t, dom, 42, dev, local=(8, 8))
-    other = pl.place_species(p, NAMES, n_t, dom, 43, dev)
+    again = pl.place_species(p, NAMES, n_t, dom, 42, dev.on(cl_env), local=(8, 8))
+    other = pl.place_species(p, NAMES, n_t, dom, 43, dev.on(cl_env))
     for name in NAMES:
         np.testing.assert_array_equal(again[name].x, done[name].x)
         np.testing.assert_array_equal(again[name].z, done[name].z)
         assert not np.array_equal(other[name].x[:100], done[name].x[:100])
 
 
-def test_other_species_do_not_move(placed):
+def test_other_species_do_not_move(cl_env, placed):
     """Species are placed in order of collision radius (broadleaf, conifer,
     shrub): a change to a later species never moves an earlier one; a change
     to an earlier one moves a later one only near the earlier one's plants
@@ -108,12 +110,12 @@ def test_other_species_do_not_move(placed):
     assert pl.placement_order(p, NAMES) == ["broadleaf", "conifer", "shrub"]
     n2 = n_t.copy()
     n2[2] *= 0.7  # shrubs thinner
-    a = pl.place_species(p, NAMES, n2, dom, 42, dev)
+    a = pl.place_species(p, NAMES, n2, dom, 42, dev.on(cl_env))
     for name in ("broadleaf", "conifer"):
         np.testing.assert_array_equal(a[name].x, done[name].x)
     n3 = n_t.copy()
     n3[0][:, : N // 2] = 0.0  # conifers gone from the west half
-    b = pl.place_species(p, NAMES, n3, dom, 42, dev)
+    b = pl.place_species(p, NAMES, n3, dom, 42, dev.on(cl_env))
     np.testing.assert_array_equal(b["broadleaf"].x, done["broadleaf"].x)
     # shrubs far from every old conifer kept their places
     old_conifer = np.stack([done["conifer"].x, done["conifer"].z], 1)

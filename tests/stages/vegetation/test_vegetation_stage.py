@@ -18,6 +18,7 @@ from stages.vegetation import placement as pl
 from worldlib.terrain.mesh import build_terrain_mesh, height_on_mesh
 
 from .conftest import synthetic_height
+from pipeline.opencl import get_cl
 
 DX = 8.0
 N = 128
@@ -111,8 +112,9 @@ def small_params(**over):
 
 
 def run_stage(tmp: Path, params, inputs=None, seed=SEED):
+    cl_env = get_cl()  # the device a bake would use (an every_device test's, when it runs)
     tmp.mkdir(parents=True, exist_ok=True)
-    ctx = RunContext(stage=STAGE, key="test", out_dir=tmp, seed=seed, provenance={"stage": "vegetation", "seed": seed},
+    ctx = RunContext(cl=cl_env, stage=STAGE, key="test", out_dir=tmp, seed=seed, provenance={"stage": "vegetation", "seed": seed},
                      project_root=tmp)
     return STAGE.run(ctx, inputs or world_inputs(), params), ctx
 

@@ -10,6 +10,7 @@ from pipeline.contract import RunContext
 from pipeline.grid import Grid
 from stages.world import STAGE
 from worldlib.terrain.mesh import build_terrain_mesh, height_on_mesh
+from pipeline.opencl import get_cl
 
 
 def _terrain(rows=33, cols=40, cell=25.0):
@@ -19,7 +20,8 @@ def _terrain(rows=33, cols=40, cell=25.0):
 
 
 def _run(tmp_path, grid, **params):
-    ctx = RunContext(stage=STAGE, key="k", out_dir=tmp_path, seed=0,
+    cl_env = get_cl()  # the device a bake would use (an every_device test's, when it runs)
+    ctx = RunContext(cl=cl_env, stage=STAGE, key="k", out_dir=tmp_path, seed=0,
                      provenance={"stage": "world", "key": "k"}, project_root=tmp_path)
     out = STAGE.run(ctx, {"terrain": grid}, STAGE.params(**params))
     return ctx, out
@@ -118,14 +120,14 @@ def test_ground_weights_equal_the_splat_maps_and_sum_to_one():
     np.testing.assert_allclose(w.sum(axis=-1), 1.0, atol=1e-6)
 
 
-def test_ground_material_udim_tiles_and_normal_map(tmp_path):
+def test_ground_material_udim_tiles_and_normal_map(cl_env, tmp_path):
     from pxr import Usd, UsdShade
 
     from stages.world import ground, reference
 
     terrain = _terrain()
     splat = _splat(*terrain.shape)
-    ctx = RunContext(stage=STAGE, key="k", out_dir=tmp_path, seed=0, provenance={"stage": "world", "key": "k"},
+    ctx = RunContext(cl=cl_env, stage=STAGE, key="k", out_dir=tmp_path, seed=0, provenance={"stage": "world", "key": "k"},
                      project_root=tmp_path)
     out = STAGE.run(ctx, {"terrain": terrain, "splat": splat},
                     STAGE.params(mesh_max_vertices=17, texture_size=32, ground_texel_m=2.0, ground_tile_texels=256))
@@ -154,7 +156,7 @@ def test_ground_material_udim_tiles_and_normal_map(tmp_path):
     assert (ramp[..., 0] < 0.5).all() and np.allclose(ramp[..., 1], 0.5)
 
 
-def test_the_ground_textures_are_reused_while_terrain_and_splat_do_not_change(tmp_path):
+def test_the_ground_textures_are_reused_while_terrain_and_splat_do_not_change(cl_env, tmp_path):
     """A world re-made for its plants (another layer changed, same terrain
     and splat) links the ground textures from the run that baked them: the
     same bytes as a clean run; a new splat bakes them again."""
@@ -166,7 +168,7 @@ def test_the_ground_textures_are_reused_while_terrain_and_splat_do_not_change(tm
 
     def run(out, build, splat_grid, roughness=0.9):
         store = Store(build)
-        ctx = RunContext(stage=STAGE, key="k", out_dir=out, seed=0, provenance={"stage": "world", "key": "k"},
+        ctx = RunContext(cl=cl_env, stage=STAGE, key="k", out_dir=out, seed=0, provenance={"stage": "world", "key": "k"},
                          project_root=tmp_path, units=Units(store.units, store.tmp, "world", {"stage": "world"}))
         out.mkdir(parents=True)
         STAGE.run(ctx, {"terrain": terrain, "splat": splat_grid}, params.model_copy(update={"roughness": roughness}))

@@ -35,36 +35,36 @@ CASES = list(terrains())
 
 @pytest.mark.parametrize("name,h", CASES, ids=[c[0] for c in CASES])
 @pytest.mark.parametrize("eps", [False, True])
-def test_fill_equals_priority_flood(name, h, eps):
+def test_fill_equals_priority_flood(cl_env, name, h, eps):
     h = ref.canonical(h)
     kind = ref.cell_kinds(h)
     want = ref.priority_flood(h, eps, kind)
     for tile, local in ((64, None), (8, 4), (5, 1)):
-        got = dev.fill(h, kind, eps, tile=tile, local=local)
+        got = dev.fill(cl_env, h, kind, eps, tile=tile, local=local)
         np.testing.assert_array_equal(got, want)  # bit-exact, NaN where no-data
     data = kind != ref.NODATA
     assert (got[data] >= h[data]).all()
 
 
 @pytest.mark.parametrize("name,h", CASES, ids=[c[0] for c in CASES])
-def test_epsilon_fill_drains_everything(name, h):
+def test_epsilon_fill_drains_everything(cl_env, name, h):
     h = ref.canonical(h)
     kind = ref.cell_kinds(h)
-    R = dev.fill(h, kind, True)
-    code = dev.d8(np.nan_to_num(R, nan=0.0), kind, 8.0)
+    R = dev.fill(cl_env, h, kind, True)
+    code = dev.d8(cl_env, np.nan_to_num(R, nan=0.0), kind, 8.0)
     np.testing.assert_array_equal(code, ref.d8(np.nan_to_num(R, nan=0.0), kind, 8.0))
     assert not (code == ref.PIT).any()  # every interior cell has a strictly lower neighbour
-    acc = dev.accumulate(code)
+    acc = dev.accumulate(cl_env, code)
     data = kind != ref.NODATA
     assert int(acc[kind == ref.EDGE].astype(np.int64).sum()) == int(data.sum())  # all water reaches an edge
 
 
 @pytest.mark.parametrize("name,h", CASES[:6], ids=[c[0] for c in CASES[:6]])
-def test_d8_and_accumulation_match_reference(name, h):
+def test_d8_and_accumulation_match_reference(cl_env, name, h):
     h = ref.canonical(h)
     kind = ref.cell_kinds(h)
     raw = np.nan_to_num(h, nan=0.0, posinf=0.0)
-    code = dev.d8(raw, kind, 3.0, local=(4, 4))
+    code = dev.d8(cl_env, raw, kind, 3.0, local=(4, 4))
     np.testing.assert_array_equal(code, ref.d8(raw, kind, 3.0))  # raw terrain: pits (-3) allowed
     want = ref.accumulate(code)
     np.testing.assert_array_equal(want, ref.accumulate_sweeps(code))  # seed 003 algorithm 1 agrees
@@ -72,8 +72,8 @@ def test_d8_and_accumulation_match_reference(name, h):
     w = rng.integers(0, 10**12, code.shape)
     want_w = ref.accumulate(code, w)
     for tile, local in ((64, None), (7, 2), (1, 1), (16, 3)):
-        np.testing.assert_array_equal(dev.accumulate(code, tile=tile, local=local), want)
-        np.testing.assert_array_equal(dev.accumulate(code, w, tile=tile, local=local), want_w)
+        np.testing.assert_array_equal(dev.accumulate(cl_env, code, tile=tile, local=local), want)
+        np.testing.assert_array_equal(dev.accumulate(cl_env, code, w, tile=tile, local=local), want_w)
 
 
 def test_quantized_weights_sum_exactly():
@@ -83,7 +83,7 @@ def test_quantized_weights_sum_exactly():
     np.testing.assert_allclose(q / scale, np.nan_to_num(w), rtol=1e-12, atol=1e6 * 2.0**-50)
 
 
-def test_wetness_matches_reference():
+def test_wetness_matches_reference(cl_env):
     rng = np.random.default_rng(5)
     h = ref.canonical((rng.random((24, 33)) * 20).astype(np.float32))
     h[3, 4] = np.nan
@@ -92,7 +92,7 @@ def test_wetness_matches_reference():
     water = rng.random(h.shape).astype(np.float32)
     ext = rng.random(h.shape).astype(np.float32) * 0.5
     args = (h, kind, acc, water, ext, 8.0, 1e-3, 3.0, 12.0)
-    t, m = dev.wetness(*args)
+    t, m = dev.wetness(cl_env, *args)
     tr, mr = ref.wetness(*args)
     np.testing.assert_allclose(t, tr, rtol=2e-6, atol=2e-6)  # OpenCL log: a few ulps
     np.testing.assert_allclose(m, mr, rtol=2e-6, atol=2e-6)
@@ -101,23 +101,23 @@ def test_wetness_matches_reference():
 
 
 @pytest.mark.parametrize("name,h", CASES, ids=[c[0] for c in CASES])
-def test_breach_kernel_equals_reference(name, h):
+def test_breach_kernel_equals_reference(cl_env, name, h):
     h = ref.canonical(h)
     kind = ref.cell_kinds(h)
-    np.testing.assert_array_equal(dev.breach(h, kind), ref.breach(h, kind))  # bit-exact, NaN where no-data
+    np.testing.assert_array_equal(dev.breach(cl_env, h, kind), ref.breach(h, kind))  # bit-exact, NaN where no-data
 
 
-def test_breach_drains_without_filling():
+def test_breach_drains_without_filling(cl_env):
     h = np.full((21, 21), 10.0, np.float32)
     h[5:16, 5:16] = 2.0  # a pit ringed by a 10 m rim
     h[10, 10] = 1.0
     kind = ref.cell_kinds(h)
-    b = dev.breach(h, kind)
+    b = dev.breach(cl_env, h, kind)
     assert (b <= h).all() and b[10, 10] == 1.0  # carved, never raised
-    np.testing.assert_array_equal(dev.fill(b, kind, False), b)  # no depression left (non-ascending paths)
+    np.testing.assert_array_equal(dev.fill(cl_env, b, kind, False), b)  # no depression left (non-ascending paths)
     assert (b < h).sum() >= 5  # a channel was cut through the rim
     # with the epsilon step on top (the stage's routing surface), the pit drains to an edge
-    code = ref.d8(dev.fill(b, kind, True), kind, 1.0)
+    code = ref.d8(dev.fill(cl_env, b, kind, True), kind, 1.0)
     rcv = ref.receivers(code)
     c = 10 * 21 + 10
     hops = 0
@@ -126,7 +126,7 @@ def test_breach_drains_without_filling():
     assert kind.ravel()[c] == ref.EDGE
 
 
-def test_pysheds_agreement():
+def test_pysheds_agreement(cl_env):
     """D8 alignment with pysheds: we use pysheds' neighbour order (N, NE, E,
     SE, S, SW, W, NW), the first steepest neighbour, edge cells as outlets.
     pysheds' fill_depressions equals our fill bit for bit; its flowdir on our
@@ -145,9 +145,9 @@ def test_pysheds_agreement():
     vf = ViewFinder(affine=Affine(8.0, 0, 0, 0, -8.0, 0), shape=h.shape, nodata=np.nan)
     grid = sg.sGrid(viewfinder=vf)
     filled = np.asarray(grid.fill_depressions(Raster(h.astype(np.float64), viewfinder=vf)))
-    np.testing.assert_array_equal(dev.fill(h, kind, False), filled.astype(np.float32))
-    R = dev.fill(h, kind, True)
-    code = dev.d8(R, kind, 8.0)
+    np.testing.assert_array_equal(dev.fill(cl_env, h, kind, False), filled.astype(np.float32))
+    R = dev.fill(cl_env, h, kind, True)
+    code = dev.d8(cl_env, R, kind, 8.0)
     dirmap = np.array([64, 128, 1, 2, 4, 8, 16, 32])
     pfd = np.asarray(grid.flowdir(Raster(R.astype(np.float64), viewfinder=vf)))
     interior = kind == ref.INTERIOR
@@ -155,7 +155,7 @@ def test_pysheds_agreement():
     assert agree > 0.999
     ours = np.where(code >= 0, dirmap[np.clip(code, 0, 7)], 0).astype(np.int64)
     pacc = np.asarray(grid.accumulation(Raster(ours, viewfinder=ViewFinder(affine=vf.affine, shape=h.shape, nodata=0))))
-    mine = dev.accumulate(code).astype(np.float64)
+    mine = dev.accumulate(cl_env, code).astype(np.float64)
     # pysheds counts a cell with no direction (our edge outlets, fdir 0 = its nodata) as weighing 0
     np.testing.assert_array_equal(pacc[interior], mine[interior])
     np.testing.assert_array_equal(pacc[~interior], mine[~interior] - 1)

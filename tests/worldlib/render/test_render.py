@@ -58,11 +58,11 @@ def _compare(a, b, ao_share):
 
 @pytest.mark.parametrize("view", sorted(CAMERAS))
 @pytest.mark.parametrize("ao_rays", [0, 4])
-def test_kernel_matches_reference(view, ao_rays):
+def test_kernel_matches_reference(cl_env, view, ao_rays):
     scene = tiny_scene()
     s = Settings(24, 20, samples=2, ao_rays=ao_rays, ao_radius_m=0.8, seed=7)
-    a = render(scene, CAMERAS[view], s)
-    b = render(scene, CAMERAS[view], s, device=False)
+    a = render(cl_env, scene, CAMERAS[view], s)
+    b = render(None, scene, CAMERAS[view], s)
     assert a.alpha.max() == 1.0 and a.alpha.min() == 0.0  # the view holds the scene and some sky
     assert 0.1 < (a.alpha > 0).mean() < 0.99
     _compare(a, b, 1.0 / max(ao_rays, 1))
@@ -70,30 +70,28 @@ def test_kernel_matches_reference(view, ao_rays):
         assert a.ao[a.alpha > 0].min() < 1.0  # the card shadows the ground
 
 
-def test_alpha_test_cuts_the_card():
+def test_alpha_test_cuts_the_card(cl_env):
     """Through the card's transparent corners the ground (or sky) shows."""
     full = tiny_scene()
     scene = Scene(full.positions, full.normals, full.uv, full.triangles[:4], full.tint[:4], full.texture[:4], full.textures)
     s = Settings(32, 32, samples=1)
-    img = render(scene, Camera((0.0, 0.6, 3.0), (0.0, 0.0, -1.0), ortho_height_m=1.0), s)
+    img = render(cl_env, scene, Camera((0.0, 0.6, 3.0), (0.0, 0.0, -1.0), ortho_height_m=1.0), s)
     # the card spans x, y in [-0.5, 0.5] x [0.1, 1.1]: the view's corners lie in its cut-away corners
     assert img.depth[0, 0] > 3.05 or not np.isfinite(img.depth[0, 0])
     assert abs(img.depth[16, 16] - 3.0) < 1e-3
 
 
 @pytest.mark.parametrize("local", [(8, 8), (4, 2), (1, 1), None])
-def test_deterministic_and_independent_of_work_group(local):
-    from pipeline.opencl import get_cl
-
-    if local is None and get_cl().device.platform.name.startswith("Intel"):
+def test_deterministic_and_independent_of_work_group(cl_env, local):
+    if local is None and cl_env.device.platform.name.startswith("Intel"):
         # Intel's CPU runtime renders coverage wrongly in a third of the pixels when it chooses the
         # work-group size itself, with this kernel and with the one before the wide BVH alike; the
         # renderer always passes LOCAL
         pytest.skip("Intel's CPU runtime with a work-group size of its own choosing")
     scene = tiny_scene(3)
     s = Settings(37, 23, samples=2, ao_rays=3, seed=11)
-    a = render(scene, CAMERAS["persp"], s, local=(8, 8))
-    b = render(scene, CAMERAS["persp"], s, local=local)
+    a = render(cl_env, scene, CAMERAS["persp"], s, local=(8, 8))
+    b = render(cl_env, scene, CAMERAS["persp"], s, local=local)
     for ch in ("albedo", "alpha", "normal", "depth", "ao"):
         assert np.array_equal(getattr(a, ch), getattr(b, ch)), ch
 
@@ -113,7 +111,7 @@ def test_bvh_partitions_the_triangles():
         assert (lo[ids] >= tree.nodes[n, 0:3]).all() and (hi[ids] <= tree.nodes[n, 4:7]).all()
 
 
-def test_many_triangles_against_reference():
+def test_many_triangles_against_reference(cl_env):
     """A BVH several levels deep: random small triangles in a box."""
     rng = np.random.default_rng(5)
     c = rng.random((300, 3)) * 2 - 1
@@ -122,7 +120,7 @@ def test_many_triangles_against_reference():
     scene = Scene(P, N, np.zeros((len(P), 2)), np.arange(len(P)).reshape(-1, 3), rng.random((300, 3)), -1)
     s = Settings(20, 20, samples=2, ao_rays=2, ao_radius_m=0.5, seed=1)
     cam = Camera((0.0, 0.0, 4.0), (0.0, 0.0, -1.0), fov_y_deg=40.0)
-    _compare(render(scene, cam, s), render(scene, cam, s, device=False), 0.5)
+    _compare(render(cl_env, scene, cam, s), render(None, scene, cam, s), 0.5)
 
 
 def test_bad_scene_is_refused():
@@ -175,7 +173,7 @@ def test_wide_bvh_holds_every_triangle_once_inside_its_boxes():
     assert 3 * wide.depth + 4 <= 80
 
 
-def test_median_fallback_for_deep_trees(monkeypatch):
+def test_median_fallback_for_deep_trees(cl_env, monkeypatch):
     """Below MEDIAN_DEPTH nodes split at their median: the tree is still a
     partition and renders as the reference does."""
     monkeypatch.setattr(bvh, "MEDIAN_DEPTH", 2)
@@ -186,23 +184,23 @@ def test_median_fallback_for_deep_trees(monkeypatch):
     assert ints[ints[:, 7] > 0, 7].max() <= 4
     s = Settings(20, 20, samples=2, ao_rays=2, ao_radius_m=0.5, seed=2)
     cam = Camera((0.3, 0.2, 4.0), (-0.05, 0.0, -1.0), fov_y_deg=40.0)
-    _compare(render(scene, cam, s), render(scene, cam, s, device=False), 0.5)
+    _compare(render(cl_env, scene, cam, s), render(None, scene, cam, s), 0.5)
 
 
-def test_alpha_tested_cards_against_reference():
+def test_alpha_tested_cards_against_reference(cl_env):
     """Many leaves of mixed cut-out, opaque-textured and untextured triangles,
     orthographic (the impostor atlas' view) and perspective."""
     scene = _random_cards(400, 6)
-    prepared = Prepared(scene)
+    prepared = Prepared(cl_env, scene)
     s = Settings(24, 24, samples=2, ao_rays=1, ao_radius_m=0.3, seed=9)
     for cam in (Camera((0.0, 0.0, 3.0), (0.0, 0.0, -1.0), ortho_height_m=2.4),
                 Camera((2.5, 1.5, 2.0), (-2.5, -1.5, -2.0), fov_y_deg=50.0)):
-        a, b = prepared.render(cam, s), render(scene, cam, s, device=False)
+        a, b = prepared.render(cam, s), render(None, scene, cam, s)
         assert 0.1 < a.alpha.mean() < 0.95 and a.ao.min() < 1.0
         _compare(a, b, 1.0)
 
 
-def test_equal_distances_go_to_the_lowest_triangle_id():
+def test_equal_distances_go_to_the_lowest_triangle_id(cl_env):
     """Coincident triangles: the kernel, whatever its BVH's order, keeps the
     first in the scene, as the reference does."""
     quad = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
@@ -213,21 +211,21 @@ def test_equal_distances_go_to_the_lowest_triangle_id():
     scene = Scene(P, np.tile([0.0, 0.0, 1.0], (len(P), 1)), np.zeros((len(P), 2)), T, tint[::-1].copy(), -1)
     s = Settings(8, 8, samples=1)
     cam = Camera((0.1, 0.05, 2.0), (0.0, 0.0, -1.0), ortho_height_m=1.5)
-    a, b = render(scene, cam, s), render(scene, cam, s, device=False)
+    a, b = render(cl_env, scene, cam, s), render(None, scene, cam, s)
     assert np.array_equal(a.albedo, b.albedo)
     assert np.allclose(a.albedo, 0.9)
 
 
 @pytest.mark.parametrize("n", [0, 1, 3])
-def test_tiny_scenes_render_through_a_prepared_scene(n):
+def test_tiny_scenes_render_through_a_prepared_scene(cl_env, n):
     """No triangles (a root without children) and a root that is one leaf."""
     full = _random_cards(3, 8, size=1.5)
     scene = Scene(full.positions, full.normals, full.uv, full.triangles[:n], full.tint[:n], full.texture[:n], full.textures)
     s = Settings(12, 12, samples=2, ao_rays=1, ao_radius_m=0.5, seed=3)
     cam = Camera((0.0, 0.0, 4.0), (0.0, 0.0, -1.0), ortho_height_m=3.0)
-    a = Prepared(scene).render(cam, s)
+    a = Prepared(cl_env, scene).render(cam, s)
     if n == 0:
         assert a.alpha.max() == 0.0 and np.isinf(a.depth).all()
     else:
         assert a.alpha.max() > 0.0
-        _compare(a, render(scene, cam, s, device=False), 1.0)
+        _compare(a, render(None, scene, cam, s), 1.0)

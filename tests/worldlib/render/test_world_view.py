@@ -77,28 +77,28 @@ def tiny_world(tmp_path_factory):
     return d / "world.usda"
 
 
-def test_world_scene_holds_ground_and_billboards(tiny_world):
-    scene, summary = world_view.build_world_scene(tiny_world, min_instance_height_m=1.0, progress=lambda m: None)
+def test_world_scene_holds_ground_and_billboards(cl_env, tiny_world):
+    scene, summary = world_view.build_world_scene(cl_env, tiny_world, min_instance_height_m=1.0, progress=lambda m: None)
     assert summary["instances"] == {"tree": 2} and summary["skipped_small"] == {"tree": 1}
     assert scene.n_triangles == 2 + 2 * 6  # the ground quad, three quads per drawn instance
     assert summary["bounds"][0][0] == -20 and summary["bounds"][1][0] == 20
 
 
-def test_world_picture_shows_ground_texture_trees_and_tints(tiny_world):
+def test_world_picture_shows_ground_texture_trees_and_tints(cl_env, tiny_world):
     from worldlib.render import Prepared, Settings
 
-    scene, _ = world_view.build_world_scene(tiny_world, min_instance_height_m=1.0, progress=lambda m: None)
+    scene, _ = world_view.build_world_scene(cl_env, tiny_world, min_instance_height_m=1.0, progress=lambda m: None)
     top = Camera((0.0, 50.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0), ortho_height_m=20.0)
-    img = Prepared(scene).render(top, Settings(80, 40, samples=1))
+    img = Prepared(cl_env, scene).render(top, Settings(80, 40, samples=1))
     west, east = img.albedo[20, 5], img.albedo[20, 75]
     assert west[0] > 2 * west[2] and east[2] > 2 * east[0]  # the UDIM tiles where they belong
     side = Camera((0.0, 2.0, 40.0), (0.0, 0.0, -1.0), ortho_height_m=8.0)
-    img = Prepared(scene).render(side, Settings(200, 40, samples=1))
+    img = Prepared(cl_env, scene).render(side, Settings(200, 40, samples=1))
     row = img.albedo[18]
     plain, tinted = row[50], row[150]  # x = -10 and x = +10
     assert plain[1] > 2 * plain[0]  # a green tree
     assert tinted[0] / tinted[1] > 2.5 * plain[0] / plain[1]  # the tint (1.5, 0.5, 0.5) reddens the second
-    rgba = world_view.render_world(tiny_world, 80, 40, camera=top, samples=1, ao_rays=0, progress=lambda m: None)
+    rgba = world_view.render_world(cl_env, tiny_world, 80, 40, camera=top, samples=1, ao_rays=0, progress=lambda m: None)
     assert rgba.shape == (40, 80, 4) and rgba.dtype == np.uint8 and (rgba[..., 3] == 255).all()
 
 

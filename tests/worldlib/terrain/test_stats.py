@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline import terrain_stats as ts
+from worldlib.terrain import stats as ts
 
 
 def _d8_steepest(h, dx):

@@ -1,0 +1,38 @@
+"""Wetness and moisture (the stage's step 6): ln(a / tan b), open water and
+the erosion stage's water presence (kernel wetness)."""
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.errors import InputError
+from worldlib.flow import device as dev
+
+from .routing import Land
+
+
+def water_proximity(open_water: np.ndarray, dx: float, decay_m: float) -> np.ndarray:
+    """Moisture from open water: exp(-distance / decay_m), 0 everywhere without water."""
+    if not open_water.any():
+        return np.zeros(open_water.shape)
+    from scipy import ndimage
+
+    dist = ndimage.distance_transform_edt(~open_water) * dx
+    return np.exp(-dist / decay_m)
+
+
+def erosion_moisture(ext, shape: tuple[int, int]) -> np.ndarray:
+    """The erosion stage's running average of water presence, 0..1 (0 without it)."""
+    if ext is None:
+        return np.zeros(shape)
+    M = np.nan_to_num(ext.channel(ext.channels[0]).astype(np.float64), nan=0.0)
+    if M.shape != shape:
+        raise InputError(f"hydrology: erosion moisture is {M.shape}, the terrain {shape}")
+    return np.clip(M, 0.0, 1.0)
+
+
+def wetness_and_moisture(env, land: Land, twi_area: np.ndarray, open_water: np.ndarray, ext, params):
+    """The wetness index and moisture 0..1 per cell, on the OpenCL device `env`."""
+    m_water = water_proximity(open_water, land.dx, params.moisture_water_distance_m)
+    m_ext = erosion_moisture(ext, land.shape)
+    return dev.wetness(env, land.h, land.kind, twi_area, m_water, m_ext, land.dx, params.wetness_min_slope,
+                       params.wetness_dry, params.wetness_wet)
