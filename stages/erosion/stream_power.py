@@ -39,6 +39,7 @@ from typing import Callable
 import numpy as np
 
 from pipeline.errors import StageError
+from worldlib.flow import reference as flowref
 from worldlib.flow.reference import DC, DR
 
 KERNELS = Path(__file__).with_name("stream_power.cl")
@@ -189,7 +190,6 @@ def routing_surface(env, h: np.ndarray, kind: np.ndarray, flat_routing: str) -> 
     from scipy import ndimage
 
     from worldlib.flow import device as flow
-    from worldlib.flow import reference as flowref
 
     h32 = flowref.canonical(np.asarray(h, np.float32))
     if flat_routing == "epsilon":
@@ -401,7 +401,7 @@ class _DeviceMFDSolver:
              p_exp: float, channel_area_m2: float, scale: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         cl, q = self.cl, self.env.queue
         z = np.ascontiguousarray(z, np.float32)
-        rows, cols, n = np.int32(self.rows), np.int32(self.cols), self.rows * self.cols
+        rows, cols = np.int32(self.rows), np.int32(self.cols)
         inside = np.asarray(interior, bool)
         cl.enqueue_copy(q, self.d_h, np.ascontiguousarray(h, np.float64))
         cl.enqueue_copy(q, self.d_order, ascending_order(z))
@@ -432,108 +432,199 @@ def run(env, height: np.ndarray, dx: float, years: float, dt_years: float, k: fl
     area; diffusivity: hillslope diffusion (m^2/year, implicit, isotropic);
     breach: carve the closed depressions out first (complete breaching);
     mfd_isotropic: scale the mfd incision so that it is the same on a plane
-    of any direction (mfd_isotropy)."""
-    from worldlib.flow import device as flow
-    from worldlib.flow import reference as flowref
+    of any direction (mfd_isotropy).
 
-    from . import hillslope
+    Steps: check and breach the start (_start); per step, uplift, then the
+    mfd step (_mfd_step) or the single-receiver one (_tree_step); the
+    budgets (_result)."""
+    h, kind, breached_m3 = _start(env, height, dx, years, breach)
+    steps = max(1, math.ceil(years / dt_years - 1e-9)) if years > 0 else 0
+    dt = years / steps if steps else 0.0
+    options = _Options(routing, channel_area_m2, diffusivity_m2_per_year, mfd_exponent, flat_routing, fill_lakes,
+                       mfd_isotropic)
+    solver = _Solver(env, kind, dx, _Law(k, m, n_exp, dt), options,
+                     _solve_function(env, h.shape, n_exp, options, step_fn, mfd_step_fn))
+    height_start = h.copy()
+    volumes = _Volumes()
+    uplift_step = np.where(kind != flowref.INTERIOR, 0.0, uplift_m_per_year * dt)  # m per step, 0 at base level
+    uplift_step_m3 = float(uplift_step.sum()) * solver.cell_area
+    for s in range(steps):
+        h_up = h + uplift_step
+        volumes.uplifted += uplift_step_m3
+        h = _mfd_step(solver, h_up, s, volumes) if routing == "mfd" else _tree_step(solver, h_up, s, volumes)
+        if progress and (s % max(1, steps // 20) == 0 or s == steps - 1):
+            progress((s + 1) / steps, f"stream power {s + 1}/{steps} ({(s + 1) * dt:.3g} years)")
+    return _result(h, height_start, solver, steps, volumes, breached_m3)
+
+
+def _start(env, height: np.ndarray, dx: float, years: float, breach: bool) -> tuple[np.ndarray, np.ndarray, float]:
+    """The float64 heights to erode (breached on the OpenCL device `env` when
+    asked), the cell kinds (map edges are base level, fixed) and the volume
+    breaching carved out (m^3)."""
+    from worldlib.flow import device as flow
 
     h = np.asarray(height, np.float64).copy()
     if not np.isfinite(h).all():
         raise StageError("erosion: stream power got non-finite heights")
-    rows, cols = h.shape
     kind = flowref.cell_kinds(h.astype(np.float32))
-    base = kind != flowref.INTERIOR  # map edges: base level, fixed
     breached_m3 = 0.0
     if breach and years > 0:
         carved = flow.breach(env, flowref.canonical(h.astype(np.float32)), kind).astype(np.float64)
         breached_m3 = float((h - carved).sum()) * dx * dx
         h = carved
-    height_start = h.copy()
-    diffusion_out = 0.0
-    lake_fill = 0.0
-    steps = max(1, math.ceil(years / dt_years - 1e-9)) if years > 0 else 0
-    dt = years / steps if steps else 0.0
-    if routing == "mfd":
+    return h, kind, breached_m3
+
+
+@dataclass(frozen=True)
+class _Law:
+    """The stream-power law dh/dt = U - K A^m S^n and the step it is solved over."""
+
+    k: float  # m^(1-2m)/year
+    m: float
+    n_exp: float
+    dt: float  # years per step
+
+
+@dataclass(frozen=True)
+class _Options:
+    """How the flow is routed and what else shapes the land (run's arguments of the same names)."""
+
+    routing: str  # "d8", "rho8" or "mfd"
+    channel_area_m2: float
+    diffusivity_m2_per_year: float
+    mfd_exponent: float
+    flat_routing: str
+    fill_lakes: bool
+    mfd_isotropic: bool
+
+
+@dataclass(frozen=True)
+class _Solver:
+    """What every step reads: the OpenCL device `env`, the grid, the law, the
+    options and the implicit solve (the device's, or the test's reference)."""
+
+    env: object
+    kind: np.ndarray  # worldlib.flow.reference.cell_kinds: interior cells erode, the rest is base level
+    dx: float
+    law: _Law
+    options: _Options
+    solve: Callable
+
+    @property
+    def cell_area(self) -> float:
+        return self.dx * self.dx
+
+    @property
+    def interior(self) -> np.ndarray:
+        return self.kind == flowref.INTERIOR
+
+
+@dataclass
+class _Volumes:
+    """The volumes (m^3) the budgets add up over the steps."""
+
+    eroded: float = 0.0
+    uplifted: float = 0.0
+    out: float = 0.0  # what arrived at base level
+    diffusion_out: float = 0.0
+    lake_fill: float = 0.0
+    worst_newton: int = 0
+
+
+def _solve_function(env, shape: tuple[int, int], n_exp: float, options: _Options, step_fn: Callable | None,
+                    mfd_step_fn: Callable | None) -> Callable:
+    """The implicit solve of the chosen routing: the test's function, or the device's on `env`."""
+    rows, cols = shape
+    if options.routing == "mfd":
         if n_exp != 1.0:
             raise StageError(f"erosion: mfd routing solves stream power with n = 1 only (got n = {n_exp:g})")
-        mfd_solve = mfd_step_fn or _DeviceMFDSolver(env, rows, cols).step
-        solve = None
+        return mfd_step_fn or _DeviceMFDSolver(env, rows, cols).step
+    return step_fn or _DeviceSolver(env, rows, cols).step
+
+
+def _tree_step(solver: _Solver, h_up: np.ndarray, s: int, volumes: _Volumes) -> np.ndarray:
+    """Step s (0-based) with one receiver per cell (D8 or Rho8) on uplifted
+    heights: routing, the implicit solve, the eroded volume carried down the
+    flow paths to base level, then hillslope diffusion."""
+    from worldlib.flow import device as flow
+
+    env, law, options, cell_area = solver.env, solver.law, solver.options, solver.cell_area
+    R = routing_surface(env, h_up, solver.kind, options.flat_routing)
+    if options.routing == "rho8":
+        code = rho8(R, solver.interior, solver.dx, counter_uniform(RHO8_KEY, s, h_up.size))
     else:
-        solve = step_fn or _DeviceSolver(env, rows, cols).step
-    cell_area = dx * dx
-    eroded = uplifted = out_total = 0.0
-    worst_newton = 0
-    uplift_step = np.where(base, 0.0, uplift_m_per_year * dt)  # m per step, 0 at base level
-    uplift_step_m3 = float(uplift_step.sum()) * cell_area
-    for s in range(steps):
-        h_up = h + uplift_step
-        uplifted += uplift_step_m3
-        if routing == "mfd":
-            # hillslopes creep first, so the rivers' solve has the last word in the channels
-            if diffusivity_m2_per_year > 0:
-                diffused = hillslope.step(h_up, dx, diffusivity_m2_per_year * dt)
-                if not np.isfinite(diffused).all():
-                    raise StageError(f"erosion: hillslope diffusion blew up at step {s + 1} (non-finite heights)")
-                diffusion_out -= float((diffused - h_up).sum()) * cell_area
-                h_up = diffused
-            R = routing_surface(env, h_up, kind, flat_routing)
-            if fill_lakes:
-                # sediment settles in every closed depression up to the (tilted) routing surface
-                lake = R.astype(np.float64) > h_up + LAKE_FILL_MIN_M
-                lake_fill += float((R[lake] - h_up[lake]).sum()) * cell_area
-                h_up = np.where(lake, R.astype(np.float64), h_up)
-            scale = mfd_isotropy(h_up, dx, mfd_exponent) if mfd_isotropic else None
-            new, _ = mfd_solve(h_up, R, kind == flowref.INTERIOR, dx, k * dt, m, mfd_exponent, channel_area_m2,
-                               scale=scale)
-            if not np.isfinite(new).all():
-                raise StageError(f"erosion: stream power blew up at step {s + 1} (non-finite heights)")
-            e = h_up - new
-            if (e < -1e-9 * (1.0 + np.abs(h_up))).any():
-                raise StageError(f"erosion: stream power raised a cell at step {s + 1} (broken invariant)")
-            eroded_step = float(np.maximum(e, 0.0).sum()) * cell_area
-            eroded += eroded_step
-            out_total += eroded_step  # detachment-limited: what is eroded leaves the map
-            h = new
-            if progress and (s % max(1, steps // 20) == 0 or s == steps - 1):
-                progress((s + 1) / steps, f"stream power {s + 1}/{steps} ({(s + 1) * dt:.3g} years)")
-            continue
-        R = routing_surface(env, h_up, kind, flat_routing)
-        if routing == "rho8":
-            code = rho8(R, kind == flowref.INTERIOR, dx, counter_uniform(RHO8_KEY, s, h.size))
-        else:
-            code = flow.d8(env, R, kind, dx)
-        area = flow.accumulate(env, code).astype(np.float64) * cell_area
-        river_area = np.where(area >= channel_area_m2, area, 0.0) if channel_area_m2 > 0 else area
-        new, it = solve(h_up, code, river_area, dx, k * dt, m, n_exp)
-        worst_newton = max(worst_newton, it)
-        if not np.isfinite(new).all():
-            raise StageError(f"erosion: stream power blew up at step {s + 1} (non-finite heights)")
-        e = h_up - new
-        if (e < -1e-9 * (1.0 + np.abs(h_up))).any():
-            raise StageError(f"erosion: stream power raised a cell at step {s + 1} (broken invariant)")
-        e = np.maximum(e, 0.0) * cell_area
-        q, scale = flow.quantize(e)
-        arrived = flow.accumulate(env, code, q)
-        eroded += float(q.sum()) / scale
-        out_total += float(arrived[code < 0].sum()) / scale
-        h = new
-        if diffusivity_m2_per_year > 0:
-            diffused = hillslope.step(h, dx, diffusivity_m2_per_year * dt)
-            if not np.isfinite(diffused).all():
-                raise StageError(f"erosion: hillslope diffusion blew up at step {s + 1} (non-finite heights)")
-            diffusion_out -= float((diffused - h).sum()) * cell_area  # what crossed the fixed edge
-            h = diffused
-        if progress and (s % max(1, steps // 20) == 0 or s == steps - 1):
-            progress((s + 1) / steps, f"stream power {s + 1}/{steps} ({(s + 1) * dt:.3g} years)")
-    err = abs(eroded - out_total) / eroded if eroded > 0 else 0.0
-    dvol = float((h - height_start).sum()) * cell_area
-    vol_err = abs(dvol - (uplifted - out_total - diffusion_out + lake_fill)) / max(uplifted, out_total, 1e-300)
-    return StreamPowerResult(h, steps, eroded, uplifted, out_total, err, worst_newton,
-                             {"stream_power_steps": steps, "stream_power_dt_years": dt,
+        code = flow.d8(env, R, solver.kind, solver.dx)
+    area = flow.accumulate(env, code).astype(np.float64) * cell_area
+    channel_area_m2 = options.channel_area_m2
+    river_area = np.where(area >= channel_area_m2, area, 0.0) if channel_area_m2 > 0 else area
+    new, it = solver.solve(h_up, code, river_area, solver.dx, law.k * law.dt, law.m, law.n_exp)
+    volumes.worst_newton = max(volumes.worst_newton, it)
+    e = np.maximum(_erosion(h_up, new, s), 0.0) * cell_area
+    q, scale = flow.quantize(e)
+    arrived = flow.accumulate(env, code, q)
+    volumes.eroded += float(q.sum()) / scale
+    volumes.out += float(arrived[code < 0].sum()) / scale
+    if options.diffusivity_m2_per_year > 0:
+        return _diffuse(solver, new, s, volumes)
+    return new
+
+
+def _mfd_step(solver: _Solver, h_up: np.ndarray, s: int, volumes: _Volumes) -> np.ndarray:
+    """Step s (0-based) with multiple flow directions on uplifted heights:
+    hillslope diffusion, the routing surface (closed depressions filled
+    with sediment when asked), the implicit solve; what is eroded leaves the map."""
+    law, options = solver.law, solver.options
+    # hillslopes creep first, so the rivers' solve has the last word in the channels
+    if options.diffusivity_m2_per_year > 0:
+        h_up = _diffuse(solver, h_up, s, volumes)
+    R = routing_surface(solver.env, h_up, solver.kind, options.flat_routing)
+    if options.fill_lakes:
+        # sediment settles in every closed depression up to the (tilted) routing surface
+        lake = R.astype(np.float64) > h_up + LAKE_FILL_MIN_M
+        volumes.lake_fill += float((R[lake] - h_up[lake]).sum()) * solver.cell_area
+        h_up = np.where(lake, R.astype(np.float64), h_up)
+    scale = mfd_isotropy(h_up, solver.dx, options.mfd_exponent) if options.mfd_isotropic else None
+    new, _ = solver.solve(h_up, R, solver.interior, solver.dx, law.k * law.dt, law.m, options.mfd_exponent,
+                          options.channel_area_m2, scale=scale)
+    eroded_step = float(np.maximum(_erosion(h_up, new, s), 0.0).sum()) * solver.cell_area
+    volumes.eroded += eroded_step
+    volumes.out += eroded_step  # detachment-limited: what is eroded leaves the map
+    return new
+
+
+def _erosion(h_up: np.ndarray, new: np.ndarray, s: int) -> np.ndarray:
+    """h_up - new after checking the solve (finite, no cell raised)."""
+    if not np.isfinite(new).all():
+        raise StageError(f"erosion: stream power blew up at step {s + 1} (non-finite heights)")
+    e = h_up - new
+    if (e < -1e-9 * (1.0 + np.abs(h_up))).any():
+        raise StageError(f"erosion: stream power raised a cell at step {s + 1} (broken invariant)")
+    return e
+
+
+def _diffuse(solver: _Solver, h: np.ndarray, s: int, volumes: _Volumes) -> np.ndarray:
+    """One implicit hillslope-diffusion step; what crossed the fixed edge is counted out."""
+    from . import hillslope
+
+    diffused = hillslope.step(h, solver.dx, solver.options.diffusivity_m2_per_year * solver.law.dt)
+    if not np.isfinite(diffused).all():
+        raise StageError(f"erosion: hillslope diffusion blew up at step {s + 1} (non-finite heights)")
+    volumes.diffusion_out -= float((diffused - h).sum()) * solver.cell_area
+    return diffused
+
+
+def _result(h: np.ndarray, height_start: np.ndarray, solver: _Solver, steps: int, volumes: _Volumes,
+            breached_m3: float) -> StreamPowerResult:
+    """The result and its stats: the mass balance down the flow paths and the volume budget."""
+    v = volumes
+    err = abs(v.eroded - v.out) / v.eroded if v.eroded > 0 else 0.0
+    dvol = float((h - height_start).sum()) * solver.cell_area
+    vol_err = abs(dvol - (v.uplifted - v.out - v.diffusion_out + v.lake_fill)) / max(v.uplifted, v.out, 1e-300)
+    return StreamPowerResult(h, steps, v.eroded, v.uplifted, v.out, err, v.worst_newton,
+                             {"stream_power_steps": steps, "stream_power_dt_years": solver.law.dt,
                               "stream_power_volume_budget_relative_error": vol_err,
-                              "stream_power_eroded_m3": eroded, "stream_power_uplifted_m3": uplifted,
-                              "stream_power_out_m3": out_total, "stream_power_budget_relative_error": err,
-                              "stream_power_newton_iterations_max": worst_newton,
-                              "stream_power_routing": routing, "stream_power_breached_m3": breached_m3,
-                              "hillslope_diffusion_out_m3": diffusion_out, "lake_fill_m3": lake_fill})
+                              "stream_power_eroded_m3": v.eroded, "stream_power_uplifted_m3": v.uplifted,
+                              "stream_power_out_m3": v.out, "stream_power_budget_relative_error": err,
+                              "stream_power_newton_iterations_max": v.worst_newton,
+                              "stream_power_routing": solver.options.routing, "stream_power_breached_m3": breached_m3,
+                              "hillslope_diffusion_out_m3": v.diffusion_out, "lake_fill_m3": v.lake_fill})

@@ -31,19 +31,21 @@ in the smallest power-of-two atlas that holds them. The held-out views are
 that size too (one texel per pixel: the nearest the impostor is used), and
 the measured error then sets the switch distances.
 
-Steps (run): read the asset's LOD0 into a render scene
+Steps (_bake_species per species, then run): read the asset's LOD0 into a render scene
 (worldlib.render.usd_asset, the reader every USD picture shares); bake the atlas;
-measure it from held-out views (heldout.py, sampler.py); bake the slices and
+measure it from held-out views (measure.py: heldout.py's views, sampler.py); bake the slices and
 measure them the same way, blended as seed 002's shader does and all at once
 as a USD viewer draws the Impostor prim (the slices' switch distance holds
 for the worse of the two); render the cards; derive the switch distances;
-write the layer.
+write the textures (textures.py); write the layer.
 """
 from __future__ import annotations
 
 import json
 import math
 import time
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -56,7 +58,7 @@ from worldlib.render import Prepared, Settings
 from worldlib.render.usd_asset import load_plant
 from worldlib.plant_asset import PLANTS_ROOT, plant_asset_prim
 
-from . import atlas, heldout, images, octahedral, sampler, slices, usd_layer
+from . import atlas, heldout, measure, slices, textures, usd_layer
 from .screen import pixel_at_1m, switch_distance_m
 
 Layout = Literal["hemi", "octahedral"]
@@ -149,148 +151,184 @@ def plant_frame_px(radius: float, height_m: float, params: "ImpostorsParams") ->
     return atlas.frame_size(target, params.frames, params.atlas_px, smallest)
 
 
-class References:
-    """The mesh's held-out views, rendered once and compared with every
-    impostor of the plant (the atlas, the slices)."""
-
-    def __init__(self, prepared: Prepared, ps, views: list[tuple[float, float]], size: int, samples: int):
-        self.views, self.size = views, size
-        self.images = []
-        for az, el in views:
-            m = heldout.mesh_view(prepared, octahedral.view_direction(az, el), ps.centre, ps.radius, size, samples)
-            self.images.append((np.concatenate([m.albedo, m.alpha[..., None]], -1), m.depth))
-
-    def measure(self, impostor) -> list:
-        """Held-out errors of an impostor: `impostor(direction)` -> (rgba, depth)."""
-        errors = []
-        for (az, el), (mesh_rgba, mesh_depth) in zip(self.views, self.images):
-            rgba, depth = impostor(octahedral.view_direction(az, el))
-            errors.append(heldout.ViewError(az, el, *heldout.compare(mesh_rgba, mesh_depth, rgba, depth)))
-        return errors
-
-
 def _polygon_area(poly: np.ndarray) -> float:
     x, y = poly[:, 0], poly[:, 1]
     return float(0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y)))
 
 
-def _silhouette_error_m(summary: dict, ps, size: int) -> float:
-    """The median silhouette displacement of a held-out set, in metres: the
-    mismatched share of the view (1 - IoU) over the plant's outline, taken as
-    the outline of its bounding sphere's projection (a disc of the view's
-    pixels), times the pixel size."""
-    pixel_m = 2.0 * ps.radius / size
-    disc_area_px = math.pi * (0.5 * size) ** 2
-    disc_perimeter_px = math.pi * size
-    mismatch_px = (1.0 - summary["alpha_iou"]["median"]) * disc_area_px * 0.5
-    return mismatch_px / disc_perimeter_px * pixel_m
+class _Timings(dict):
+    """Seconds per step of a species' bake, in the order the steps ran."""
+
+    @contextmanager
+    def lap(self, name: str):
+        t0 = time.perf_counter()
+        yield
+        self[name] = time.perf_counter() - t0
+
+
+@dataclass(frozen=True)
+class _Plant:
+    """A species' plant as the bake reads it."""
+
+    name: str
+    ps: Any  # worldlib.render.usd_asset.load_plant's: the scene, its bounds and bounding sphere, its parts
+    prepared: Prepared  # the scene on the OpenCL device
+    layout: Layout
+    grass: bool  # a grass tuft (seed 001's slices), not a tree or shrub (seed 002's)
+    seed: int
+
+    @property
+    def height_m(self) -> float:
+        return float(self.ps.hi[1] - self.ps.lo[1])
+
+
+@dataclass(frozen=True)
+class _Slices:
+    """The slice billboards: their sheets, and per slicing row (None: the
+    grass tuft's quads together) the billboards as a render scene."""
+
+    sheets: list
+    billboards: dict
+    tile_px: int  # the largest side of a tree's slice tile
+
+
+@dataclass(frozen=True)
+class _Errors:
+    """The held-out error summaries (heldout.summarize) of the atlas, the
+    blended slices and the slices as a USD viewer draws them."""
+
+    atlas: dict
+    slices: dict
+    drawn: dict
 
 
 def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: ImpostorsParams, tex_dir: Path) -> dict:
+    """One species' impostors, the steps of the module docstring, or its
+    earlier bake when neither its plant nor the params changed."""
     t0 = time.perf_counter()
     try:
         ps = load_plant(plants_layer, plant_asset_prim(name))
     except (LookupError, FileNotFoundError) as e:
         raise InputError(f"impostors: {e}") from e
     layout = params.layouts.get(name, params.layout)
-    # everything this species' impostors depend on: a plant that did not change is not baked again when
-    # another species' did (the stage's key changes with the whole plants layer)
-    unit = ctx.unit(name, {"plant": ps.scene.digest(), "bounds": [ps.lo.tolist(), ps.hi.tolist()],
-                           "parts": ps.parts, "layout": layout,
-                           "params": {k: v for k, v in params.model_dump(mode="json").items()
-                                      if k not in ("layouts", "enabled")}})
+    unit = _species_unit(ctx, name, ps, layout, params)
     saved = unit.restore(tex_dir)
     if saved is not None:
         return _from_saved(saved, {"load_s": time.perf_counter() - t0, "total_s": time.perf_counter() - t0})
-    prepared = Prepared(ctx.cl, ps.scene)
-    grass = "Blades" in ps.parts
-    seed = (ctx.seed * 1_000_003 + sum(map(ord, name))) & 0xFFFFFFFF
-    timings: dict[str, float] = {"load_s": time.perf_counter() - t0}
+    plant = _Plant(name, ps, Prepared(ctx.cl, ps.scene), layout, "Blades" in ps.parts,
+                   (ctx.seed * 1_000_003 + sum(map(ord, name))) & 0xFFFFFFFF)
+    timings = _Timings(load_s=time.perf_counter() - t0)
+    with timings.lap("atlas_s"):
+        at = _atlas(plant, params)
+        cutout = atlas.cutout_polygon(at.frame_alpha())
+    with timings.lap("references_s"):
+        views = heldout.held_out(heldout.lattice(layout, params.heldout_stride), at.directions)
+        references = measure.References(plant.prepared, ps, views, min(at.frame_px, params.heldout_px),
+                                        params.heldout_samples)
+    with timings.lap("atlas_error_s"):
+        atlas_view = measure.atlas_view(at, references.size, params.depth_steps)
+        atlas_errors = heldout.summarize(references.measure(atlas_view), plant.height_m)
+    with timings.lap("slices_s"):
+        sliced = _slices(ctx, plant, at, params)
+    with timings.lap("slices_error_s"):
+        errors = _Errors(atlas_errors, *_slice_errors(ctx, plant, sliced, references, params))
+    with timings.lap("cards_s"):
+        card_px = min(params.card_px, atlas.atlas_side(1, at.frame_px))
+        cards = usd_layer.card_views(plant.prepared, ps.lo, ps.hi, card_px, params.samples)
+    error_m, switch_m = _switch_distances(plant, at, sliced.tile_px, references.size, errors, params)
+    info = _info(plant, params, at, cutout, references, errors, slice_px=sliced.tile_px, card_px=card_px)
+    written = textures.write(tex_dir, name, unit.provenance, info, at, sliced.sheets, cards)
+    timings["total_s"] = time.perf_counter() - t0
+    baked = {"name": name, "info": info, "files": written.atlas, "sheets": sliced.sheets, "sheet_files": written.sheets,
+             "card_files": written.cards, "lo": ps.lo, "hi": ps.hi, "grass": plant.grass, "switch_m": switch_m,
+             "error_m": error_m, "timings": dict(timings), "triangles": int(ps.scene.n_triangles), "reused": False}
+    unit.save(tex_dir, written.all(), _to_saved(baked))
+    return baked
 
-    t = time.perf_counter()
-    frame_px = plant_frame_px(ps.radius, float(ps.hi[1] - ps.lo[1]), params)
-    at = atlas.build(prepared, ps.centre, ps.radius, params.frames, params.atlas_px, layout, params.samples,
-                     params.ao_rays, params.padding_px, seed, ao_radius=params.ao_radius, frame_px=frame_px)
-    cutout = atlas.cutout_polygon(at.frame_alpha())
-    timings["atlas_s"] = time.perf_counter() - t
 
-    t = time.perf_counter()
-    views = heldout.held_out(heldout.lattice(layout, params.heldout_stride), at.directions)
-    view_px = min(at.frame_px, params.heldout_px)
-    references = References(prepared, ps, views, view_px, params.heldout_samples)
-    timings["references_s"] = time.perf_counter() - t
+def _species_unit(ctx: RunContext, name: str, ps, layout: Layout, params: ImpostorsParams):
+    """The species' unit of work, keyed by everything its impostors depend on."""
+    # a plant that did not change is not baked again when another species' did (the stage's key changes
+    # with the whole plants layer)
+    return ctx.unit(name, {"plant": ps.scene.digest(), "bounds": [ps.lo.tolist(), ps.hi.tolist()],
+                           "parts": ps.parts, "layout": layout,
+                           "params": {k: v for k, v in params.model_dump(mode="json").items()
+                                      if k not in ("layouts", "enabled")}})
 
-    t = time.perf_counter()
 
-    def atlas_view(d):
-        v = sampler.render_view(at, d, view_px, params.depth_steps)
-        return v.rgba, v.depth
+def _atlas(plant: _Plant, params: ImpostorsParams) -> atlas.Atlas:
+    """The view atlas, its frames sized by plant_frame_px."""
+    ps = plant.ps
+    frame_px = plant_frame_px(ps.radius, plant.height_m, params)
+    return atlas.build(plant.prepared, ps.centre, ps.radius, params.frames, params.atlas_px, plant.layout,
+                       params.samples, params.ao_rays, params.padding_px, plant.seed, ao_radius=params.ao_radius,
+                       frame_px=frame_px)
 
-    height = float(ps.hi[1] - ps.lo[1])
-    atlas_errors = heldout.summarize(references.measure(atlas_view), height)
-    timings["atlas_error_s"] = time.perf_counter() - t
 
-    t = time.perf_counter()
+def _slices(ctx: RunContext, plant: _Plant, at: atlas.Atlas, params: ImpostorsParams) -> _Slices:
+    """The slice sheets and their billboards on the OpenCL device ctx.cl."""
     slice_px = min(params.slice_px, max(at.frame_px // 2, 8))  # used beyond the atlas: at most half its texels
-    sheets = ([*slices.grass_slices(prepared, params.grass_slice_px, params.samples)] if grass
-              else [slices.tree_slices(prepared, params.slice_slabs, slice_px, params.samples)])
-    if grass:  # seed 001: the tuft's five quads are drawn together
-        billboards = {None: Prepared(ctx.cl, slices.sheet_scene(sheets))}
-    else:  # seed 002 / Jakulin: the two slicings nearest the view, blended
-        billboards = {r: Prepared(ctx.cl, slices.sheet_scene(sheets, rows=(r,))) for r in range(sheets[0].rows)}
-    timings["slices_s"] = time.perf_counter() - t
-    t = time.perf_counter()
-    view_settings = Settings(view_px, view_px, samples=params.heldout_samples)
+    if plant.grass:  # seed 001: the tuft's five quads are drawn together
+        sheets = [*slices.grass_slices(plant.prepared, params.grass_slice_px, params.samples)]
+        return _Slices(sheets, {None: Prepared(ctx.cl, slices.sheet_scene(sheets))}, slice_px)
+    # seed 002 / Jakulin: the two slicings nearest the view, blended
+    sheets = [slices.tree_slices(plant.prepared, params.slice_slabs, slice_px, params.samples)]
+    return _Slices(sheets, {r: Prepared(ctx.cl, slices.sheet_scene(sheets, rows=(r,))) for r in range(sheets[0].rows)},
+                   slice_px)
 
-    def slice_view(d):
-        cam, _ = heldout.view_camera(d, ps.centre, ps.radius)
-        blend = [(None, 1.0)] if grass else slices.slicing_weights(d)
-        rgba = np.zeros((view_px, view_px, 4))
-        depth = np.zeros((view_px, view_px))
-        for row, w in blend:
-            img = billboards[row].render(cam, view_settings)
-            rgba += w * np.concatenate([img.albedo, img.alpha[..., None]], -1)
-            depth += w * img.alpha * np.where(np.isfinite(img.depth), img.depth, 0.0)
-        return rgba, np.where(rgba[..., 3] > 0, depth / np.maximum(rgba[..., 3], 1e-12), np.inf)
 
-    slice_errors = heldout.summarize(references.measure(slice_view), height)
+def _slice_errors(ctx: RunContext, plant: _Plant, sliced: _Slices, references: measure.References,
+                  params: ImpostorsParams) -> tuple[dict, dict]:
+    """The slices' held-out errors, blended and as drawn (a grass tuft's are the same)."""
+    size = references.size
+    view_settings = Settings(size, size, samples=params.heldout_samples)
+    blended = measure.blended_slices_view(sliced.billboards, plant.grass, plant.ps, size, view_settings)
+    slice_errors = heldout.summarize(references.measure(blended), plant.height_m)
+    if plant.grass:
+        return slice_errors, slice_errors
     # What a USD viewer draws of the Impostor prim: every quad at once, alpha-tested at 0.5 (the
     # material's opacityThreshold), the nearest wins (so each slab pair shows its viewer's side); no blend.
-    drawn = billboards[None] if grass else Prepared(ctx.cl, slices.sheet_scene(sheets))
+    drawn = Prepared(ctx.cl, slices.sheet_scene(sliced.sheets))
+    drawn_errors = heldout.summarize(references.measure(measure.drawn_view(drawn, plant.ps, view_settings)),
+                                     plant.height_m)
+    return slice_errors, drawn_errors
 
-    def drawn_view(d):
-        cam, _ = heldout.view_camera(d, ps.centre, ps.radius)
-        img = drawn.render(cam, view_settings)
-        return np.concatenate([img.albedo, img.alpha[..., None]], -1), img.depth
 
-    drawn_errors = slice_errors if grass else heldout.summarize(references.measure(drawn_view), height)
-    timings["slices_error_s"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    card_px = min(params.card_px, atlas.atlas_side(1, at.frame_px))
-    cards = usd_layer.card_views(prepared, ps.lo, ps.hi, card_px, params.samples)
-    timings["cards_s"] = time.perf_counter() - t
-
-    for summary in (atlas_errors, slice_errors, drawn_errors):
+def _switch_distances(plant: _Plant, at: atlas.Atlas, slice_px: int, view_px: int, errors: _Errors,
+                      params: ImpostorsParams) -> tuple[dict, dict]:
+    """The impostors' errors in metres and the distances from which they are
+    used (StageError when a held-out error is not finite)."""
+    ps = plant.ps
+    for summary in (errors.atlas, errors.slices, errors.drawn):
         for key in ("psnr_db", "alpha_iou"):
             if summary.get("views") and not math.isfinite(summary[key]["median"]):
-                raise StageError(f"impostors: {name}: the held-out {key} is not finite")
-    atlas_error_m = _silhouette_error_m(atlas_errors, ps, view_px) if atlas_errors.get("views") else 0.0
+                raise StageError(f"impostors: {plant.name}: the held-out {key} is not finite")
+    atlas_error_m = measure.silhouette_error_m(errors.atlas, ps, view_px) if errors.atlas.get("views") else 0.0
     # the slices' distance holds for both ways of drawing them: the worse of the two
-    slice_error_m = max((_silhouette_error_m(e, ps, view_px) for e in (slice_errors, drawn_errors) if e.get("views")),
-                        default=0.0)
+    slice_error_m = max((measure.silhouette_error_m(e, ps, view_px) for e in (errors.slices, errors.drawn)
+                         if e.get("views")), default=0.0)
     texel_m = 2.0 * ps.radius / at.frame_px
     # an impostor is no sharper than its texels: it is used where they are at most a pixel too
     atlas_switch = switch_distance_m(max(atlas_error_m, texel_m), params)
     slice_switch = max(atlas_switch, switch_distance_m(max(slice_error_m, float((ps.hi - ps.lo).max()) / slice_px), params))
-    info = {
-        "layout": layout, "frames": params.frames, "frame_px": at.frame_px, "atlas_px": at.atlas_px,
+    return ({"impostor": atlas_error_m, "slices": slice_error_m, "atlas_texel": texel_m},
+            {"impostor": atlas_switch, "slices": slice_switch})
+
+
+def _info(plant: _Plant, params: ImpostorsParams, at: atlas.Atlas, cutout: np.ndarray,
+          references: measure.References, errors: _Errors, *, slice_px: int, card_px: int) -> dict:
+    """The impostor's description (the atlas EXR's header, customData
+    worldbake:impostor)."""
+    grass = plant.grass
+    return {
+        "layout": plant.layout, "frames": params.frames, "frame_px": at.frame_px, "atlas_px": at.atlas_px,
         "frame_mip_levels": at.frame_levels, "mip_levels": len(at.levels),
-        "bounding_sphere": {"centre_m": [float(v) for v in ps.centre], "radius_m": ps.radius},
+        "bounding_sphere": {"centre_m": [float(v) for v in plant.ps.centre], "radius_m": plant.ps.radius},
         "channels": list(atlas.CHANNELS), "grid": "vertex-centred: frame (i, j) looks from octahedral decode(i/(N-1), j/(N-1))",
         "sampling": "3 frames of the grid triangle, barycentric weights, premultiplied blend, frame-clamped bilinear",
         "depth": "metres from the frame's plane through the sphere centre toward the viewer",
-        "held_out": {"views": len(views), "size_px": view_px, "reference_samples": params.heldout_samples,
+        "held_out": {"views": len(references.views), "size_px": references.size,
+                     "reference_samples": params.heldout_samples,
                      "set": "azimuth every 5 deg x elevation every 10 deg (0..80 hemi, -80..80 octahedral)",
                      "stride": params.heldout_stride,
                      "kept": "view (azimuth index i, elevation index e) where (i + 4 e) mod stride = 0"},
@@ -302,7 +340,7 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
         "slice_px": slice_px, "card_px": card_px,
         "frame_px_from": f"the bounding sphere's diameter in pixels at {params.impostor_distance_m} m on a "
                          f"{params.screen_px} px, {params.screen_fov_deg} deg screen",
-        "error": atlas_errors, "slices_error": slice_errors, "slices_drawn_error": drawn_errors,
+        "error": errors.atlas, "slices_error": errors.slices, "slices_drawn_error": errors.drawn,
         "slices": {"kind": "grass tuft (seed 001)" if grass else "3 vertical orientations (seed 002) and 1 horizontal x front/back x slabs",
                    "slabs": None if grass else params.slice_slabs,
                    "error_measured_as": "the five quads together" if grass else
@@ -311,35 +349,6 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
                    "drawn_error_measured_as": "every quad at once, alpha-tested at 0.5, nearest first: what a USD "
                    "viewer draws of the Impostor prim"},
     }
-    files = {"atlas": f"{name}_atlas.exr", "atlas_png": f"{name}_atlas_albedo.png"}
-    attrs = {**unit.provenance, "species": name, "impostor": info}
-    images.write_exr(tex_dir / files["atlas"], at.levels, atlas.CHANNELS, attrs, float_channels=("depth.Z",))
-    images.write_png(tex_dir / files["atlas_png"], at.straight_rgb, at.levels[0][..., 3])
-    sheet_files = {}
-    for sheet in sheets:
-        stem = f"{name}_{sheet.name}"
-        images.write_exr(tex_dir / f"{stem}.exr", [np.concatenate([sheet.rgba, sheet.normal], -1)],
-                         ("albedo.R", "albedo.G", "albedo.B", "albedo.A", "normal.X", "normal.Y", "normal.Z"),
-                         {**unit.provenance, "species": name, "tiles": {"rows": sheet.rows, "cols": sheet.cols,
-                                                                         "tile_px": sheet.tile_px}})
-        images.write_png(tex_dir / f"{stem}.png", sheet.rgba[..., :3], sheet.rgba[..., 3])
-        # the material's normal input reads R, G, B: the normal alone, not the layered file's first channels
-        images.write_exr(tex_dir / f"{stem}_normal.exr", [sheet.normal], ("R", "G", "B"),
-                         {**unit.provenance, "species": name})
-        sheet_files[sheet.name] = {"albedo": f"{stem}.png", "exr": f"{stem}.exr", "normal": f"{stem}_normal.exr"}
-    card_files = {}
-    for axis, (rgb, alpha) in cards.items():
-        card_files[axis] = f"{name}_card_{axis}.png"
-        images.write_png(tex_dir / card_files[axis], rgb, alpha)
-    timings["total_s"] = time.perf_counter() - t0
-    baked = {"name": name, "info": info, "files": files, "sheets": sheets, "sheet_files": sheet_files,
-             "card_files": card_files, "lo": ps.lo, "hi": ps.hi, "grass": grass,
-             "switch_m": {"impostor": atlas_switch, "slices": slice_switch},
-             "error_m": {"impostor": atlas_error_m, "slices": slice_error_m, "atlas_texel": texel_m},
-             "timings": timings, "triangles": int(ps.scene.n_triangles), "reused": False}
-    written = [*files.values(), *(f for v in sheet_files.values() for f in v.values()), *card_files.values()]
-    unit.save(tex_dir, written, _to_saved(baked))
-    return baked
 
 
 def _to_saved(baked: dict) -> dict:
