@@ -12,6 +12,7 @@ diagnostics every few steps and the final maps come back.
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 from typing import Any, Literal, Optional
 
@@ -24,10 +25,10 @@ from pipeline.grid import Grid
 from worldlib.terrain.hillshade import hillshade
 
 from . import simulate
-from .physics import THERMAL_C, Physics
+from .physics import G, THERMAL_C, Physics
 
-MAX_THERMAL_ITERATIONS = 200_000
-MAX_STEPS = 2_000_000
+MAX_THERMAL_ITERATIONS = 200_000  # talus-rule iterations before the storm, and bank-slumping ones during it
+MAX_STEPS = 2_000_000  # storm steps a bake may take (max_steps: WORLDBAKE_MAX_STEPS overrides it)
 MAX_GEOLOGICAL_STEPS = 10_000
 SLOPE_TOLERANCE_DEG = 0.5  # reported: cells steeper than talus + this after thermal weathering
 
@@ -167,6 +168,28 @@ def thermal_c(params: ErosionParams, dx: float) -> float:
     return THERMAL_C * min(1.0, _thermal_exact(params, dx) / n) if n else THERMAL_C
 
 
+def max_steps() -> tuple[int, str]:
+    """The most steps a storm may take, and where that limit comes from:
+    WORLDBAKE_MAX_STEPS when set, else MAX_STEPS. The plan refuses a storm
+    estimated beyond it, and a running storm stops there."""
+    env = os.environ.get("WORLDBAKE_MAX_STEPS", "").strip()
+    if not env:
+        return MAX_STEPS, "erosion's MAX_STEPS; WORLDBAKE_MAX_STEPS raises it"
+    try:
+        n = int(float(env))
+    except (ValueError, OverflowError):
+        n = 0
+    if n < 1:
+        raise InputError(f"WORLDBAKE_MAX_STEPS = {env!r}: must be a positive number of storm steps")
+    return n, f"WORLDBAKE_MAX_STEPS = {env}"
+
+
+def slump_iterations(params: ErosionParams, dx: float) -> float:
+    """Bank-slumping iterations over the storm: its rule runs at
+    bank_diffusivity (as the talus rule: one iteration is 0.5 dx^2 / D)."""
+    return params.bank_diffusivity_m2_per_hour * params.storm_hours / (THERMAL_C * dx * dx)
+
+
 def plan_for(params: ErosionParams, dx: float, ph: Physics) -> simulate.Plan:
     """The run plan, or InputError when the params cannot run on this grid."""
     n_th = thermal_iterations(params, dx)
@@ -175,6 +198,13 @@ def plan_for(params: ErosionParams, dx: float, ph: Physics) -> simulate.Plan:
             f"erosion: thermal_years = {params.thermal_years:g} at scree_diffusivity_m2_per_year = "
             f"{params.scree_diffusivity_m2_per_year:g} needs {n_th} iterations of the talus rule on {dx:g} m cells "
             f"(at most {MAX_THERMAL_ITERATIONS}); lower one of them")
+    n_slump = slump_iterations(params, dx)
+    if n_slump > MAX_THERMAL_ITERATIONS:
+        raise InputError(
+            f"erosion: bank_diffusivity_m2_per_hour = {params.bank_diffusivity_m2_per_hour:g} over storm_hours = "
+            f"{params.storm_hours:g} needs {n_slump:.3g} iterations of bank slumping on {dx:g} m cells (at most "
+            f"{MAX_THERMAL_ITERATIONS}); lower one of them")
+    most, most_how = max_steps()
     if params.geological_years > 0 and params.geological_years / params.geological_step_years > MAX_GEOLOGICAL_STEPS:
         raise InputError(
             f"erosion: geological_years = {params.geological_years:g} at geological_step_years = "
@@ -189,11 +219,48 @@ def plan_for(params: ErosionParams, dx: float, ph: Physics) -> simulate.Plan:
                 f"wave needs dt_s <= {limit:.3g} s (Courant number {ph.cfl_limit}); lower dt_s or leave it unset "
                 f"for the adaptive step")
         steps = params.storm_hours * 3600.0 / params.dt_s
-        if steps > MAX_STEPS:
+        if steps > most:
             raise InputError(f"erosion: storm_hours = {params.storm_hours:g} at dt_s = {params.dt_s:g} s is "
-                             f"{steps:.3g} steps (at most {MAX_STEPS})")
+                             f"{steps:.3g} steps (at most {most:,}: {most_how})")
     return simulate.Plan(thermal_iterations=n_th, thermal_c=thermal_c(params, dx), duration_s=params.storm_hours * 3600.0,
-                         fixed_dt=params.dt_s, max_total_steps=MAX_STEPS)
+                         fixed_dt=params.dt_s, max_total_steps=most)
+
+
+def storm_steps_least(params: ErosionParams, ph: Physics, shape: tuple[int, int]) -> tuple[float, float]:
+    """An estimate, from below, of the adaptive storm's steps, known before
+    the terrain exists; and the wave speed (m/s) it reaches by the end.
+
+    Each step is dt = cfl dx / w with w >= max(|u| + sqrt(g h)) >= 1 m/s (the
+    largest wave of the last diagnostic, at most 17 steps old), so the storm
+    takes at least the integral of w(t) / (cfl dx) over its duration T. The
+    rain less evaporation, q, adds q t of water per unit area by time t: with
+    closed or periodic edges none leaves, the mean depth is at least q t and
+    so is the deepest water: w(t) >= sqrt(g q t), a true lower bound. With
+    open edges water also leaves at the edge, in channels; the estimate
+    then stops the growth at the wave speed of the slowest steady flow that
+    carries the whole map's rain out through one edge cell (unit discharge
+    Q = q A / dx, w = (27 g Q / 4)^(1/3), the least |u| + sqrt(g h) with
+    h u = Q): an estimate, not a bound (a map that drains in sheets, not in
+    channels, has shallower water). The first 17 steps' lag is taken off."""
+    T = params.storm_hours * 3600.0
+    vmin, dx = ph.min_wave_speed, ph.dx
+    q = max(ph.rain - ph.evaporation, 0.0)
+    c = math.sqrt(G * q)
+    tau = (simulate.Plan.check_every + 1) * ph.dt_limit(0.0)
+    cap = math.inf
+    if ph.boundary == "open":
+        cap = max(vmin, (27.0 / 4.0 * G * q * shape[0] * shape[1] * dx) ** (1.0 / 3.0))
+    if c == 0.0:
+        return T * vmin / (ph.cfl * dx), vmin
+    t1 = tau + (vmin / c) ** 2  # w reaches the 1 m/s floor
+    t2 = tau + (cap / c) ** 2 if math.isfinite(cap) else math.inf  # and the open edges' cap
+    area = vmin * min(T, t1)
+    if T > t1:
+        area += 2.0 / 3.0 * c * ((min(T, t2) - tau) ** 1.5 - (t1 - tau) ** 1.5)
+    if T > t2:
+        area += cap * (T - t2)
+    w_end = min(cap, max(vmin, c * math.sqrt(max(T - tau, 0.0))))
+    return area / (ph.cfl * dx), w_end
 
 
 def check_input(height: Grid) -> np.ndarray:
@@ -332,13 +399,15 @@ def check(params: ErosionParams, ctx: CheckContext) -> Check:
         raise ParamError("", str(e).removeprefix("erosion: ")) from None
     cells = height.shape[0] * height.shape[1]
     if params.dt_s is None and params.storm_hours > 0:
-        # the adaptive step is at most cfl dx / min_wave_speed: a lower bound on the steps, known now
-        least = params.storm_hours * 3600.0 / ph.dt_limit(0.0)
-        if least > MAX_STEPS:
-            raise ParamError("storm_hours", f"{params.storm_hours:g} hours on {dx:g} m cells needs at least "
-                             f"{least:.3g} adaptive steps (each at most cfl dx / {ph.min_wave_speed:g} m/s = "
-                             f"{ph.dt_limit(0.0):.3g} s; at most {MAX_STEPS:,} steps); shorten the storm or "
-                             f"coarsen the grid")
+        least, wave = storm_steps_least(params, ph, height.shape)
+        limit, limit_how = max_steps()
+        if least > limit:
+            net = (params.rain_mm_per_hour - params.evaporation_mm_per_hour)
+            raise ParamError("storm_hours", f"{params.storm_hours:g} hours on {dx:g} m cells needs at least about "
+                             f"{least:.3g} adaptive steps (dt = cfl dx / (|u| + sqrt(g h)); {max(net, 0):g} mm/h of "
+                             f"rain net of evaporation deepens the water until waves reach {wave:.3g} m/s, "
+                             f"dt {ph.dt_limit(wave):.3g} s), more than the {limit:,} a storm may take ({limit_how}); "
+                             f"shorten the storm, lower the rain or coarsen the grid")
     per_cell = BYTES_PER_CELL_STORM + (BYTES_PER_CELL_GEOLOGY if params.geological_years > 0 else 0)
     return Check(memory_bytes=per_cell * cells, memory_how=f"the terrain's {cells:,} cells x {per_cell} B")
 

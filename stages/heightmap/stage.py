@@ -184,7 +184,8 @@ def heights(
         path = dem_file or p.dem_path
         cell = p.dem_cell_size_m or dem.dem_cell_size(path)
         if cell is not None:  # the DEM's own cells: the world is its rows x cols
-            src = dem.read_dem(path, p.dem_min_m, p.dem_max_m)
+            src = dem.read_dem(path, p.dem_min_m, p.dem_max_m, max_abs_m=dem.MAX_HEIGHT_M)
+            dem.check_shape(path, src.shape[1], src.shape[0], own_cells=True)
             col0, row0, cols, rows = tile if p.window is not None else (0, 0, src.shape[1], src.shape[0])
             h = np.ascontiguousarray(src[row0:row0 + rows, col0:col0 + cols], np.float32)
             return h, {"dem_seconds": time.perf_counter() - t0, "dem_cell_size_m": float(cell),
@@ -224,17 +225,21 @@ BYTES_PER_CELL = 48  # float32 height, float64 DEM resampling rows, hillshade RG
 
 
 def check(params: HeightmapParams, ctx: CheckContext) -> Check:
-    """The grid it will write; an imported DEM opened, sized and checked for
-    finite values now, so a bad file is named before any stage runs."""
+    """The grid it will write; an imported DEM checked now from its header
+    and a bounded read (dem.scan_raster: its size, shape, cell size, NaN and
+    the range of its heights), so a bad file is named before any stage runs."""
     res = params.resolution
     cols, rows = (params.window[2], params.window[3]) if params.window else (res, res)
     memory = BYTES_PER_CELL * rows * cols
     how = f"heightmap.resolution = {res}: {rows} x {cols} cells x {BYTES_PER_CELL} B"
     grid = GridInfo((rows, cols), params.size_m / res, "heightmap.resolution")
     if params.generator == "dem":
+        path = ctx.resolve(params.dem_path)
         try:
-            src = dem.read_dem(ctx.resolve(params.dem_path), params.dem_min_m, params.dem_max_m)
-            cell = params.dem_cell_size_m or dem.dem_cell_size(ctx.resolve(params.dem_path))
+            src = dem.scan_raster(path)
+            cell = params.dem_cell_size_m or dem.dem_cell_size(path)
+            dem.check_shape(path, src.width, src.height, own_cells=cell is not None)
+            dem.check_dem(path, params.dem_min_m, params.dem_max_m)
         except InputError as e:
             raise ParamError("dem_path", str(e)) from None
         if cell is not None:  # the world is the DEM's own cells

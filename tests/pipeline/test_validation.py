@@ -178,5 +178,112 @@ def test_runs_too_large_are_refused_with_the_estimate(project, capsys, monkeypat
 def test_a_storm_of_too_many_steps_is_refused_before_work(project, capsys):
     err = refused(project, capsys, "--set", "erosion.storm_hours=1000", "--set", "heightmap.size_m=1000",
                   config="configs/default.toml")
-    assert re.search(r"--set: erosion.storm_hours: 1000 hours on 0.976562 m cells needs at least 7.37e\+06 adaptive "
-                     r"steps", err), err
+    assert re.search(r"--set: erosion.storm_hours: 1000 hours on 0.976562 m cells needs at least about 8.57e\+07 "
+                     r"adaptive steps", err), err
+
+
+def _plain_raster(path: Path, data) -> None:
+    """A float EXR stating no cell size (stretched over the square world)."""
+    import numpy as np
+    import OpenImageIO as oiio
+
+    data = np.ascontiguousarray(np.asarray(data, np.float32)[:, :, None])  # (rows, cols, 1): OIIO's layout
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), oiio.ImageSpec(data.shape[1], data.shape[0], 1, "float"))
+    assert out.write_image(data)
+    out.close()
+
+
+DEM_CONFIG = 'extends = "default.toml"\n[heightmap]\ngenerator = "dem"\ndem_path = "dem.exr"\n'
+
+
+@pytest.mark.parametrize("write", [_plain_raster, _raster], ids=["stretched", "own_cells"])
+def test_a_dem_of_two_rows_is_refused_before_any_stage_runs(project, capsys, write):
+    import numpy as np
+    write(project / "dem.exr", np.zeros((2, 4096)))
+    bad(project, DEM_CONFIG)
+    err = refused(project, capsys)
+    assert re.search(r"^worldbake: error: configs/bad.toml: heightmap.dem_path: DEM file .*dem.exr is 4096x2 pixels: "
+                     r"a DEM needs at least 3 pixels on each side", err), err
+
+
+def test_a_dem_that_is_not_square_is_refused_before_any_stage_runs(project, capsys):
+    import numpy as np
+    _plain_raster(project / "dem.exr", np.zeros((30, 40)))
+    bad(project, DEM_CONFIG)
+    err = refused(project, capsys)
+    assert re.search(r"configs/bad.toml: heightmap.dem_path: DEM file .*dem.exr is 40x30 pixels but the world is "
+                     r"square", err), err
+
+
+@pytest.mark.parametrize("value", [1e30, -3.4e38, 2e5])
+def test_dem_heights_out_of_range_are_refused_before_any_stage_runs(project, capsys, value):
+    import numpy as np
+    dem = np.full((16, 16), 100.0)
+    dem[5, 7] = value
+    _raster(project / "dem.exr", dem)
+    bad(project, DEM_CONFIG)
+    err = refused(project, capsys)
+    assert re.search(r"configs/bad.toml: heightmap.dem_path: DEM file .*dem.exr holds a height of [-0-9.e+]+ m "
+                     r"\(row 5, column 7\), beyond the \+-100,000 m", err), err
+
+
+def test_a_normalised_dem_is_checked_in_metres(project, capsys):
+    import numpy as np
+    dem = np.linspace(0.0, 1.0, 256).reshape(16, 16)
+    dem[9, 2] = 50.0  # 50 x 4 km: 200 km
+    _raster(project / "dem.exr", dem)
+    bad(project, DEM_CONFIG + "dem_min_m = 0.0\ndem_max_m = 4000.0\n")
+    assert re.search(r"holds a height of 2e\+05 m \(row 9, column 2\)", refused(project, capsys))
+
+
+def test_a_dem_stating_its_cells_in_degrees_is_refused(project, capsys):
+    import numpy as np
+
+    from pipeline import exr
+    from pipeline.grid import Grid
+    exr.write_grid(project / "dem.exr", Grid(np.zeros((16, 16), np.float32), 1.0 / 3600.0))
+    bad(project, DEM_CONFIG)
+    err = refused(project, capsys)
+    assert re.search(r"configs/bad.toml: heightmap.dem_path: DEM file .*dem.exr: its attribute worldbake:cell_size_m "
+                     r"states cells of 0.000277778 m, outside 0.01 .. 100000 m", err), err
+
+
+def test_a_rain_map_in_the_wrong_units_is_refused(project, capsys):
+    import numpy as np
+    _raster(project / "rain.exr", np.full((8, 8), 800.0e3))  # mm/year as micrometres
+    bad(project, 'extends = "default.toml"\n[hydrology]\nrain_map_path = "rain.exr"\n')
+    err = refused(project, capsys)
+    assert re.search(r"configs/bad.toml: hydrology.rain_map_path: rain map .*rain.exr has 8e\+05 mm/year of rain "
+                     r"\(row 0, column 0\), more than 20000 mm/year", err), err
+
+
+def test_the_default_storm_passes_the_step_estimate(project, capsys):
+    for hours in ("0.15", "0.35"):
+        assert main(["--project", str(project), "plan", str(project / "configs" / "default.toml"),
+                     "--set", f"erosion.storm_hours={hours}"]) == 0, capsys.readouterr().err
+    capsys.readouterr()
+
+
+def test_a_long_storm_is_refused_naming_the_step_limit_and_its_knob(project, capsys, monkeypatch):
+    err = refused(project, capsys, "--set", "erosion.storm_hours=1000", config="configs/default.toml")
+    assert re.search(r"^worldbake: error: --set: erosion.storm_hours: 1000 hours on 8 m cells needs at least about "
+                     r"1.75e\+07 adaptive steps .*more than the 2,000,000 a storm may take \(erosion's MAX_STEPS; "
+                     r"WORLDBAKE_MAX_STEPS raises it\)", err), err
+    bad(project, 'extends = "default.toml"\n[erosion]\nstorm_hours = 1000.0\n')
+    assert re.search(r"^worldbake: error: configs/bad.toml: erosion.storm_hours: ", refused(project, capsys))
+    monkeypatch.setenv("WORLDBAKE_MAX_STEPS", "100")
+    err = refused(project, capsys, config="configs/default.toml")  # 0.15 h: at least 135 steps
+    assert "more than the 100 a storm may take (WORLDBAKE_MAX_STEPS = 100)" in err, err
+    monkeypatch.setenv("WORLDBAKE_MAX_STEPS", "1e8")
+    assert main(["--project", str(project), "plan", str(project / "configs" / "bad.toml")]) == 0
+
+
+def test_the_memory_refusal_names_the_file_that_set_the_size(project, capsys, monkeypatch):
+    monkeypatch.setenv("WORLDBAKE_MAX_MEMORY_GB", "16")
+    bad(project, 'extends = "default.toml"\n[heightmap]\nresolution = 16384\n')
+    err = refused(project, capsys)
+    assert re.search(r"^worldbake: error: configs/bad.toml: erosion: the run would hold about 74.0 GiB .*set by "
+                     r"heightmap.resolution", err), err
+    bad(project, 'extends = "default.toml"\n[world]\ntexture_size = 16384\n')
+    assert re.search(r"^worldbake: error: configs/bad.toml: world: the run would hold", refused(project, capsys))

@@ -200,3 +200,38 @@ def test_geotiff_pixel_scale_is_the_cell_size(cl_env, tmp_path):
     tifffile.imwrite(tmp_path / "skew.tif", src, extratags=[(33550, 12, 3, (10.0, 5.0, 0.0), False)])
     with pytest.raises(InputError, match="skew.tif.*not square"):
         dem.dem_cell_size(tmp_path / "skew.tif")
+
+
+@pytest.mark.parametrize("tile", [0, 16], ids=["scanlines", "tiles"])
+@pytest.mark.parametrize("ext", ["exr", "tif"])
+def test_scan_reads_in_bands_and_finds_what_read_dem_finds(tmp_path, monkeypatch, tile, ext):
+    monkeypatch.setattr(dem, "SCAN_BAND_PIXELS", 40 * 5)  # bands of 5 rows (tiled: one row of tiles)
+    src = np.random.default_rng(1).normal(500.0, 50.0, (37, 40)).astype(np.float32)
+    src[31, 7], src[2, 39] = -900.0, 2000.0
+    src[23, 11] = src[30, 0] = np.nan
+    path = tmp_path / f"d.{ext}"
+    out = oiio.ImageOutput.create(str(path))
+    spec = oiio.ImageSpec(40, 37, 1, "float")
+    if tile:
+        spec.tile_width = spec.tile_height = tile
+    assert out.open(str(path), spec), out.geterror()
+    assert out.write_image(np.ascontiguousarray(src[:, :, None])), out.geterror()
+    out.close()
+    scan = dem.scan_raster(path)
+    assert scan.shape == (37, 40) and (scan.lo, scan.lo_at, scan.hi, scan.hi_at) == (-900.0, (31, 7), 2000.0, (2, 39))
+    assert scan.nonfinite == 2 and scan.first_nonfinite == (23, 11)
+    with pytest.raises(InputError, match=r"contains 2 NaN or infinite value\(s\), the first at row 23, column 11"):
+        dem.check_dem(path)
+    with pytest.raises(InputError, match=r"contains 2 NaN .* row 23, column 11"):
+        dem.read_dem(path)
+
+
+def test_heights_beyond_the_range_are_refused_by_the_run_too(cl_env, tmp_path):
+    path = tmp_path / "nodata.exr"
+    src = np.full((16, 16), 300.0, np.float32)
+    src[4, 9] = -3.4e38
+    write(path, src, "float")
+    with pytest.raises(InputError, match=r"nodata.exr holds a height of -3.4e\+38 m \(row 4, column 9\)"):
+        heights(cl_env, dem_params(path, 16), seed=0)
+    with pytest.raises(InputError, match=r"holds a height of -3.4e\+38 m \(row 4, column 9\)"):
+        dem.check_dem(path)
