@@ -15,6 +15,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import sys
 import time
 from dataclasses import dataclass, field
@@ -180,6 +181,31 @@ def _origin_of(config: WorldConfig, key: str) -> str:
     return str(config.path)
 
 
+def _size_keys(config: WorldConfig, stage: Stage, result: Check, inputs: dict[str, GridInfo]) -> list[str]:
+    """The config keys that set the size of a stage's run, most direct first:
+    those its memory estimate names (`world.texture_size`, or a bare param
+    of its own: `atlas_px`), the keys that set its own grids', then its
+    inputs' (GridInfo.set_by, the largest grid first)."""
+    keys = []
+    for a, b in re.findall(r"\b([a-z_][a-z0-9_]*)\.([a-z_][a-z0-9_]*)\b", result.memory_how):
+        if a in config.params and b in type(config.params[a]).model_fields:
+            keys.append(f"{a}.{b}")
+    own = type(config.params[stage.name]).model_fields
+    keys += [f"{stage.name}.{k}" for k in re.findall(r"(?<![.\w])([a-z_][a-z0-9_]*) =", result.memory_how) if k in own]
+    keys += [g.set_by for g in result.grids.values() if g.set_by]
+    keys += [g.set_by for g in sorted(inputs.values(), key=lambda g: -g.shape[0] * g.shape[1]) if g.set_by]
+    return keys
+
+
+def _memory_origin(config: WorldConfig, stage: Stage, result: Check, inputs: dict[str, GridInfo]) -> str:
+    """The file (or --set) that set the size a memory refusal is about: of
+    _size_keys, the first some file sets; else the stage's table's."""
+    for key in _size_keys(config, stage, result, inputs):
+        if key in config.origin:
+            return config.origin[key]
+    return _origin_of(config, stage.name)
+
+
 def check_world(graph: Graph, config: WorldConfig) -> dict[str, Check]:
     """Every planned stage's check, in plan order, before any work: bad
     values, unreadable files and runs too large for the machine are an
@@ -209,7 +235,7 @@ def check_world(graph: Graph, config: WorldConfig) -> dict[str, Check]:
         if result.memory_bytes > limit:
             grids = "".join(f"; its input {role} is {g.shape[0]} x {g.shape[1]} cells"
                             + (f", set by {g.set_by}" if g.set_by else "") for role, g in inputs.items())
-            raise InputError(f"{_origin_of(config, stage.name)}: {stage.name}: the run would hold "
+            raise InputError(f"{_memory_origin(config, stage, result, inputs)}: {stage.name}: the run would hold "
                              f"about {result.memory_bytes / 2**30:.1f} GiB ({result.memory_how}), more than the "
                              f"{limit / 2**30:.1f} GiB a bake may use ({limit_how}){grids}; lower the sizes named")
         results[stage.name] = result
