@@ -65,7 +65,7 @@ def main(argv=None) -> None:
                                    error_views=4, samples_per_voxel=a.samples_per_voxel)
             with tempfile.TemporaryDirectory() as tmp:
                 t = time.perf_counter()
-                rep, chain = volume_species(name, load_species(name, folder / f"{name}.usdc", params), params, Path(tmp),
+                rep, chain = volume_species(cl_env, name, load_species(name, folder / f"{name}.usdc", params), params, Path(tmp),
                                             {"stage": "bench"})
                 wall = time.perf_counter() - t
             w = rep["wood"]["relative_error"]

@@ -1,9 +1,10 @@
 """The `worldbake` command.
 
     worldbake bake CONFIG [--variant NAME | --all-variants] [--set KEY=VALUE ...] [--name WORLD] [--replace] [--json]
-                          [--executor local|dask|ADDRESS]
+                          [--executor local|dask|ADDRESS] [--verify]
     worldbake plan CONFIG [--variant NAME | --all-variants] [--set KEY=VALUE ...] [--name WORLD] [--json]
     worldbake validate WORLD_DIR_OR_USD
+    worldbake verify [WORLD]
     worldbake worlds [--json]
     worldbake gc [--dry-run]
     worldbake export WORLD DEST
@@ -95,7 +96,7 @@ def _cmd_bake(args) -> int:
     configs = _configs(args)  # every config validated before any work
     store = Store(Path(args.project) / args.build)
     check_replace(store, configs, args.replace)
-    reports = bake_worlds(store, configs, graph, executor=args.executor, checked=True)
+    reports = bake_worlds(store, configs, graph, executor=args.executor, checked=True, verify=args.verify)
     summary = []
     for config in configs:
         world_dir = store.worlds / config.name
@@ -124,6 +125,26 @@ def _cmd_validate(args) -> int:
         print(e)
     print(f"{path}: {len(errors)} validation errors")
     return 1 if errors else 0
+
+
+def _cmd_verify(args) -> int:
+    """Re-hash every file the world(s) use; exit 1 naming each damaged one."""
+    store = Store(Path(args.project) / args.build)
+    names = [args.world] if args.world else [w["world"] for w in list_worlds(store)]
+    if args.world and not (store.worlds / args.world / "manifest.json").is_file():
+        raise InputError(f"verify: no world {args.world!r} in {store.worlds}")
+    damaged = 0
+    for name in names:
+        problems, checked = store.verify_world(name)
+        for problem in problems:
+            print(f"{name}: {problem}")
+        print(f"world {name}: {checked} files re-hashed, " + (f"{len(problems)} damaged" if problems else "all intact"),
+              file=sys.stderr)
+        damaged += len(problems)
+    if damaged:
+        print(f"worldbake: verify: {damaged} damaged; `worldbake bake CONFIG --verify` makes them again",
+              file=sys.stderr)
+    return 1 if damaged else 0
 
 
 def _cmd_export(args) -> int:
@@ -240,6 +261,11 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--executor", default="local", metavar="local|dask|ADDRESS",
                            help="local: in this process (default); dask: an embedded Dask LocalCluster "
                                 "(2 worker processes); tcp://HOST:PORT: a running Dask scheduler")
+            p.add_argument("--verify", action="store_true",
+                           help="re-hash every stored file before reusing it (not only those whose size or "
+                                "mtime changed): a damaged run is made again")
+    p = sub.add_parser("verify", help="re-hash every file a world uses against its manifests; exit 1 naming the damaged")
+    p.add_argument("world", nargs="?", help="a world's name (default: every world in the build folder)")
     p = sub.add_parser("validate", help="run every pxr.UsdValidation validator on a world")
     p.add_argument("path", help="a world folder or USD file")
     p = sub.add_parser("gc", help="remove artifacts no world references (waits for running bakes)")
@@ -263,7 +289,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     handlers = {"bake": _cmd_bake, "plan": _cmd_plan, "validate": _cmd_validate, "gc": _cmd_gc, "export": _cmd_export,
                 "describe": _cmd_describe, "devices": _cmd_devices, "worlds": _cmd_worlds, "diff": _cmd_diff,
-                "report": _cmd_report}
+                "report": _cmd_report, "verify": _cmd_verify}
     try:
         return handlers[args.command](args)
     except InputError as e:  # a bad config or input file

@@ -25,12 +25,14 @@ from .store import Store
 
 
 def _run_or_reuse(store: Store, ps: PlannedStep, config: WorldConfig, graph: Graph, keys: dict[str, str],
-                  log, head: str | None = None) -> StepReport:
-    """Key the step from its made inputs, then reuse a stored run or run it."""
+                  log, head: str | None = None, verify: bool = False) -> StepReport:
+    """Key the step from its made inputs, then reuse a stored run or run it.
+    verify: re-hash every file of a stored run before reusing it (not only
+    those whose size or mtime changed)."""
     ks = key_step(ps, store, graph, keys)
     cached = store.has(ps.stage.name, ks.key)
     if cached:
-        damaged = store.damaged(ps.stage.name, ks.key)
+        damaged = store.damaged(ps.stage.name, ks.key, full=verify)
         if damaged:  # edited or removed since the run wrote it: never reused, made again under the same key
             print(f"worldbake: {ps.stage.name} {ks.key}: {', '.join(damaged[:3])}"
                   f"{f' and {len(damaged) - 3} more' if len(damaged) > 3 else ''} changed since the run wrote "
@@ -50,10 +52,11 @@ def _keyed(store: Store, planned: list[PlannedStep], graph: Graph, keys: dict[st
     return [key_step(ps, store, graph, keys) for ps in planned]
 
 
-def _dask_task(build_dir: str, ps: PlannedStep, config: WorldConfig, graph: Graph, *inputs_done: StepReport) -> StepReport:
+def _dask_task(build_dir: str, ps: PlannedStep, config: WorldConfig, graph: Graph, verify: bool,
+               *inputs_done: StepReport) -> StepReport:
     # the producers' reports give the keys their runs were stored under
     keys = {r.stage: r.key for r in inputs_done}
-    return _run_or_reuse(Store(build_dir), ps, config, graph, keys, sys.stderr)
+    return _run_or_reuse(Store(build_dir), ps, config, graph, keys, sys.stderr, verify=verify)
 
 
 def _exit_without_native_teardown() -> None:
@@ -107,17 +110,19 @@ def _client(executor: str):
 
 
 def bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, *, executor: str = "local",
-                log=sys.stderr, checked: bool = False) -> dict[str, list[StepReport]]:
+                log=sys.stderr, checked: bool = False, verify: bool = False) -> dict[str, list[StepReport]]:
     """Bake every config; returns the step reports per world name. Every
-    planned stage's check runs first (unless the caller ran them: checked)."""
+    planned stage's check runs first (unless the caller ran them: checked).
+    verify: every stored run is re-hashed before it is reused."""
     if not checked:
         for config in configs:
             check_world(graph, config)
     with store.baking():
-        return _bake_worlds(store, configs, graph, executor, log)
+        return _bake_worlds(store, configs, graph, executor, log, verify)
 
 
-def _bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, executor: str, log) -> dict[str, list[StepReport]]:
+def _bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, executor: str, log,
+                 verify: bool = False) -> dict[str, list[StepReport]]:
     store.clean_stale()
     plans = [(config, plan_bake(graph, config)) for config in configs]
     reports: dict[str, list[StepReport]] = {}
@@ -128,7 +133,7 @@ def _bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, executo
             keys: dict[str, str] = {}
             for i, ps in enumerate(planned, 1):
                 head = f"[{i}/{len(planned)}] {ps.stage.name}"
-                report = _run_or_reuse(store, ps, config, graph, keys, log, head)
+                report = _run_or_reuse(store, ps, config, graph, keys, log, head, verify)
                 if report.status == "ran":
                     print(f"{head} {report.key} ran in {report.seconds:.2f} s", file=log, flush=True)
                 keys[ps.stage.name] = report.key
@@ -146,7 +151,7 @@ def _bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, executo
                 if ps.recipe in futures:
                     continue
                 deps = [futures[recipe_of[producer]] for (_, producer) in ps.inputs.values()]
-                futures[ps.recipe] = client.submit(_dask_task, str(store.build.resolve()), ps, config, graph, *deps,
+                futures[ps.recipe] = client.submit(_dask_task, str(store.build.resolve()), ps, config, graph, verify, *deps,
                                                    key=f"{ps.stage.name}-{ps.recipe}", pure=False)
         print(f"submitted {len(futures)} stage runs to {client.scheduler.address}", file=log, flush=True)
         results = {task: fut.result() for task, fut in futures.items()}  # re-raises a task's error

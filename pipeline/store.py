@@ -19,15 +19,41 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import fnmatch
 import hashlib
 import json
 import os
 import shutil
 import sys
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any, Iterator
 
 MANIFEST = "manifest.json"
+UNIT_MANIFEST = "unit.json"  # a unit folder's manifest (pipeline.units), written last
+UNIT_RUN_RECORD = "run.json"  # beside a unit's unit.json: the figures of the run that made it (pipeline.units)
+
+# Run records: the files that say how a bake went (timings, metrics, file
+# mtimes, this bake's seconds), not what it made. They alone may differ
+# between two clean bakes of the same config: no key and no USD layer hashes
+# them, and no other file holds what they hold. Paths relative to the build
+# folder; `*` is one folder name.
+RUN_RECORDS = (
+    f"artifacts/*/*/{MANIFEST}",      # a stage run: key, inputs, params, files (hashes, sizes, mtimes), timings, metrics
+    f"worlds/*/{MANIFEST}",           # a world: the keys it uses, and this bake's steps with their seconds
+    "worlds/*/report.html",           # the report: the runs' timings and metrics among the world's figures
+    f"units/*/*/{UNIT_RUN_RECORD}",   # a unit: the run figures (seconds) of the run that made it
+)
+
+
+def is_run_record(relative_path: str) -> bool:
+    """Whether a file of the build folder, by its POSIX path relative to
+    the folder, is a run record (RUN_RECORDS)."""
+    parts = PurePosixPath(relative_path).parts
+    for pattern in RUN_RECORDS:
+        want = PurePosixPath(pattern).parts
+        if len(parts) == len(want) and all(fnmatch.fnmatchcase(a, b) for a, b in zip(parts, want)):
+            return True
+    return False
 
 
 def sha256_file(path: Path) -> str:
@@ -126,6 +152,33 @@ class Store:
             elif (full or st.st_mtime_ns != mtime_ns) and sha256_file(folder / rel) != digest:
                 bad.append(rel)
         return bad
+
+    def verify_world(self, world: str) -> tuple[list[str], int]:
+        """Re-hash every file the world uses against what its runs and units
+        recorded (Store.damaged with full=True; units against their
+        unit.json). Returns the problems, one line each, and the number of
+        files checked."""
+        manifest = json.loads((self.worlds / world / MANIFEST).read_text())
+        entries = manifest.get("uses") or manifest.get("artifacts", [])
+        problems, checked = [], 0
+        for stage, key in sorted({(e["stage"], e["key"]) for e in entries}):
+            if not self.has(stage, key):
+                problems.append(f"{stage} {key}: missing from the store")
+                continue
+            problems += [f"{stage} {key}: {rel} is damaged" for rel in self.damaged(stage, key, full=True)]
+            checked += len(self.manifest(stage, key).get("files", {}))
+            for unit_key in self.manifest(stage, key).get("units", {}).values():
+                folder = self.units / stage / unit_key
+                try:
+                    files = json.loads((folder / UNIT_MANIFEST).read_text())["files"]
+                except (OSError, ValueError, KeyError, TypeError):
+                    problems.append(f"{stage} unit {unit_key}: missing or without a readable {UNIT_MANIFEST}")
+                    continue
+                checked += len(files)
+                for rel, digest in sorted(files.items()):
+                    if not (folder / rel).is_file() or sha256_file(folder / rel) != digest:
+                        problems.append(f"{stage} unit {unit_key}: {rel} is damaged")
+        return problems, checked
 
     def discard(self, stage: str, key: str) -> None:
         """Take a damaged run out of the store (renamed aside first, so no

@@ -8,9 +8,12 @@ and describes what it depends on (`material`: the content digest of what
 it reads, the params it uses); the engine keys it with the stage's code
 (name, version, source digest, libraries, seed) and keeps its files in
 
-    build/units/<stage>/<unit key>/   the files and unit.json (written last)
+    build/units/<stage>/<unit key>/   the files and unit.json (written last), and
+                                      run.json: the seconds of the run that made it
 
 so a run whose unit key exists links the files instead of making them.
+unit.json is content, the same every bake; run times go to run.json, a
+run record (pipeline.store.RUN_RECORDS).
 
 Trust: unit.json lists every file's sha256 and is checked on restore; a
 unit with a missing or altered file is made again, never used. Files made
@@ -28,9 +31,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .store import sha256_file
+from .store import UNIT_MANIFEST, UNIT_RUN_RECORD, sha256_file
 
-UNIT_MANIFEST = "unit.json"
 UNIT_KEY_LENGTH = 20
 
 
@@ -53,11 +55,16 @@ class Unit:
         self.name, self.key, self.provenance = name, key, provenance
         self.folder, self._tmp = folder, tmp
         self.reused = False
+        self.record: dict[str, Any] = {}  # restored: the run figures of the run that made it (run.json)
 
     def restore(self, dest: Path) -> Any | None:
         """Link the unit's files into dest and return the result it saved;
         None when there is no whole, unaltered unit of this key."""
-        if self.folder is None or not (self.folder / UNIT_MANIFEST).is_file():
+        if self.folder is None or not self.folder.exists():
+            return None
+        if not (self.folder / UNIT_MANIFEST).is_file():  # a folder without it is no unit: made again, then saved
+            print(f"worldbake: unit {self.folder} is incomplete (no {UNIT_MANIFEST}); making it again",
+                  file=sys.stderr, flush=True)
             return None
         try:
             saved = json.loads((self.folder / UNIT_MANIFEST).read_text())
@@ -77,11 +84,18 @@ class Unit:
                 (dest / rel).unlink(missing_ok=True)
             return None
         self.reused = True
+        try:  # a run record: missing or unreadable, the unit is still whole
+            self.record = json.loads((self.folder / UNIT_RUN_RECORD).read_text())
+        except (OSError, ValueError):
+            self.record = {}
         return saved["result"]
 
-    def save(self, src: Path, files: list[str], result: Any) -> None:
+    def save(self, src: Path, files: list[str], result: Any, record: dict[str, Any] | None = None) -> None:
         """Keep `files` (paths relative to src) and the JSON-able result
-        under the unit's key: written to a temporary folder, renamed when whole."""
+        under the unit's key: written to a temporary folder, renamed when whole.
+        `result` is content (the same every run: no run times); `record`,
+        the run's figures (seconds), goes to run.json, a run record
+        (pipeline.store.RUN_RECORDS), and comes back as `Unit.record`."""
         if self.folder is None or (self.folder / UNIT_MANIFEST).is_file():
             return
         work = self._tmp / f"unit-{self.folder.parent.name}-{self.key}-{os.getpid()}"
@@ -92,6 +106,8 @@ class Unit:
             for rel in sorted(files):
                 _link_or_copy(src / rel, work / rel)
                 digests[rel] = sha256_file(work / rel)
+            if record is not None:
+                (work / UNIT_RUN_RECORD).write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
             (work / UNIT_MANIFEST).write_text(json.dumps(
                 {"unit": self.name, "key": self.key, "provenance": self.provenance, "files": digests,
                  "result": result}, indent=1, sort_keys=True) + "\n")

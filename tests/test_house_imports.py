@@ -134,3 +134,25 @@ def test_the_graph_sees_the_project():
 def test_no_import_circle():
     cycles = simple_cycles(import_graph())
     assert not cycles, "import circles:\n" + "\n".join(" -> ".join(c) for c in cycles)
+
+
+LAYERS = {"pipeline": 0, "worldlib": 1, "stages": 2}
+
+
+def test_each_package_imports_only_the_ones_below_it():
+    """The engine imports neither the libraries nor a stage (its registry
+    imports only the `stages` package, empty, to find the stage folders in
+    it); the libraries import no stage; a stage imports no other stage's
+    modules."""
+    wrong = []
+    for name, targets in import_graph().items():
+        top = name.split(".")[0]
+        for target in sorted(targets):
+            other = target.split(".")[0]
+            if (name, target) == ("pipeline.registry", "stages"):
+                continue
+            if LAYERS[other] > LAYERS[top]:
+                wrong.append(f"{name} imports {target}")
+            elif top == other == "stages" and name.split(".")[1] != target.split(".")[1] and target != "stages":
+                wrong.append(f"{name} imports another stage's {target}")
+    assert not wrong, "\n".join(wrong)

@@ -19,7 +19,7 @@ SECONDS_PER_YEAR = 365.25 * 86400.0
 
 
 class Timings(dict):
-    """Seconds per step, in the order the steps ran (stats.json's timings)."""
+    """Seconds per step, in the order the steps ran (the run's metrics' timings)."""
 
     @contextmanager
     def lap(self, name: str):

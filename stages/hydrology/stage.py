@@ -156,8 +156,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
         if isinstance(g, Grid) and np.isinf(g.data).any():
             raise StageError(f"hydrology: {name} has infinite values")
     T["total_s"] = time.perf_counter() - t_all
-    stats = _stats(land, surfaces, flow, discharge, lakes.stats, riv.stats, hack, uinfo, terrain_stats, T)
-    ctx.metrics.update(stats)
+    stats = _stats(land, surfaces, flow, discharge, lakes.stats, riv.stats, hack, uinfo, terrain_stats)
+    ctx.metrics.update(stats, timings=dict(T))
     out["hydrology.stats"] = stats
     ctx.progress(1.0, "done")
     return out
@@ -205,7 +205,9 @@ def _write_water_layer(ctx: RunContext, land: Land, riv, discharge: np.ndarray, 
 
 
 def _stats(land: Land, surfaces, flow, discharge: np.ndarray, lstats: dict, river_stats: dict, hack: dict,
-           uinfo: dict, terrain_stats: dict, T: Timings) -> dict:
+           uinfo: dict, terrain_stats: dict) -> dict:
+    """stats.json: what the run made, the same every bake (its timings are
+    the manifest's metrics, a run record)."""
     rows, cols = land.shape
     cell_area, n_data = land.cell_area, land.n_data
     stats = {
@@ -215,7 +217,7 @@ def _stats(land: Land, surfaces, flow, discharge: np.ndarray, lstats: dict, rive
         "outlet_area_m2": float(flow.outlet_total * cell_area),
         "discharge_out_m3_s": float(discharge[land.kind == ref.EDGE].sum()),
         **{f"lake_{k_}" if not k_.startswith("lake") else k_: v for k_, v in lstats.items()},
-        **river_stats, **hack, **uinfo, "terrain": terrain_stats, "timings": dict(T),
+        **river_stats, **hack, **uinfo, "terrain": terrain_stats,
     }
     return {k_: (float(v) if isinstance(v, np.floating) else v) for k_, v in stats.items()}
 
@@ -229,11 +231,14 @@ BYTES_PER_CELL = 160  # about 20 float64/float32 fields: heights, fills, codes, 
 
 
 def check(params: HydrologyParams, ctx: CheckContext) -> Check:
-    """The rain map opened, sized and checked (finite, not negative) now;
-    the memory from the terrain's cells."""
+    """The rain map checked now from its header and a bounded read
+    (worldlib.terrain.dem.scan_raster: size, float, finite, 0 .. 20000
+    mm/year, the range of rain_mm_per_year); the memory from the terrain's cells."""
     if params.rain_map_path is not None:
+        from worldlib.terrain.dem import check_rain_map
+
         try:
-            rain_from_map(ctx.resolve(params.rain_map_path), 2, 2)
+            check_rain_map(ctx.resolve(params.rain_map_path), max_mm_per_year=20000.0)
         except InputError as e:
             raise ParamError("rain_map_path", str(e).removeprefix("hydrology: ")) from None
     terrain = ctx.inputs.get("terrain")
@@ -274,7 +279,7 @@ STAGE = Stage(
         Artifact("hydrology.stats", kind="json", file="stats.json", shape="any",
                  description="counts, budgets, Hack's law exponent, terrain statistics (grid anisotropy, share of area "
                  "in closed depressions, Strahler order, Hack exponent, concavity theta, drainage density, "
-                 "hypsometric integral: worldlib/terrain/stats.py), timings"),
+                 "hypsometric integral: worldlib/terrain/stats.py); the timings are metrics"),
         Artifact("hydrology.preview", kind="image", file="preview.png", dtype="uint8",
                  description="hillshade with lakes and rivers, 8-bit RGB"),
     ),

@@ -404,7 +404,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ImpostorsParams) -> dic
     ctx.metrics.update({"species": species, "built": names,
                         "seconds": float(sum(b["timings"]["total_s"] for b in baked))})
     ctx.progress(1.0, "impostors: done")
-    return {"impostors.layer": layer_path, "impostors.stats": {"species": species, "built": names}}
+    content = {n: {k: v for k, v in s.items() if k not in ("seconds", "reused")} for n, s in species.items()}
+    return {"impostors.layer": layer_path, "impostors.stats": {"species": content, "built": names}}  # run facts: metrics
 
 
 def check(params: ImpostorsParams, ctx: CheckContext) -> Check:
@@ -434,7 +435,7 @@ STAGE = Stage(
                       "worldbake:impostor (atlas, held-out error) and worldbake:lod_switch_m; the textures beside"),
              Artifact("impostors.stats", kind="json", file="stats.json", shape="any",
                       description="per species: held-out error of the atlas and the slices (median, worst view), "
-                      "switch distances, bake seconds")),
+                      "switch distances (bake seconds and reuse are metrics)")),
     params=ImpostorsParams,
     run=run,
     check=check,

@@ -197,6 +197,25 @@ def _species_job(name: str, spec, seed: int, cfg: Settings, out_dir: Path, top: 
     return name, res.metrics, usdio.relative_asset_path(path, top), summary
 
 
+def _split_times(metrics: dict) -> tuple[dict, dict]:
+    """A species' metrics without the run's times (a unit's result: the
+    same every build) and those times (its run record, pipeline.units)."""
+    kept = {k: v for k, v in metrics.items() if not k.startswith("seconds_")}
+    seconds = {k: v for k, v in metrics.items() if k.startswith("seconds_")}
+    if isinstance(metrics.get("lods"), list):
+        kept["lods"] = [{k: v for k, v in e.items() if k != "simplify_seconds"} for e in metrics["lods"]]
+        seconds["lods_simplify_seconds"] = [e.get("simplify_seconds") for e in metrics["lods"]]
+    return kept, seconds
+
+
+def _with_times(kept: dict, seconds: dict) -> dict:
+    """_split_times undone: the metrics of a reused species with the times of the run that made it."""
+    out = {**kept, **{k: v for k, v in seconds.items() if k != "lods_simplify_seconds"}}
+    if isinstance(kept.get("lods"), list) and "lods_simplify_seconds" in seconds:
+        out["lods"] = [dict(e, simplify_seconds=t) for e, t in zip(kept["lods"], seconds["lods_simplify_seconds"])]
+    return out
+
+
 # Species are independent (own seeds, own files), and most of a species'
 # time is single-threaded (pymeshlab, numpy): with at least this many
 # L-system modules in all, a second process builds species beside this one.
@@ -307,7 +326,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: PlantsParams) -> dict[s
     for name in names:
         saved = units[name].restore(out_dir)
         if saved is not None:
-            done[name] = (name, {**saved["metrics"], "reused": True}, saved["file"], saved["lods"])
+            metrics_of = _with_times(saved["metrics"], units[name].record.get("seconds", {}))
+            done[name] = (name, {**metrics_of, "reused": True}, saved["file"], saved["lods"])
             ctx.progress(len(done) / max(len(names), 1), f"plants: {name} unchanged, reused")
     todo = [n for n in names if n not in done]
     costs = {n: _species_cost(n, params.species[n], ctx.seed, params.max_modules) for n in todo}
@@ -323,8 +343,9 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: PlantsParams) -> dict[s
             (out_dir / rel).parent.mkdir(parents=True, exist_ok=True)
             os.replace(folder / rel, out_dir / rel)
         _, species_metrics, file, lods = made[name]
-        units[name].save(out_dir, made_files, json.loads(json.dumps(
-            {"metrics": species_metrics, "file": file, "lods": lods}, default=_json_scalar)))
+        kept, seconds = _split_times(json.loads(json.dumps(species_metrics, default=_json_scalar)))
+        units[name].save(out_dir, made_files, json.loads(json.dumps({"metrics": kept, "file": file, "lods": lods},
+                                                                    default=_json_scalar)), record={"seconds": seconds})
         done[name] = (name, {**species_metrics, "reused": False}, file, lods)
     shutil.rmtree(staging, ignore_errors=True)
     for name in names:  # in the build order, whichever process made them

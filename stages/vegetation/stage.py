@@ -292,8 +292,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
         species_maps = _species_maps(growth.plants, growth.grass_name, sets, growth.dom, growth.suit, growth.share,
                                      growth.n_t, grass_layer.suit, grass_layer.density, _grid_maker(land))
     report = _report(params, sets, growth, grass_layer, species_maps)
-    stats = _stats(land, splat, growth, grass_layer, sets, dropped, tints, ustats, clock)
-    ctx.metrics.update(_metrics(stats, report, growth))
+    stats, timings = _stats(land, splat, growth, grass_layer, sets, dropped, tints, ustats, clock)
+    ctx.metrics.update(_metrics(stats, report, growth), timings=timings)
     ctx.progress(1.0, "done")
     return _outputs(land, splat, growth, grass_layer, sets, usd_path, report, species_maps, stats)
 
@@ -448,7 +448,9 @@ def _report(params: VegetationParams, sets: dict, growth: _Growth, grass_layer: 
 
 
 def _stats(land: _Land, splat: _Splat, growth: _Growth, grass_layer: _Grass, sets: dict, dropped: dict,
-           tints: dict, ustats: dict, clock: _PhaseClock) -> dict:
+           tints: dict, ustats: dict, clock: _PhaseClock) -> tuple[dict, dict]:
+    """stats.json, what the run made (the same every bake), and the run's
+    timings (the manifest's metrics, a run record)."""
     rows, cols = land.shape
     sim, placed, mf, moist = growth.sim, growth.placed, splat.moisture_filtered, land.moisture
     errors_by_species = {name: placement.density_error(placed[name].x, placed[name].z, growth.n_t[s], growth.dom)
@@ -460,9 +462,9 @@ def _stats(land: _Land, splat: _Splat, growth: _Growth, grass_layer: _Grass, set
         "seed004_unfixed_sum_max": float(splat.seed004_sum.max()),
         "seed004_unfixed_cells_over_1": float((splat.seed004_sum > 1 + 1e-6).mean()),
         "moisture_filter_mean_gain": float(mf.astype(np.float64).mean() / max(float(moist.astype(np.float64).mean()), 1e-12)),
-        "ecosystem": dict(sim.stats) if sim else {},
+        "ecosystem": _without_times(sim.stats) if sim else {},
         "ecosystem_history": sim.history if sim else [],
-        "placement": {n: {**placed[n].stats, **growth.cap_info[n], "density_error": errors_by_species[n]}
+        "placement": {n: {**_without_times(placed[n].stats), **growth.cap_info[n], "density_error": errors_by_species[n]}
                       for n in growth.plants},
         "grass": grass_layer.stats,
         "usd": ustats,
@@ -470,11 +472,19 @@ def _stats(land: _Land, splat: _Splat, growth: _Growth, grass_layer: _Grass, set
         "dropped_at_cell_edges": dropped,
         "tint": {n: {"mean": [round(float(v), 4) for v in t.mean(axis=0)],
                      "std": [round(float(v), 4) for v in t.std(axis=0)]} for n, t in tints.items() if len(t)},
-        "timings": clock.wall,
     }
-    stats["timings"]["total_s"] = round(time.perf_counter() - clock.t_all, 4)
-    stats["timings"].update(clock.cpu)
-    return stats
+    timings = {**clock.wall, "total_s": round(time.perf_counter() - clock.t_all, 4), **clock.cpu,
+               "ecosystem_simulation_s": sim.stats.get("seconds") if sim else None,
+               "placement_species_s": {n: placed[n].stats.get("seconds") for n in growth.plants},
+               "poisson_species_s": {n: placed[n].stats.get("poisson_seconds") for n in growth.plants}}
+    return stats, timings
+
+
+_RUN_TIMES = ("seconds", "poisson_seconds")  # what the ecosystem and placement measure of their run, not of the land
+
+
+def _without_times(stats: dict) -> dict:
+    return {k: v for k, v in stats.items() if k not in _RUN_TIMES}
 
 
 def _metrics(stats: dict, report: dict, growth: _Growth) -> dict:
@@ -485,7 +495,6 @@ def _metrics(stats: dict, report: dict, growth: _Growth) -> dict:
                                        for n in growth.plants},
         "ecosystem_plateau_relative_change": stats["ecosystem"].get("plateau_relative_change"),
         "ecosystem_species_shares": stats["ecosystem"].get("species_shares"),
-        "timings": stats["timings"],
     }
 
 
@@ -592,7 +601,7 @@ STAGE = Stage(
                  description="only the names of the placed species and their prototype prims: what the plants stage "
                  "reads, so a bake that places the same species again builds no plant (early cutoff)"),
         Artifact("vegetation.stats", kind="json", file="stats.json", shape="any",
-                 description="ecosystem history and stability, placement and density errors, splat checks, timings"),
+                 description="ecosystem history and stability, placement and density errors, splat checks (the timings are metrics)"),
         Artifact("vegetation.preview", kind="image", file="preview.png", dtype="uint8",
                  description="the placement over the hillshade and ground colours, 8-bit RGB"),
     ),

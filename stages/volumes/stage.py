@@ -92,10 +92,14 @@ def load_species(name: str, usdc: Path, params: VolumesParams):
     return asset
 
 
+RUN_TIMES = ("seconds_load", "seconds_voxelize", "seconds_error", "seconds")  # of volume_species' report
+
+
 def volume_species(env, name: str, asset, params: VolumesParams, out_dir: Path,
                    provenance: dict, t_load: float = 0.0) -> tuple[dict, list[volume.VolumeLevel]]:
     """One species: its levels written beside the layer; returns its report
-    and levels. `env`: the OpenCL device (the stage's ctx.cl)."""
+    and levels (the report's RUN_TIMES are the run's, which run() keeps out
+    of stats.json). `env`: the OpenCL device (the stage's ctx.cl)."""
     t0 = time.perf_counter() - t_load
     t = time.perf_counter()
     kernels_env = env if params.use_opencl else None  # None: the numpy references
@@ -175,6 +179,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VolumesParams) -> dict[
     folder = plants_layer.parent
     names = [n for n in (placed["placed"] if placed is not None else []) if (folder / f"{n}.usdc").is_file()]
     reports, chains = {}, {}
+    runs: dict[str, dict] = {}  # per species its seconds and whether it was reused: metrics, never stats.json
     for i, name in enumerate(names):
         ctx.progress(i / max(len(names), 1), f"volumes: {name}")
         t0 = time.perf_counter()
@@ -185,14 +190,16 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VolumesParams) -> dict[
                                "params": {k: v for k, v in params.model_dump(mode="json").items() if k != "enabled"}})
         saved = unit.restore(ctx.out_dir)
         if saved is not None:
-            reports[name] = {**saved, "reused": True}
+            reports[name] = saved
+            runs[name] = {**unit.record.get("seconds", {}), "reused": True}  # the seconds of the run that made it
             chains[name] = [volume.read_atlas(ctx.out_dir / e["file"]) for e in saved["levels"]]
             continue
         reports[name], chains[name] = volume_species(ctx.cl, name, asset, params, ctx.out_dir, unit.provenance,
                                                      time.perf_counter() - t0)
+        seconds = {k: reports[name].pop(k) for k in RUN_TIMES}
         unit.save(ctx.out_dir, [f for e in reports[name]["levels"] for f in (e["file"], e.get("vdb")) if f],
-                  json.loads(json.dumps(reports[name])))
-        reports[name]["reused"] = False
+                  json.loads(json.dumps(reports[name])), record={"seconds": seconds})
+        runs[name] = {**seconds, "reused": False}
         drift = max(e["mean_density_drift"] for e in reports[name]["levels"])
         if drift > 1e-6:
             raise StageError(f"volumes: {name}: the mips change the mean coverage by {drift:.2e} (relative)")
@@ -201,8 +208,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VolumesParams) -> dict[
     errors = usdio.validate(layer)
     if errors:
         raise StageError("volumes: the layer fails USD validation: " + "; ".join(errors[:10]))
-    ctx.metrics.update(species={n: {k: v for k, v in r.items() if k != "levels"} for n, r in reports.items()},
-                       voxelized=names)
+    ctx.metrics.update(species={n: {**{k: v for k, v in r.items() if k != "levels"}, **runs[n]}
+                                for n, r in reports.items()}, voxelized=names)
     ctx.progress(1.0, "volumes: done")
     return {"volumes.assets": layer, "volumes.stats": {"species": reports, "voxelized": names,
                                                        "not_voxelized": [n for n in (placed or {}).get("placed", [])
@@ -243,8 +250,9 @@ STAGE = Stage(
                       "density, density 1/m, normal.xyz, surface m^2/m^3; layout and errors in the header) and, "
                       "with vdb = true, <species>.mip<k>.vdb"),
              Artifact("volumes.stats", kind="json", file="stats.json", shape="any",
-                      description="per species: grid, timings, per mip level memory, mean coverage, alpha IoU and "
-                      "PSNR against the mesh from held-out views; the woody solid's volume against manifold3d's")),
+                      description="per species: grid, per mip level memory, mean coverage, alpha IoU and "
+                      "PSNR against the mesh from held-out views; the woody solid's volume against manifold3d's "
+                      "(timings and reuse are metrics)")),
     params=VolumesParams,
     run=run,
     check=check,

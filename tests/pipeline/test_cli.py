@@ -112,16 +112,46 @@ def _decoded(build: Path) -> dict:
     return out
 
 
+def _files(build: Path) -> set[str]:
+    return {p.relative_to(build).as_posix() for p in build.rglob("*") if p.is_file()}
+
+
 def test_two_bakes_give_the_same_keys_pixels_and_usd(project):
-    a = bake_json(project, build="build_a")
-    b = bake_json(project, build="build_b")
+    """Two clean bakes of a world with every stage (forest sectors and the
+    report included) give the same keys, and every file of the build folder
+    byte for byte but the run records the store declares."""
+    import filecmp
+
+    from pipeline.store import is_run_record
+
+    forest = ["--set", "forest_volumes.forest_min_height_m=0.0"]  # the grass makes forest sectors
+
+    def bake(build: str) -> dict:
+        out = worldbake(project, "bake", "configs/default.toml", *SMALL, *forest, "--json", build=build,
+                        env={"WORLDBAKE_REPORT": "1"})
+        return {s["stage"]: s for s in json.loads(out.stdout)[0]["steps"]}
+
+    a, b = bake("build_a"), bake("build_b")
     assert {s: v["key"] for s, v in a.items()} == {s: v["key"] for s, v in b.items()}
+    assert list((project / "build_a/artifacts/forest_volumes").glob("*/q*.mip0.exr")), "no forest sector"
     da, db = _decoded(project / "build_a"), _decoded(project / "build_b")
     assert da.keys() == db.keys() and len(da) >= 5
     for name in da:
         assert da[name] == db[name], f"{name} differs between two bakes"
     wa = (project / "build_a/worlds/default/world.usda").read_text()
     assert wa == (project / "build_b/worlds/default/world.usda").read_text()
+    files = _files(project / "build_a")
+    assert files == _files(project / "build_b")
+    records = {f for f in files if is_run_record(f)}
+    assert {"worlds/default/manifest.json", "worlds/default/report.html"} <= records
+    assert {f"artifacts/{s}/{v['key']}/manifest.json" for s, v in a.items()} <= records
+    differ = [f for f in sorted(files - records)
+              if not filecmp.cmp(project / "build_a" / f, project / "build_b" / f, shallow=False)]
+    assert not differ, f"not run records, yet they differ between two clean bakes: {differ}"
+    # both bakes ran in the same project: an absolute path would be the same in both, so look for it
+    here = str(project.resolve()).encode()
+    with_path = [f for f in sorted(files - records) if here in (project / "build_a" / f).read_bytes()]
+    assert not with_path, f"content holding the project's absolute path: {with_path}"
 
 
 def test_sigkill_at_any_moment_leaves_no_half_artifact(project):

@@ -63,15 +63,16 @@ def test_an_unchanged_asset_is_not_voxelized_again(plants, tmp_path):
 
     def run(out, build):
         store = Store(build)
-        return _run(STAGE, params, inputs, out, Units(store.units, store.tmp, "volumes", {"stage": "volumes"}))[0]
+        return _run(STAGE, params, inputs, out, Units(store.units, store.tmp, "volumes", {"stage": "volumes"}))
 
     def files(folder):
         return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
 
-    first = run(tmp_path / "a", tmp_path / "build")
-    second = run(tmp_path / "b", tmp_path / "build")
-    assert not first["volumes.stats"]["species"]["bush"]["reused"]
-    assert second["volumes.stats"]["species"]["bush"]["reused"]
+    (first, first_ctx), (second, second_ctx) = run(tmp_path / "a", tmp_path / "build"), run(tmp_path / "b", tmp_path / "build")
+    assert not first_ctx.metrics["species"]["bush"]["reused"]
+    assert second_ctx.metrics["species"]["bush"]["reused"]
+    assert second_ctx.metrics["species"]["bush"]["seconds"] == first_ctx.metrics["species"]["bush"]["seconds"]
+    assert first["volumes.stats"] == second["volumes.stats"]  # content: no run times, no reuse
     assert files(tmp_path / "a") == files(tmp_path / "b")
 
 
