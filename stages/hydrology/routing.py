@@ -2,8 +2,6 @@
 directions, drainage area, rain and discharge."""
 from __future__ import annotations
 
-import time
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -13,19 +11,11 @@ from pipeline.grid import Grid
 from worldlib.flow import device as dev
 from worldlib.flow import reference as ref
 
+from pipeline.timing import StepTimes as Timings
+
 from . import mfd
 
 SECONDS_PER_YEAR = 365.25 * 86400.0
-
-
-class Timings(dict):
-    """Seconds per step, in the order the steps ran (the run's metrics' timings)."""
-
-    @contextmanager
-    def lap(self, name: str):
-        t0 = time.perf_counter()
-        yield
-        self[name] = time.perf_counter() - t0
 
 
 @dataclass(frozen=True)

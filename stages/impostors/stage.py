@@ -44,7 +44,6 @@ from __future__ import annotations
 import json
 import math
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -54,6 +53,7 @@ import pydantic
 
 from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, RunContext, Stage
 from pipeline.errors import InputError, StageError
+from pipeline.timing import StepTimes
 from worldlib.render import Prepared, Settings
 from worldlib.render.usd_asset import load_plant
 from worldlib.plant_asset import PLANTS_ROOT, plant_asset_prim
@@ -156,16 +156,6 @@ def _polygon_area(poly: np.ndarray) -> float:
     return float(0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y)))
 
 
-class _Timings(dict):
-    """Seconds per step of a species' bake, in the order the steps ran."""
-
-    @contextmanager
-    def lap(self, name: str):
-        t0 = time.perf_counter()
-        yield
-        self[name] = time.perf_counter() - t0
-
-
 @dataclass(frozen=True)
 class _Plant:
     """A species' plant as the bake reads it."""
@@ -217,7 +207,7 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
         return _from_saved(saved, {"load_s": time.perf_counter() - t0, "total_s": time.perf_counter() - t0})
     plant = _Plant(name, ps, Prepared(ctx.cl, ps.scene), layout, "Blades" in ps.parts,
                    (ctx.seed * 1_000_003 + sum(map(ord, name))) & 0xFFFFFFFF)
-    timings = _Timings(load_s=time.perf_counter() - t0)
+    timings = StepTimes(load_s=time.perf_counter() - t0)
     with timings.lap("atlas_s"):
         at = _atlas(plant, params)
         cutout = atlas.cutout_polygon(at.frame_alpha())
