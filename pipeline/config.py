@@ -50,6 +50,8 @@ TOP_LEVEL_KEYS = {
 SAFE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_-]{0,63}")
 SAFE_NAME_RULE = "1 to 64 letters, digits, - and _ (not starting with -)"
 MAX_DEPTH = 16  # tables nested deeper than this are refused (no config needs more than 4)
+MAX_CONFIG_BYTES = 1 << 20  # a config file larger than this is refused before it is parsed
+MAX_EXTENDS = 16  # a chain of extends longer than this is refused
 
 
 def check_name(name: Any, where: str, key: str, what: str = "name") -> str:
@@ -166,7 +168,12 @@ def _read_toml(path: Path, root: Path, seen: tuple[Path, ...], origin: dict[str,
         raise InputError(f"{shown}: extends forms a cycle: {' -> '.join(_display(p, root) for p in seen + (path,))}")
     if not _inside(path, root):  # resolved: a symlink to a file outside counts as outside
         raise InputError(f"{shown}: the config file is outside the project ({root}); copy it in")
+    if len(seen) >= MAX_EXTENDS:
+        raise InputError(f"{shown}: extends: a chain of more than {MAX_EXTENDS} config files")
     try:
+        if path.stat().st_size > MAX_CONFIG_BYTES:
+            raise InputError(f"{shown}: {path.stat().st_size:,} bytes; a config file may hold at most "
+                             f"{MAX_CONFIG_BYTES:,} (it is read whole before any check)")
         # utf-8-sig: a byte-order mark some editors write is not part of the TOML
         raw = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except FileNotFoundError:

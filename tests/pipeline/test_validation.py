@@ -52,6 +52,7 @@ def bad(project: Path, text: str, name: str = "bad.toml") -> None:
      r"bad.toml: heightmap(\.a)+(\.\.\.)?: tables nested more than 16 deep"),
     ('extends = "default.toml"\ndescription = 5\n', r"bad.toml: description: must be a str .*got 5"),
     ('extends = "default.toml"\nname = 7\n', r"bad.toml: name: must be a str"),
+    ('extends = "default.toml"\n' + "#" * (2 << 20) + "\n", r"bad.toml: 2,097,17\d bytes; a config file may hold at most"),
 ])
 def test_bad_config_is_refused_before_work(project, capsys, text, pattern):
     bad(project, text)
@@ -287,3 +288,11 @@ def test_the_memory_refusal_names_the_file_that_set_the_size(project, capsys, mo
                      r"heightmap.resolution", err), err
     bad(project, 'extends = "default.toml"\n[world]\ntexture_size = 16384\n')
     assert re.search(r"^worldbake: error: configs/bad.toml: world: the run would hold", refused(project, capsys))
+
+
+def test_a_chain_of_extends_longer_than_the_limit_is_refused(project, capsys):
+    bad(project, 'extends = "default.toml"\n', "c0.toml")
+    for i in range(1, 18):
+        bad(project, f'extends = "c{i - 1}.toml"\n', f"c{i}.toml")
+    err = refused(project, capsys, config="configs/c17.toml")
+    assert re.search(r"extends: a chain of more than 16 config files", err), err
