@@ -30,6 +30,7 @@ from .contract import Artifact, Check, CheckContext, GridInfo, ParamError, RunCo
 from .errors import InputError, StageError
 from .graph import Graph, Step, plan
 from .grid import Grid
+from .limits import work_refusal
 from .sources import stage_source_hash
 from .store import MANIFEST, Store, sha256_file, write_json
 from .units import Units
@@ -209,7 +210,8 @@ def _memory_origin(config: WorldConfig, stage: Stage, result: Check, inputs: dic
 def check_world(graph: Graph, config: WorldConfig) -> dict[str, Check]:
     """Every planned stage's check, in plan order, before any work: bad
     values, unreadable files and runs too large for the machine are an
-    InputError naming the config file and key."""
+    InputError naming the config file and key (a run estimated past its
+    memory or its stated work limit too: pipeline.limits)."""
     limit, limit_how = memory_limit_bytes()
     sizes: dict[str, GridInfo] = {}  # artifact name -> size
     results = {}
@@ -238,6 +240,12 @@ def check_world(graph: Graph, config: WorldConfig) -> dict[str, Check]:
             raise InputError(f"{_memory_origin(config, stage, result, inputs)}: {stage.name}: the run would hold "
                              f"about {result.memory_bytes / 2**30:.1f} GiB ({result.memory_how}), more than the "
                              f"{limit / 2**30:.1f} GiB a bake may use ({limit_how}){grids}; lower the sizes named")
+        too_much = work_refusal(stage.name, result.work, result.work_limit, result.work_unit, result.work_how)
+        if too_much:
+            # the param the stage names, else the file that set its inputs' size (as a memory refusal)
+            key = f"{stage.name}.{result.work_key}" if result.work_key else stage.name
+            origin = _origin_of(config, key) if result.work_key else _memory_origin(config, stage, result, inputs)
+            raise InputError(f"{origin}: {key}: {too_much}")
         results[stage.name] = result
     return results
 

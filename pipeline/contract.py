@@ -348,6 +348,14 @@ class Check:
     memory_how: str = ""
     grids: dict[str, GridInfo] = field(default_factory=dict)  # artifact name -> size
     work_how: str = ""
+    # the work of the run in work_unit (cell-steps, rays, texels: the stage's
+    # documented unit), the most a run may do (0: no limit; pipeline.limits:
+    # WORLDBAKE_MAX_WORK_SCALE multiplies it) and the param a refusal names
+    # (dotted inside the stage's table; "": the stage's table)
+    work: float = 0.0
+    work_unit: str = ""
+    work_limit: float = 0.0
+    work_key: str = ""
 
 
 @dataclass

@@ -48,6 +48,7 @@ from pipeline import usdio
 from worldlib.volumes import dense as volume, sparse as sparse_volume
 from pipeline.contract import Artifact, Check, CheckContext, Input, Param, Params, RunContext, Stage
 from pipeline.errors import InputError, StageError
+from pipeline.limits import leading_key
 
 from . import reference, splat
 
@@ -450,13 +451,25 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) ->
     return {"forest_volumes.sectors": layer, "forest_volumes.stats": report}
 
 
+MAX_SECTOR_VOXELS = 4e9  # a sector's levels plus the measured sectors' (the defaults: about 4e7)
+
+
 def check(params: ForestVolumesParams, ctx: CheckContext) -> Check:
     """Memory: one sector at a time, at most max_voxels: its 8 int64 sums
     (64 B a voxel), the occupied voxels' channels and mips (under 20 B a
     voxel of the box), and the error reference's batch buffers (about 40 B
-    a deposit)."""
+    a deposit). Work, in voxels (the number of sectors is the vegetation
+    quadtree's, not a param): one sector's levels, at most max_voxels and
+    its mips, plus the error_sectors sectors' columns measured against their
+    instances (each up to max_voxels), at most MAX_SECTOR_VOXELS."""
+    levels = 8 / 7 * (1 - 8.0 ** -params.mip_levels)  # a sector's levels, each 1/8 of the one before
+    work = params.max_voxels * (levels + params.error_sectors)
     return Check(memory_bytes=90.0 * params.max_voxels + 40.0 * MAX_DEPOSITS,
-                 memory_how=f"max_voxels = {params.max_voxels:,} x 90 B + {MAX_DEPOSITS:,} deposits x 40 B")
+                 memory_how=f"max_voxels = {params.max_voxels:,} x 90 B + {MAX_DEPOSITS:,} deposits x 40 B",
+                 work=work, work_unit="voxels", work_limit=MAX_SECTOR_VOXELS,
+                 work_how=f"max_voxels = {params.max_voxels:,} x ({levels:.3g} for a sector's {params.mip_levels} "
+                 f"mip_levels + {params.error_sectors} error_sectors measured)",
+                 work_key=leading_key(params, grows=("max_voxels", "error_sectors", "mip_levels")))
 
 
 STAGE = Stage(

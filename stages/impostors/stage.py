@@ -53,6 +53,7 @@ import pydantic
 
 from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, RunContext, Stage
 from pipeline.errors import InputError, StageError
+from pipeline.limits import leading_key
 from pipeline.timing import StepTimes
 from worldlib.render import Prepared, Settings
 from worldlib.render.usd_asset import load_plant
@@ -398,16 +399,31 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ImpostorsParams) -> dic
     return {"impostors.layer": layer_path, "impostors.stats": {"species": content, "built": names}}  # run facts: metrics
 
 
+MAX_RAYS = 1e10  # rays traced per species (the defaults: about 1e8)
+
+
 def check(params: ImpostorsParams, ctx: CheckContext) -> Check:
     """The atlas levels held at once: 9 float32 channels, 4/3 for the mips,
-    about 3x for the padding's distance transform; per species, one at a time."""
+    about 3x for the padding's distance transform; per species, one at a time.
+    Work, in rays per species (a species at a time): the largest atlas's
+    texels times samples^2 times (1 + ao_rays), and the held-out views'
+    pixels times heldout_samples^2 (the mesh's reference), at most MAX_RAYS."""
     side = params.atlas_px
     if side // params.frames < 4:
         raise ParamError("frames", f"{params.frames} frames leave {side // params.frames} texels per frame in "
                          f"atlas_px = {side}; at least 4 are needed")
     texels = params.atlas_px ** 2
+    atlas_rays = texels * params.samples ** 2 * (1 + params.ao_rays)
+    views = max(len(heldout.lattice(layout, params.heldout_stride))
+                for layout in {params.layout, *params.layouts.values()})
+    heldout_rays = views * params.heldout_px ** 2 * params.heldout_samples ** 2
     return Check(memory_bytes=texels * 9 * 4 * 4.0, memory_how=f"atlas_px = {params.atlas_px}: {texels:,} texels x "
-                 "9 channels x 4 B x (mips and padding)")
+                 "9 channels x 4 B x (mips and padding)",
+                 work=atlas_rays + heldout_rays, work_unit="rays per species", work_limit=MAX_RAYS,
+                 work_how=f"{texels:,} atlas texels x {params.samples}^2 samples x (1 + {params.ao_rays} ao_rays) + "
+                 f"{views} held-out views x {params.heldout_px}^2 pixels x {params.heldout_samples}^2 heldout_samples",
+                 work_key=leading_key(params, grows=("atlas_px", "samples", "ao_rays", "heldout_px", "heldout_samples"),
+                                      shrinks=("heldout_stride",)))
 
 
 STAGE = Stage(

@@ -34,6 +34,7 @@ from pipeline.contract import (Artifact, Check, CheckContext, Input, ParamError,
                                Stage, ValueRange)
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
+from pipeline.limits import leading_key
 from worldlib.ground import GROUND_MAP_COLOURS, SPLAT_CHANNELS
 from worldlib.plant_asset import prototype_prim
 from worldlib.terrain import TERRAIN_SOURCES
@@ -41,7 +42,7 @@ from worldlib.terrain.hillshade import hillshade
 
 from . import attributes as attrs
 from . import ecosystem, grass, placement, tint, usd_layer
-from .params import NPREF_ORDER, VegetationParams
+from .params import FILL, KAPPA, NPREF_ORDER, VegetationParams
 
 SPECIES_MAPS = "species.exr"
 ATTR_CHANNELS = ("attr.slope", "attr.aspect", "attr.curvature", "attr.sky_view", "attr.sunlight", "attr.moisture")
@@ -529,12 +530,16 @@ def _grid(name, file, channels, units, description):
 # grid holds about 12 float64 values a simulation cell and 2 per species.
 BYTES_PER_CELL, BYTES_PER_CELL_SPECIES = 320, 48
 BYTES_PER_SIM_CELL, BYTES_PER_SIM_CELL_SPECIES = 96, 16
+MAX_CELL_STEPS = 1e10  # simulation cell-steps and Poisson cell-passes of a run (the default world: about 1e8)
 MAX_HORIZON_SAMPLES = 256  # samples per direction of the horizon scan (growth 1.3 over 1500 m of 1 m cells: 28)
 
 
 def check(params: VegetationParams, ctx: CheckContext) -> Check:
     """The horizon scan's samples and the memory of the maps and of the
-    simulation grid, from the terrain's size, before any stage runs."""
+    simulation grid, from the terrain's size, before any stage runs. Work, in
+    cell-steps: the simulation's cells times its steps (each a seeding, an
+    update and the thinning) and the Poisson-disk cells times poisson_passes,
+    at most MAX_CELL_STEPS."""
     terrain = ctx.inputs.get("terrain")
     if terrain is None:
         return Check()
@@ -550,10 +555,32 @@ def check(params: VegetationParams, ctx: CheckContext) -> Check:
     n = len(params.grow)
     memory = (rows * cols * (BYTES_PER_CELL + BYTES_PER_CELL_SPECIES * n)
               + sim.nx * sim.nz * (BYTES_PER_SIM_CELL + BYTES_PER_SIM_CELL_SPECIES * n))
+    steps = params.years // params.step_years + 1  # the first thinning, then one a step
+    poisson = poisson_cells(params, (cols - 1) * dx, (rows - 1) * dx)
     return Check(memory_bytes=memory,
                  memory_how=f"the terrain's {rows * cols:,} cells x ({BYTES_PER_CELL} + {BYTES_PER_CELL_SPECIES} x {n} "
                  f"species) B + vegetation.sim_cell_m = {params.sim_cell_m:g}: {sim.nx * sim.nz:,} simulation cells x "
-                 f"({BYTES_PER_SIM_CELL} + {BYTES_PER_SIM_CELL_SPECIES} x {n}) B")
+                 f"({BYTES_PER_SIM_CELL} + {BYTES_PER_SIM_CELL_SPECIES} x {n}) B",
+                 work=sim.nx * sim.nz * steps + poisson * params.poisson_passes, work_unit="cell-steps",
+                 work_limit=MAX_CELL_STEPS, work_how=f"{sim.nx * sim.nz:,} simulation cells x {steps:,} steps "
+                 f"(years // step_years + 1) + at most {poisson:,.0f} Poisson-disk cells x {params.poisson_passes} "
+                 "poisson_passes",
+                 work_key=leading_key(params, grows=("years", "poisson_passes"), shrinks=("step_years", "sim_cell_m")))
+
+
+def poisson_cells(params: VegetationParams, width_m: float, depth_m: float) -> float:
+    """The Poisson-disk grid cells of every plant species grown, at most:
+    placement.poisson_sample's cell is r_lo / sqrt(2), r_lo at least
+    min_spacing_m and the spacing its density_per_ha fills at most."""
+    total = 0.0
+    for name in params.grow:
+        e = params.species.get(name)
+        if e is None or e.kind != "plant":
+            continue
+        r_lo = max(e.min_spacing_m, math.sqrt(KAPPA * FILL * 1e4 / e.density_per_ha))
+        c = r_lo / math.sqrt(2.0)
+        total += (width_m // c + 1) * (depth_m // c + 1)
+    return total
 
 
 STAGE = Stage(

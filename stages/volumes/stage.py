@@ -34,6 +34,7 @@ from pipeline import usdio
 from worldlib.volumes import dense as volume
 from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, RunContext, Stage
 from pipeline.errors import StageError
+from pipeline.limits import leading_key
 from worldlib.render.usd_asset import load_asset
 
 from . import error
@@ -216,10 +217,17 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VolumesParams) -> dict[
                                                                          if n not in names]}}
 
 
+MAX_VOXEL_SAMPLES = 4e9  # per species (the defaults: about 4e7)
+
+
 def check(params: VolumesParams, ctx: CheckContext) -> Check:
     """The finest grid must halve exactly down the mips; memory: per species
     the finest level's 8 float32 channels, its mips (1/7 more) and the float64
-    voxel sums (10 a voxel), about voxels^3 x 150 B at most."""
+    voxel sums (10 a voxel), about voxels^3 x 150 B at most. Work, in
+    voxel-samples per species (a species at a time): the woody solid's
+    columns (solid_columns^2 a voxel side, each through the grid), the error
+    views' rays marched through every level (under twice the finest's voxels)
+    and the mesh's reference samples, at most MAX_VOXEL_SAMPLES."""
     step = 2 ** (params.mip_levels - 1)
     if params.voxels % step:
         raise ParamError("voxels", f"{params.voxels} voxels cannot halve {params.mip_levels - 1} times; use a multiple "
@@ -232,7 +240,17 @@ def check(params: VolumesParams, ctx: CheckContext) -> Check:
             raise ParamError("vdb", f"no OpenVDB writer: {why}; install Debian's python3-openvdb "
                              "(apt-get install python3-openvdb) or set WORLDBAKE_VDB_PYTHON, or set vdb = false")
     n = params.voxels ** 3
-    return Check(memory_bytes=150.0 * n + 4e8, memory_how=f"{params.voxels}^3 voxels x 150 B + 400 MB of surface samples")
+    solid = n * params.solid_columns ** 2
+    views = params.error_views * params.error_view_pixels ** 2 if params.error_view_pixels else 0
+    march = views * 2 * params.voxels  # every level's views march its voxels: under twice the finest's
+    reference = views * params.error_view_samples ** 2
+    return Check(memory_bytes=150.0 * n + 4e8, memory_how=f"{params.voxels}^3 voxels x 150 B + 400 MB of surface samples",
+                 work=solid + march + reference, work_unit="voxel-samples per species", work_limit=MAX_VOXEL_SAMPLES,
+                 work_how=f"{params.voxels}^3 voxels x {params.solid_columns}^2 solid_columns + {params.error_views} "
+                 f"error_views x {params.error_view_pixels}^2 pixels x (2 x {params.voxels} voxels marched + "
+                 f"{params.error_view_samples}^2 error_view_samples)",
+                 work_key=leading_key(params, grows=("voxels", "solid_columns", "error_views", "error_view_pixels",
+                                                     "error_view_samples")))
 
 
 STAGE = Stage(

@@ -17,8 +17,10 @@ import numpy as np
 
 from pipeline import usdio
 from worldlib import images
-from pipeline.contract import Artifact, Check, CheckContext, Input, Param, Params, ReportPicture, RunContext, Stage
+from pipeline.contract import (Artifact, Check, CheckContext, GridInfo, Input, Param, Params, ReportPicture, RunContext,
+                               Stage)
 from pipeline.grid import Grid
+from pipeline.limits import leading_key
 from worldlib.ground import SPLAT_CHANNELS
 from worldlib.plant_asset import plant_asset_prim
 from worldlib.terrain import TERRAIN_SOURCES
@@ -310,22 +312,47 @@ def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
     return {"world.root": root_path, "world.terrain": terrain_path, "world.albedo": albedo_path}
 
 
+MAX_GROUND_TEXELS = 1e10  # texels of the albedo overview and the UDIM tiles (the default world: 7e7)
+
+
+def ground_layout(params: WorldParams, terrain: GridInfo | None) -> tuple[int, int]:
+    """(UDIM tiles per side, texels per tile side) the run will bake: the
+    configured tile size, or more texels per tile where the UDIM row limit
+    caps the columns (a fine ground_texel_m on a large world)."""
+    from . import ground
+
+    if terrain is None:
+        return 1, params.ground_tile_texels
+    size_m = max(terrain.shape) * terrain.cell_size_m
+    return ground.udim_layout(size_m, params.ground_texel_m, params.ground_tile_texels)
+
+
 def check(params: WorldParams, ctx: CheckContext) -> Check:
     """Memory: the albedo computed at texture resolution (ground_colour
     holds about 20 float64 values a texel at its peak, with the RGB blends,
-    and maketx copies the result: 256 B a texel) and the terrain mesh
-    (points, normals, uvs, indices: about 80 B a vertex)."""
+    and maketx copies the result: 256 B a texel), the terrain mesh (points,
+    normals, uvs, indices: about 80 B a vertex) and the UDIM tiles baked at
+    once at their real size (ground.udim_layout). Work: the texels of the
+    overview and of every UDIM tile, at most MAX_GROUND_TEXELS."""
     texels = params.texture_size ** 2
     vertices = params.mesh_max_vertices ** 2
     terrain = ctx.inputs.get("terrain")
     if terrain is not None:
         vertices = min(terrain.shape[0], params.mesh_max_vertices) * min(terrain.shape[1], params.mesh_max_vertices)
+    tiles, tile_texels = (0, 0) if terrain is not None and "splat" not in ctx.inputs else ground_layout(params, terrain)
     # UDIM tiles baked at once: weights and detail per ground type (float32) and the RGB result, about 64 B a texel
-    tile_bytes = GROUND_TILE_THREADS * 64 * params.ground_tile_texels ** 2
-    return Check(memory_bytes=256 * texels + 80 * vertices + tile_bytes,
-                 memory_how=f"world.texture_size = {params.texture_size}: {texels:,} texels x 256 B, "
-                 f"+ {vertices:,} vertices x 80 B + {GROUND_TILE_THREADS} ground tiles of "
-                 f"{params.ground_tile_texels}^2 texels x 64 B")
+    tile_bytes = min(GROUND_TILE_THREADS, tiles ** 2) * 64 * tile_texels ** 2
+    ground_texels = (tiles * tile_texels) ** 2
+    overview = f"world.texture_size = {params.texture_size}: {texels:,} texels x 256 B"
+    udim = (f"{min(GROUND_TILE_THREADS, tiles ** 2)} ground tiles of {tile_texels}^2 texels x 64 B "
+            f"(world.ground_texel_m = {params.ground_texel_m:g}: {tiles} x {tiles} UDIM tiles)")
+    parts = [overview, f"{vertices:,} vertices x 80 B", udim]
+    if tile_bytes > 256 * texels:  # the larger size first: a memory refusal names the file that set it
+        parts = [udim, f"{vertices:,} vertices x 80 B", overview]
+    return Check(memory_bytes=256 * texels + 80 * vertices + tile_bytes, memory_how=" + ".join(parts),
+                 work=texels + ground_texels, work_unit="texels", work_limit=MAX_GROUND_TEXELS,
+                 work_key=leading_key(params, grows=("texture_size",), shrinks=("ground_texel_m",)),
+                 work_how=f"{texels:,} overview texels + {tiles} x {tiles} UDIM tiles of {tile_texels}^2 texels")
 
 
 STAGE = Stage(

@@ -296,3 +296,55 @@ def test_a_chain_of_extends_longer_than_the_limit_is_refused(project, capsys):
         bad(project, f'extends = "c{i - 1}.toml"\n', f"c{i}.toml")
     err = refused(project, capsys, config="configs/c17.toml")
     assert re.search(r"extends: a chain of more than 16 config files", err), err
+
+
+def test_fine_ground_texels_are_estimated_at_the_real_udim_tile_size(project, capsys, monkeypatch):
+    # 8192 m at 0.05 m: the UDIM row limit of 10 columns makes each tile 16384^2 texels, not the configured 2048^2
+    monkeypatch.setenv("WORLDBAKE_MAX_MEMORY_GB", "16")
+    err = refused(project, capsys, "--set", "world.ground_texel_m=0.05", config="configs/default.toml")
+    assert re.search(r"^worldbake: error: --set: world: the run would hold about 32.3 GiB \(2 ground tiles of "
+                     r"16384\^2 texels x 64 B \(world.ground_texel_m = 0.05: 10 x 10 UDIM tiles\)", err), err
+    bad(project, 'extends = "default.toml"\n[world]\nground_texel_m = 0.05\n')
+    assert re.search(r"^worldbake: error: configs/bad.toml: world: the run would hold", refused(project, capsys))
+
+
+@pytest.mark.parametrize("assignments, pattern", [
+    (("vegetation.years=100000", "vegetation.step_years=1"),
+     r"--set: vegetation.years: the run would do about 1.05e\+11 cell-steps \(1,048,576 simulation cells x 100,001 "
+     r"steps .* poisson_passes\), more than the 1e\+10 a run may do \(the vegetation stage's limit"),
+    (("vegetation.poisson_passes=64", "vegetation.years=20000", "vegetation.step_years=2"),
+     r"--set: vegetation.years: the run would do about [\d.e+]+ cell-steps"),
+    (("impostors.samples=8", "impostors.ao_rays=64"),
+     r"--set: impostors.ao_rays: the run would do about 1.75e\+10 rays per species \(4,194,304 atlas texels x 8\^2 "
+     r"samples x \(1 \+ 64 ao_rays\) .*more than the 1e\+10 a run may do \(the impostors stage's limit"),
+    (("impostors.heldout_stride=1", "impostors.heldout_px=1024", "impostors.heldout_samples=16"),
+     r"--set: impostors.heldout_stride: the run would do about 1.74e\+11 rays per species .* 648 held-out views x "
+     r"1024\^2 pixels x 16\^2 heldout_samples\)"),
+    (("volumes.voxels=256", "volumes.solid_columns=16", "volumes.error_views=4", "volumes.error_view_pixels=1024"),
+     r"--set: volumes.error_view_pixels: the run would do about [\d.e+]+ voxel-samples per species .*more than the "
+     r"4e\+09 a run may do \(the volumes stage's limit"),
+    (("forest_volumes.error_sectors=2000",),
+     r"--set: forest_volumes.error_sectors: the run would do about 8e\+09 voxels \(max_voxels = 4,000,000 x .*2000 "
+     r"error_sectors measured\)\), more than the 4e\+09 a run may do \(the forest_volumes stage's limit"),
+])
+def test_work_past_a_stage_limit_is_refused_naming_the_key_and_the_knob(project, capsys, monkeypatch, assignments,
+                                                                        pattern):
+    monkeypatch.setenv("WORLDBAKE_MAX_MEMORY_GB", "16")
+    sets = [a for kv in assignments for a in ("--set", kv)]
+    err = refused(project, capsys, *sets, config="configs/default.toml")
+    assert re.search(r"^worldbake: error: " + pattern, err), err
+    assert "WORLDBAKE_MAX_WORK_SCALE raises it); lower the values named" in err, err
+
+
+def test_the_work_scale_raises_every_limit(project, capsys, monkeypatch):
+    bad(project, 'extends = "default.toml"\n[forest_volumes]\nerror_sectors = 2000\n')
+    assert re.search(r"^worldbake: error: configs/bad.toml: forest_volumes.error_sectors: ", refused(project, capsys))
+    monkeypatch.setenv("WORLDBAKE_MAX_WORK_SCALE", "0.01")  # the default world's vegetation: about 1e8 cell-steps
+    err = refused(project, capsys, config="configs/default.toml")
+    assert "more than the 1e+08 a run may do (the vegetation stage's limit, 1e+10 x WORLDBAKE_MAX_WORK_SCALE = 0.01" \
+        in err, err
+    monkeypatch.setenv("WORLDBAKE_MAX_WORK_SCALE", "-1")
+    assert "WORLDBAKE_MAX_WORK_SCALE = '-1': must be a positive number" in refused(project, capsys)
+    monkeypatch.setenv("WORLDBAKE_MAX_WORK_SCALE", "10")
+    assert main(["--project", str(project), "plan", str(project / "configs" / "bad.toml")]) == 0
+    capsys.readouterr()
