@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY      = $(VENV)/bin/python
 CONFIG ?= configs/default.toml
 
-.PHONY: setup bake plan test bench docs clean
+.PHONY: setup bake plan test bench docs clean dcc-env
 .DELETE_ON_ERROR:
 
 # The virtual environment, rebuilt when pyproject.toml changes.
@@ -15,6 +15,16 @@ $(VENV)/.installed: pyproject.toml
 	touch $@
 
 setup: $(VENV)/.installed
+
+# Blender as a Python module for tests/dcc (a real USD client): its own environment, since bpy 5.0 needs
+# numpy<2 and the project numpy>=2. The wheel is about 370 MB; without it tests/dcc skip and say so.
+BLENDER_VENV ?= .venv-blender
+$(BLENDER_VENV)/.installed:
+	$(PYTHON) -m venv $(BLENDER_VENV)
+	$(BLENDER_VENV)/bin/python -m pip install --quiet "bpy==5.0.1"
+	touch $@
+
+dcc-env: $(BLENDER_VENV)/.installed
 
 bake: setup
 	$(VENV)/bin/worldbake bake $(CONFIG)

@@ -26,12 +26,11 @@ import os
 import sys
 from pathlib import Path
 
-from . import usdio
 from .bake import check_world, key_step, plan_bake
 from .executors import bake_worlds
 from .config import check_name, list_variants, load_config
 from .errors import DeviceError, InputError, StageError
-from .export import export_world
+from .export import export_problems, export_world
 from .graph import build_graph
 from .registry import all_stages
 from .store import Store, StoreBusy
@@ -120,11 +119,22 @@ def _cmd_validate(args) -> int:
         path = path / "world.usda"
     if not path.is_file():
         raise InputError(f"{path}: no such USD file")
-    errors = usdio.validate(path)
+    errors, notes = export_problems(path, _within(path))
+    for e in notes:
+        print(f"note: {e}")
     for e in errors:
         print(e)
     print(f"{path}: {len(errors)} validation errors")
     return 1 if errors else 0
+
+
+def _within(root: Path) -> Path | None:
+    """The folder a world's files must lie in: its own, unless it is a world
+    of a build folder (worlds/<name> beside artifacts/, whose layers name
+    the stored runs)."""
+    folder = root.resolve().parent
+    in_store = folder.parent.name == "worlds" and (folder.parent.parent / "artifacts").is_dir()
+    return None if in_store or root.suffix == ".usdz" else folder
 
 
 def _cmd_verify(args) -> int:
@@ -150,7 +160,11 @@ def _cmd_verify(args) -> int:
 def _cmd_export(args) -> int:
     store = Store(Path(args.project) / args.build)
     dest = export_world(store, args.world, Path(args.dest))
-    errors = usdio.validate(dest)
+    errors, notes = export_problems(dest, _within(dest))
+    for e in notes:
+        print(f"note: {e}")
+    for e in errors:
+        print(e)
     print(f"exported world {args.world} to {dest} ({len(errors)} validation errors)")
     return 1 if errors else 0
 
@@ -266,7 +280,8 @@ def main(argv: list[str] | None = None) -> int:
                                 "mtime changed): a damaged run is made again")
     p = sub.add_parser("verify", help="re-hash every file a world uses against its manifests; exit 1 naming the damaged")
     p.add_argument("world", nargs="?", help="a world's name (default: every world in the build folder)")
-    p = sub.add_parser("validate", help="run every pxr.UsdValidation validator on a world")
+    p = sub.add_parser("validate", help="run every pxr.UsdValidation validator on a world, and name every file it "
+                                        "needs that is missing (an export: also every file outside it)")
     p.add_argument("path", help="a world folder or USD file")
     p = sub.add_parser("gc", help="remove artifacts no world references (waits for running bakes)")
     p.add_argument("--no-wait", action="store_true", help="refuse (exit 1) instead of waiting while a bake runs")

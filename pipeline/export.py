@@ -15,6 +15,23 @@ sRGB (the shader's sourceColorSpace set to sRGB), data textures (normal maps,
 which carry scale and bias) keep their 0..1 values as raw. UDIM patterns
 (`ground.<UDIM>.exr`) are converted tile by tile; USD resolves each tile.
 Only what the layers reference goes into the package.
+
+Every file the world needs goes with it: each asset path of every layer
+reachable from world.usda (sublayers, references and payloads, inside every
+variant, so each level of a `mip` or `lod` variant set; UDIM tiles; texture
+and OpenVDB volume files). `export_problems` checks an export (folder or
+.usdz) for it: a file that does not resolve, or that resolves outside the
+package or export folder, is named. `worldbake export` and `worldbake
+validate` fail on any.
+
+OpenVDB files inside a .usdz: the USDZ specification lists USD layers,
+PNG/JPEG/EXR/AVIF images and M4A/MP3/WAV audio, and OpenUSD's validator
+reports any other file in a package (UnsupportedFileExtensionInPackage);
+the package still carries the .vdb files (a volume whose grids are left out
+is a world missing a part), and `export_problems` reports that validator's
+finding for them as a note, not an error. Blender 5.0 reads a volume's
+grids only from a file on disk (it hands `world.usdz[x.vdb]` to OpenVDB,
+which cannot open it): for volumes in Blender, use the folder export.
 """
 from __future__ import annotations
 
@@ -240,3 +257,49 @@ def _package(root_layer: Path, dest: Path) -> None:
         os.rename(work, dest)
     finally:
         work.unlink(missing_ok=True)
+
+
+# --------------------------------------------------------------------------- completeness
+
+PACKAGED_VOLUME_SUFFIXES = (".vdb",)  # carried inside a .usdz although the USDZ spec's file list does not name them
+
+
+def missing_files(root: Path, within: Path | None = None) -> list[str]:
+    """Every file the world at `root` (a root layer or a .usdz) needs and
+    does not hold: an asset path of a layer reachable from it (sublayers,
+    references, payloads, in every variant; a UDIM pattern needs a tile)
+    that does not resolve; in a .usdz one that resolves outside the
+    package; with `within`, one that resolves outside that folder. Each
+    entry names the file."""
+    from pxr import Sdf, UsdUtils
+
+    root = Path(root).resolve()
+    layers, assets, unresolved = UsdUtils.ComputeAllDependencies(Sdf.AssetPath(str(root)))  # USD warns per miss too
+    problems = [f"missing: {p}" for p in sorted(unresolved)]
+    found = sorted({layer.realPath or layer.identifier for layer in layers} | set(assets))
+    if root.suffix == ".usdz":
+        package = f"{root}["
+        problems += [f"outside the package: {p}" for p in found if not p.startswith(package) and p != str(root)]
+    elif within is not None:
+        folder = Path(within).resolve()
+        problems += [f"outside {folder}: {p}" for p in found if not Path(p).resolve().is_relative_to(folder)]
+    return problems
+
+
+def export_problems(root: Path, within: Path | None = None) -> tuple[list[str], list[str]]:
+    """(errors, notes) of the world at `root`: every pxr.UsdValidation error
+    and every missing file (missing_files); OpenVDB files inside a .usdz are
+    notes (module docstring), not errors."""
+    from . import usdio
+
+    errors, volumes = [], []
+    for e in usdio.validate(root):
+        if e.startswith("UnsupportedFileExtensionInPackage") and any(f"{s}'" in e for s in PACKAGED_VOLUME_SUFFIXES):
+            volumes.append(e)
+        else:
+            errors.append(e)
+    notes = [f"the package carries OpenVDB volume files ({', '.join(PACKAGED_VOLUME_SUFFIXES)}), which the USDZ "
+             f"specification's file list does not name (OpenUSD's validator: {volumes[0]}); Blender reads volumes "
+             "only from a folder export"] if volumes else []
+    return errors + missing_files(root, within), notes
+

@@ -1,5 +1,7 @@
 """The erosion stage: optionally geological time first (stream-power river
-incision with uplift, Braun and Willett 2013: stream_power.py), then thermal
+incision with uplift, Braun and Willett 2013, above a channel-initiation
+area; hillslope creep and threshold landsliding; river deposition after Yuan
+et al. 2019; optional hard strata: stream_power.py, hillslope.py), then thermal
 weathering (talus slopes and scree, seed 003, Olsen's multi-neighbour rule)
 and a storm of hydraulic erosion on the virtual-pipe shallow-water model
 (seed 004; Mei et al. 2007, Stava et al. 2008) with sediment moved in flux
@@ -103,8 +105,37 @@ class ErosionParams(Params):
         1.1, units="", description="mfd: share of flow ~ slope^p * contour length (1.1 Freeman's spread; larger "
         "concentrates the flow toward the steepest neighbour)", ge=0.1, le=20.0)
     channel_area_m2: float = Param(
-        0.0, units="m^2", description="drainage area where river incision starts; smaller catchments are hillslopes "
-        "shaped by hillslope_diffusivity only (0: every cell incises)", ge=0.0, le=1e12)
+        0.0, units="m^2", description="channel initiation: drainage area where river incision starts (mfd and d8 "
+        "area); smaller catchments are hillslopes shaped by creep (hillslope_diffusivity) and landslides "
+        "(critical_slope_deg) only. Real channel heads drain about 1e3 .. 1e5 m^2 (Montgomery and Dietrich 1988); "
+        "0: every cell incises, and the slope at one cell's area is near vertical", ge=0.0, le=1e12)
+    channel_specific_area_m: float = Param(
+        0.0, units="m", description="channel initiation per unit contour width: rivers incise where the drainage "
+        "area per metre of contour, A / dx, passes this (with multiple flow directions a planar hillslope's A grows "
+        "with the cell width, so a threshold on A alone would put channel heads twice as far down a slope at half "
+        "the cell size); the threshold used is max(channel_area_m2, this x dx). 0 turns it off", ge=0.0, le=1e9)
+    critical_slope_deg: float = Param(
+        0.0, units="deg", description="threshold landsliding during geological time: after each step no slope "
+        "may exceed this angle (heights cut to the lower envelope of cones of this slope, 32-direction distances; "
+        "the material joins the rivers' sediment). Mean hillslope gradients of threshold landscapes level off "
+        "near 30 .. 35 degrees at 30 m (Montgomery and Brandon 2002); 0 turns it off", ge=0.0, le=89.0)
+    strata_thickness_m: float = Param(
+        0.0, units="m", description="lithology: horizontal beds of hard rock repeat every this many metres of rock "
+        "(fixed to the rock, so they rise with the uplift) during geological time; hard beds stand as cliffs at "
+        "strata_critical_slope_deg and erode at strata_k_factor times K, the soft rock between forms benches. "
+        "Needs critical_slope_deg; 0 turns it off", ge=0.0, le=1e5)
+    strata_hard_fraction: float = Param(
+        0.3, units="", description="lithology: share of each strata_thickness_m that is hard rock", ge=0.0, le=1.0)
+    strata_critical_slope_deg: float = Param(
+        60.0, units="deg", description="lithology: the steepest slope the hard beds stand at (cliffs)", gt=0.0, le=89.0)
+    strata_k_factor: float = Param(
+        0.5, units="", description="lithology: erodibility K of the hard beds relative to stream_power_k (mfd "
+        "routing)", gt=0.0, le=100.0)
+    deposition_g: float = Param(
+        0.0, units="", description="mfd: dimensionless deposition coefficient G of dh/dt = U - K A^m S + (G / A) Qs "
+        "(Yuan et al. 2019; Qs the sediment flux from upstream, landslide material included): rivers lay down "
+        "sediment where they slow (fans, transport-limited trunk valleys); about 1 is a mixed bedrock-alluvial "
+        "river, 0 detachment-limited (all eroded material leaves)", ge=0.0, le=100.0)
     hillslope_diffusivity_m2_per_year: float = Param(
         0.0, units="m^2/year", description="hillslope transport during geological time: linear diffusion, implicit "
         "and isotropic (9-point Laplacian), the map edge fixed; 0 turns it off", ge=0.0, le=1e4)
@@ -129,6 +160,21 @@ class ErosionParams(Params):
     dt_s: Optional[float] = Param(
         None, units="s", description="fixed time step instead of the adaptive one; the run is refused when it breaks "
         "the CFL limit (Courant number above 0.9)", gt=0.0, le=3600.0)
+
+
+def strata_for(params: ErosionParams):
+    """The hard beds of geological time, or None."""
+    from .stream_power import Strata
+
+    if params.strata_thickness_m <= 0 or params.strata_hard_fraction <= 0 or params.critical_slope_deg <= 0:
+        return None
+    return Strata(params.strata_thickness_m, params.strata_hard_fraction,
+                  math.tan(math.radians(params.strata_critical_slope_deg)), params.strata_k_factor)
+
+
+def channel_threshold_m2(params: ErosionParams, dx: float) -> float:
+    """The drainage area where river incision starts on cells of dx metres."""
+    return max(params.channel_area_m2, params.channel_specific_area_m * dx)
 
 
 def physics_for(params: ErosionParams, dx: float) -> Physics:
@@ -317,16 +363,18 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[
         res = stream_power.run(ctx.cl, h.astype(np.float64), dx, params.geological_years, params.geological_step_years,
                                params.stream_power_k, params.stream_power_m, params.stream_power_n,
                                params.uplift_mm_per_year / 1000.0, progress=lambda f, m: ctx.progress(share * f, m),
-                               routing=params.geological_routing, channel_area_m2=params.channel_area_m2,
+                               routing=params.geological_routing, channel_area_m2=channel_threshold_m2(params, dx),
                                diffusivity_m2_per_year=params.hillslope_diffusivity_m2_per_year,
                                breach=params.geological_breach, mfd_exponent=params.geological_mfd_exponent,
                                flat_routing=params.geological_flat_routing, fill_lakes=params.geological_lake_fill,
-                               mfd_isotropic=params.geological_mfd_isotropic)
+                               mfd_isotropic=params.geological_mfd_isotropic,
+                               critical_slope=math.tan(math.radians(params.critical_slope_deg)),
+                               deposition_g=params.deposition_g, strata=strata_for(params))
         if res.budget_relative_error > 1e-9:
             raise StageError(f"erosion: stream power lost {res.budget_relative_error:.2e} of the eroded volume "
                              f"on its way to base level")
         h = res.height.astype(np.float32)
-        geology = res.stats
+        geology = {**res.stats, "channel_area_used_m2": channel_threshold_m2(params, dx)}
         progress = lambda f, m: ctx.progress(share + (1 - share) * f, m)  # noqa: E731
     progress(0.0, f"erosion {h.shape[1]}x{h.shape[0]} cells of {dx:g} m: {plan.thermal_iterations} talus "
                   f"iterations, {params.storm_hours:g} h storm")
@@ -388,6 +436,10 @@ BYTES_PER_CELL_GEOLOGY = 96  # the stream-power solve's float64 fields and the f
 def check(params: ErosionParams, ctx: CheckContext) -> Check:
     """The run plan on the input's cell size (step counts within their
     limits) and the memory from its cells, before any stage runs."""
+    if params.deposition_g > 0 and params.geological_routing != "mfd":
+        raise ParamError("deposition_g", f"{params.deposition_g:g} needs geological_routing = \"mfd\" (the "
+                         f"sediment flux is routed over multiple flow directions), got {params.geological_routing!r}; "
+                         f"set deposition_g = 0 or switch the routing")
     height = ctx.inputs.get("height")
     if height is None:
         return Check()

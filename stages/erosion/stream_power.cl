@@ -143,3 +143,24 @@ __kernel void mfd_solve(__global double* h, __global const int* order, __global 
         h[i] = (hi + sum_fh) / (1.0 + sum_f);
     }
 }
+
+// The sediment flux: acc_i = src_i + sum over donors j of frac_ji acc_j, the
+// same backward pass as mfd_area with each cell's own volume src (m^3: what
+// the step eroded there less what it deposited, plus landslide material).
+// Base-level cells keep what arrives (it leaves the map).
+__kernel void mfd_accumulate(__global const int* order, __global const uchar* interior, __global const double* frac,
+                             __global const double* src, __global double* acc, int rows, int cols)
+{
+    if (get_global_id(0) != 0) return;
+    int n = rows * cols;
+    for (int i = 0; i < n; ++i) acc[i] = src[i];
+    for (int q = n - 1; q >= 0; --q) {
+        int i = order[q];
+        if (!interior[i]) continue;
+        double a = acc[i];
+        for (int k = 0; k < 8; ++k) {
+            double f = frac[8 * i + k];
+            if (f > 0.0) acc[i + DR[k] * cols + DC[k]] += a * f;
+        }
+    }
+}

@@ -11,7 +11,13 @@ A drainage area (m^2), S the slope to the D8 receiver. Each step:
 3. the implicit solve along the flow paths (stream_power.cl, one serial
    work-item, float64); no time-step limit. Cells draining less than the
    channel-initiation area are hillslopes: no river incision there;
-4. hillslope diffusion, implicit and isotropic (hillslope.py).
+4. hillslope diffusion, implicit and isotropic (hillslope.py), and
+   threshold landsliding at a critical slope (hillslope.landslide).
+With mfd routing the hillslope processes come first and the solve carries
+deposition: dh/dt = U - K A^m S + (G / A) Qs (Yuan et al. 2019), Qs the
+sediment flux from upstream with the landslides' material, by Gauss-Seidel
+iterations (deposit_solve); the flux is routed to base level exactly.
+Optional strata (Strata): hard beds with their own critical slope and K.
 
 Grid marks: D8 sends every cell of a planar slope the same way, so rills
 and valleys lock onto the 8 directions. Rho8 (Fairfield and Leymarie 1991)
@@ -336,26 +342,80 @@ def mfd_factor(area_m2: np.ndarray, interior: np.ndarray, k_dt: float, m: float,
     return out
 
 
-def mfd_reference_step(h: np.ndarray, z: np.ndarray, interior: np.ndarray, dx: float, k_dt: float, m: float,
-                       p_exp: float, channel_area_m2: float,
-                       scale: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The mfd step (fractions, area, factor, solve) with the serial passes
-    in pure Python float64 (small grids): returns (new heights, MFD
-    drainage area in m^2). z is the float32 routing surface."""
-    rows, cols = h.shape
-    n = rows * cols
-    zf = np.asarray(z, np.float32)
-    inside = np.asarray(interior, bool)
-    frac = mfd_fractions(zf, inside, dx, p_exp)
-    hf = np.asarray(h, np.float64).ravel().copy()
-    order = ascending_order(zf)
+@dataclass
+class Sediment:
+    """What one mfd step's sediment did (m^3 unless named): exported is the
+    sum of every cell's net source (erosion less deposition, plus landslide
+    material), out what the flux carried to base level (equal to round-off:
+    the routing conserves it), deposited the volume the deposition term laid
+    down; the Gauss-Seidel iterations taken and the last change of the
+    deposition (m), and the least flux (negative would be sediment made)."""
+
+    exported_m3: float = 0.0
+    out_m3: float = 0.0
+    deposited_m3: float = 0.0
+    iterations: int = 0
+    residual_m: float = 0.0
+    flux_min_m3: float = 0.0
+    deposit_m: np.ndarray | None = None  # the last deposition per cell (flat): the next step's first guess
+
+
+DEPOSIT_ITERATIONS_MAX = 4  # each is two serial passes over the grid; the deposit carries over to the next step
+DEPOSIT_TOLERANCE_M = 1e-3  # Gauss-Seidel stops once no cell's deposition changes by more
+
+
+def deposit_solve(h: np.ndarray, solve: Callable, accumulate: Callable, area_m2: np.ndarray, interior: np.ndarray,
+                  solve_factor: np.ndarray, cell_area: float, deposition_g: float,
+                  source_m3: np.ndarray | None, deposit_start: np.ndarray | None = None,
+                  iterations: int | None = None) -> tuple[np.ndarray, Sediment]:
+    """The implicit stream-power solve with deposition (Yuan et al. 2019):
+    dh/dt = U - K A^m S + (G / A) Qs, Qs the sediment flux arriving from
+    upstream, by Gauss-Seidel iterations as fastscapelib does: solve with the
+    deposition of the last flux (solve(h + deposit)), route the new net
+    sources down the flow graph (accumulate), repeat until the deposition
+    settles (at most `iterations` times, starting from deposit_start, the
+    last step's deposit: the pattern moves slowly from step to step). The
+    deposit per step is min(G / A, 1 / cell area) Qs: never more than
+    arrives, so the flux stays non-negative at any G. Flat arrays."""
+    src_extra = np.zeros_like(h) if source_m3 is None else np.asarray(source_m3, np.float64).ravel()
+    # rivers deposit; on hillslopes (no incision there) the material passes on to the channel network
+    river = interior & (solve_factor > 0)
+    coef = np.where(river, np.minimum(deposition_g / np.maximum(area_m2, cell_area), 1.0 / cell_area), 0.0)
+    # Deposition at a cell raises it, which slows the erosion just upstream and so the flux that made the
+    # deposit: a negative feedback of gain about (cell area) coef per donor, which the plain iteration turns
+    # into an oscillation that grows once the gain passes 1. Under-relaxing each cell by 1 / (1 + gain)
+    # (gain taken for two donors) damps it at any G.
+    relax = 1.0 / (1.0 + 2.0 * cell_area * coef)
+    iterations = DEPOSIT_ITERATIONS_MAX if iterations is None else iterations
+    dep = np.zeros_like(h) if deposit_start is None or deposition_g <= 0 else np.where(coef > 0, deposit_start, 0.0)
+    iterations = max(1, iterations) if deposition_g > 0 else 1
+    it = 0
+    while True:
+        new = solve(h + dep)
+        src = (h - new) * cell_area + src_extra
+        acc = accumulate(src)
+        it += 1
+        sed = Sediment(float(src.sum()), float(acc[~interior].sum()), float(dep.sum()) * cell_area, it, 0.0,
+                       float(acc.min()) if acc.size else 0.0, dep)
+        if deposition_g <= 0:
+            return new, sed
+        nxt = coef * np.maximum(acc - src, 0.0)
+        sed.residual_m = float(np.abs(nxt - dep).max())
+        if sed.residual_m <= DEPOSIT_TOLERANCE_M or it > iterations:
+            return new, sed
+        if it == iterations:
+            # out of iterations: keep no deposit larger than what now arrives and solve once more. Less deposit
+            # only lowers the cells, so every flux grows: no cell then keeps more than it receives.
+            dep = np.minimum(dep, nxt)
+        else:
+            dep = dep + relax * (nxt - dep)
+
+
+def _reference_solve(hf: np.ndarray, order: np.ndarray, frac: np.ndarray, factor: np.ndarray, cols: int,
+                     dx: float) -> np.ndarray:
+    """mfd_solve in pure Python (a copy of hf)."""
+    hf = hf.copy()
     offset = (DR * cols + DC).tolist()
-    area = np.full(n, dx * dx)
-    for i in order[::-1].tolist():
-        for k in range(8):
-            if frac[i, k] > 0:
-                area[i + offset[k]] += area[i] * frac[i, k]
-    factor = mfd_factor(area, inside, k_dt, m, channel_area_m2, scale)
     for i in order.tolist():
         if factor[i] == 0.0:
             continue
@@ -370,7 +430,43 @@ def mfd_reference_step(h: np.ndarray, z: np.ndarray, interior: np.ndarray, dx: f
             sum_f += fj
             sum_fh += fj * hj
         hf[i] = (hf[i] + sum_fh) / (1.0 + sum_f)
-    return hf.reshape(rows, cols), area.reshape(rows, cols)
+    return hf
+
+
+def _reference_accumulate(src: np.ndarray, order: np.ndarray, frac: np.ndarray, inside: np.ndarray,
+                          cols: int) -> np.ndarray:
+    """mfd_area / mfd_accumulate in pure Python: each cell's src plus what its donors pass on."""
+    acc = np.array(src, np.float64)
+    offset = (DR * cols + DC).tolist()
+    for i in order[::-1].tolist():
+        if not inside[i]:
+            continue
+        for k in range(8):
+            if frac[i, k] > 0:
+                acc[i + offset[k]] += acc[i] * frac[i, k]
+    return acc
+
+
+def mfd_reference_step(h: np.ndarray, z: np.ndarray, interior: np.ndarray, dx: float, k_dt: float, m: float,
+                       p_exp: float, channel_area_m2: float, scale: np.ndarray | None = None,
+                       deposition_g: float = 0.0, source_m3: np.ndarray | None = None,
+                       deposit_start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, Sediment]:
+    """The mfd step (fractions, area, factor, solve with deposition) with the
+    serial passes in pure Python float64 (small grids): returns (new
+    heights, MFD drainage area in m^2, Sediment). z is the float32 routing surface."""
+    rows, cols = h.shape
+    zf = np.asarray(z, np.float32)
+    inside = np.asarray(interior, bool)
+    frac = mfd_fractions(zf, inside, dx, p_exp)
+    order = ascending_order(zf)
+    flat_inside = inside.ravel()
+    area = _reference_accumulate(np.full(rows * cols, dx * dx), order, frac, flat_inside, cols)
+    factor = mfd_factor(area, inside, k_dt, m, channel_area_m2, scale)
+    new, sed = deposit_solve(np.asarray(h, np.float64).ravel(),
+                             lambda hf: _reference_solve(hf, order, frac, factor, cols, dx),
+                             lambda src: _reference_accumulate(src, order, frac, flat_inside, cols),
+                             area, flat_inside, factor, dx * dx, deposition_g, source_m3, deposit_start)
+    return new.reshape(rows, cols), area.reshape(rows, cols), sed
 
 
 class _DeviceMFDSolver:
@@ -387,6 +483,7 @@ class _DeviceMFDSolver:
         if "cl_khr_fp64" not in self.env.device.extensions:
             raise StageError(f"erosion: stream power needs double precision, which {self.env.device.name} lacks")
         self.k_area, self.k_solve = cl.Kernel(prg, "mfd_area"), cl.Kernel(prg, "mfd_solve")
+        self.k_accumulate = cl.Kernel(prg, "mfd_accumulate")
         self.rows, self.cols = rows, cols
         n = rows * cols
         mf = cl.mem_flags
@@ -396,25 +493,46 @@ class _DeviceMFDSolver:
         self.d_area = cl.Buffer(self.env.ctx, mf.READ_WRITE, n * 8)
         self.d_factor = cl.Buffer(self.env.ctx, mf.READ_WRITE, n * 8)
         self.d_frac = cl.Buffer(self.env.ctx, mf.READ_WRITE, n * 8 * 8)
+        self.d_src = cl.Buffer(self.env.ctx, mf.READ_WRITE, n * 8)
 
     def step(self, h: np.ndarray, z: np.ndarray, interior: np.ndarray, dx: float, k_dt: float, m: float,
-             p_exp: float, channel_area_m2: float, scale: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+             p_exp: float, channel_area_m2: float, scale: np.ndarray | None = None, deposition_g: float = 0.0,
+             source_m3: np.ndarray | None = None,
+             deposit_start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, Sediment]:
         cl, q = self.cl, self.env.queue
         z = np.ascontiguousarray(z, np.float32)
         rows, cols = np.int32(self.rows), np.int32(self.cols)
         inside = np.asarray(interior, bool)
-        cl.enqueue_copy(q, self.d_h, np.ascontiguousarray(h, np.float64))
         cl.enqueue_copy(q, self.d_order, ascending_order(z))
         cl.enqueue_copy(q, self.d_interior, np.ascontiguousarray(inside, np.uint8))
         cl.enqueue_copy(q, self.d_frac, mfd_fractions(z, inside, dx, p_exp))
         self.k_area(q, (1,), None, self.d_order, self.d_interior, self.d_frac, self.d_area, rows, cols, np.float64(dx))
         area = np.empty((self.rows, self.cols), np.float64)
         cl.enqueue_copy(q, area, self.d_area)
-        cl.enqueue_copy(q, self.d_factor, mfd_factor(area, inside, k_dt, m, channel_area_m2, scale))
-        self.k_solve(q, (1,), None, self.d_h, self.d_order, self.d_frac, self.d_factor, rows, cols, np.float64(dx))
-        out = np.empty((self.rows, self.cols), np.float64)
+        factor = mfd_factor(area, inside, k_dt, m, channel_area_m2, scale)
+        cl.enqueue_copy(q, self.d_factor, factor)
+        new, sed = deposit_solve(np.asarray(h, np.float64).ravel(), lambda hf: self._solve(hf, dx),
+                                 self._accumulate, area.ravel(), inside.ravel(), factor, dx * dx, deposition_g, source_m3,
+                                 deposit_start)
+        return new.reshape(self.rows, self.cols), area, sed
+
+    def _solve(self, hf: np.ndarray, dx: float) -> np.ndarray:
+        cl, q = self.cl, self.env.queue
+        cl.enqueue_copy(q, self.d_h, np.ascontiguousarray(hf, np.float64))
+        self.k_solve(q, (1,), None, self.d_h, self.d_order, self.d_frac, self.d_factor, np.int32(self.rows),
+                     np.int32(self.cols), np.float64(dx))
+        out = np.empty(hf.size, np.float64)
         cl.enqueue_copy(q, out, self.d_h)
-        return out, area
+        return out
+
+    def _accumulate(self, src: np.ndarray) -> np.ndarray:
+        cl, q = self.cl, self.env.queue
+        cl.enqueue_copy(q, self.d_src, np.ascontiguousarray(src, np.float64))
+        self.k_accumulate(q, (1,), None, self.d_order, self.d_interior, self.d_frac, self.d_src, self.d_area,
+                          np.int32(self.rows), np.int32(self.cols))
+        out = np.empty(src.size, np.float64)
+        cl.enqueue_copy(q, out, self.d_area)  # d_area is free once the factor is computed
+        return out
 
 
 def run(env, height: np.ndarray, dx: float, years: float, dt_years: float, k: float, m: float, n_exp: float,
@@ -422,7 +540,8 @@ def run(env, height: np.ndarray, dx: float, years: float, dt_years: float, k: fl
         step_fn: Callable | None = None, routing: str = "d8", channel_area_m2: float = 0.0,
         diffusivity_m2_per_year: float = 0.0, breach: bool = False, mfd_exponent: float = 1.1,
         mfd_step_fn: Callable | None = None, flat_routing: str = "epsilon",
-        fill_lakes: bool = False, mfd_isotropic: bool = True) -> StreamPowerResult:
+        fill_lakes: bool = False, mfd_isotropic: bool = True, critical_slope: float = 0.0,
+        deposition_g: float = 0.0, strata: Strata | None = None) -> StreamPowerResult:
     """Erode `height` (m, finite) for `years` on the OpenCL device `env`
     (pipeline.opencl.CL); k in m^(1-2m)/year, uplift in m/year. step_fn
     replaces the device solve (tests pass reference_step).
@@ -432,7 +551,11 @@ def run(env, height: np.ndarray, dx: float, years: float, dt_years: float, k: fl
     area; diffusivity: hillslope diffusion (m^2/year, implicit, isotropic);
     breach: carve the closed depressions out first (complete breaching);
     mfd_isotropic: scale the mfd incision so that it is the same on a plane
-    of any direction (mfd_isotropy).
+    of any direction (mfd_isotropy); critical_slope (m/m, 0 off): threshold
+    landsliding, no slope steeper (hillslope.landslide) after each step's
+    diffusion and once at the end; deposition_g (mfd only, dimensionless):
+    sediment settles at (G / A) Qs (Yuan et al. 2019; deposit_solve), the
+    landslides' material included in Qs; strata: bands of hard rock (Strata).
 
     Steps: check and breach the start (_start); per step, uplift, then the
     mfd step (_mfd_step) or the single-receiver one (_tree_step); the
@@ -440,8 +563,10 @@ def run(env, height: np.ndarray, dx: float, years: float, dt_years: float, k: fl
     h, kind, breached_m3 = _start(env, height, dx, years, breach)
     steps = max(1, math.ceil(years / dt_years - 1e-9)) if years > 0 else 0
     dt = years / steps if steps else 0.0
+    if deposition_g > 0 and routing != "mfd":
+        raise StageError(f"erosion: deposition (G = {deposition_g:g}) needs mfd routing, got {routing}")
     options = _Options(routing, channel_area_m2, diffusivity_m2_per_year, mfd_exponent, flat_routing, fill_lakes,
-                       mfd_isotropic)
+                       mfd_isotropic, critical_slope, deposition_g, strata, uplift_m_per_year)
     solver = _Solver(env, kind, dx, _Law(k, m, n_exp, dt), options,
                      _solve_function(env, h.shape, n_exp, options, step_fn, mfd_step_fn))
     height_start = h.copy()
@@ -454,6 +579,10 @@ def run(env, height: np.ndarray, dx: float, years: float, dt_years: float, k: fl
         h = _mfd_step(solver, h_up, s, volumes) if routing == "mfd" else _tree_step(solver, h_up, s, volumes)
         if progress and (s % max(1, steps // 20) == 0 or s == steps - 1):
             progress((s + 1) / steps, f"stream power {s + 1}/{steps} ({(s + 1) * dt:.3g} years)")
+    if steps and critical_slope > 0:
+        # the last step's rivers may leave banks steeper than the limit: they slide, their material leaves
+        h, slid = _landslide(solver, h, uplift_m_per_year * dt * steps)
+        volumes.add_direct_landslide(float(slid.sum()))
     return _result(h, height_start, solver, steps, volumes, breached_m3)
 
 
@@ -473,6 +602,24 @@ def _start(env, height: np.ndarray, dx: float, years: float, breach: bool) -> tu
         breached_m3 = float((h - carved).sum()) * dx * dx
         h = carved
     return h, kind, breached_m3
+
+
+@dataclass(frozen=True)
+class Strata:
+    """Horizontal beds of hard rock in the uplifting block: a bed of
+    thickness_m * hard_fraction in every thickness_m of rock, fixed to the
+    rock (so it rises with the uplift), where the rock stands at
+    critical_slope (m/m, cliffs) and erodes at k_factor times K; the soft
+    rock between keeps the run's limit and K, so benches form on it."""
+
+    thickness_m: float
+    hard_fraction: float
+    critical_slope: float
+    k_factor: float
+
+    def hard(self, h: np.ndarray, rock_uplift_m: float) -> np.ndarray:
+        """Cells in a hard bed: the rock now at height h was rock_uplift_m lower when the beds were laid."""
+        return np.mod((np.asarray(h, np.float64) - rock_uplift_m) / self.thickness_m, 1.0) < self.hard_fraction
 
 
 @dataclass(frozen=True)
@@ -496,6 +643,10 @@ class _Options:
     flat_routing: str
     fill_lakes: bool
     mfd_isotropic: bool
+    critical_slope: float = 0.0  # m/m, 0: no landsliding
+    deposition_g: float = 0.0
+    strata: Strata | None = None
+    uplift_m_per_year: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -529,6 +680,19 @@ class _Volumes:
     diffusion_out: float = 0.0
     lake_fill: float = 0.0
     worst_newton: int = 0
+    landslide: float = 0.0  # material above the critical slope, sent down the flow paths
+    deposited: float = 0.0
+    exported: float = 0.0  # the net sources of sediment (mfd): what should arrive at base level
+    deposit_iterations: int = 0
+    deposit_residual_m: float = 0.0
+    flux_min: float = 0.0
+    landslide_direct: float = 0.0  # landslide material counted out at once, not routed (the final pass, d8/rho8)
+    deposit_last: np.ndarray | None = None  # the last step's deposit per cell (m), the next one's first guess
+
+    def add_direct_landslide(self, m3: float) -> None:
+        self.landslide += m3
+        self.landslide_direct += m3
+        self.out += m3
 
 
 def _solve_function(env, shape: tuple[int, int], n_exp: float, options: _Options, step_fn: Callable | None,
@@ -565,18 +729,27 @@ def _tree_step(solver: _Solver, h_up: np.ndarray, s: int, volumes: _Volumes) -> 
     volumes.eroded += float(q.sum()) / scale
     volumes.out += float(arrived[code < 0].sum()) / scale
     if options.diffusivity_m2_per_year > 0:
-        return _diffuse(solver, new, s, volumes)
+        new = _diffuse(solver, new, s, volumes)
+    if options.critical_slope > 0:
+        new, slid = _landslide(solver, new, options.uplift_m_per_year * law.dt * (s + 1))
+        volumes.add_direct_landslide(float(slid.sum()))
     return new
 
 
 def _mfd_step(solver: _Solver, h_up: np.ndarray, s: int, volumes: _Volumes) -> np.ndarray:
     """Step s (0-based) with multiple flow directions on uplifted heights:
-    hillslope diffusion, the routing surface (closed depressions filled
-    with sediment when asked), the implicit solve; what is eroded leaves the map."""
+    hillslope diffusion, landslides, the routing surface (closed depressions
+    filled with sediment when asked), the implicit solve with deposition (the
+    landslides' material in its flux); the flux carries the rest to base level."""
     law, options = solver.law, solver.options
-    # hillslopes creep first, so the rivers' solve has the last word in the channels
+    # hillslopes creep and slide first, so the rivers' solve has the last word in the channels
     if options.diffusivity_m2_per_year > 0:
         h_up = _diffuse(solver, h_up, s, volumes)
+    slid = None
+    rock_up = options.uplift_m_per_year * law.dt * (s + 1)
+    if options.critical_slope > 0:
+        h_up, slid = _landslide(solver, h_up, rock_up)
+        volumes.landslide += float(slid.sum())
     R = routing_surface(solver.env, h_up, solver.kind, options.flat_routing)
     if options.fill_lakes:
         # sediment settles in every closed depression up to the (tilted) routing surface
@@ -584,20 +757,44 @@ def _mfd_step(solver: _Solver, h_up: np.ndarray, s: int, volumes: _Volumes) -> n
         volumes.lake_fill += float((R[lake] - h_up[lake]).sum()) * solver.cell_area
         h_up = np.where(lake, R.astype(np.float64), h_up)
     scale = mfd_isotropy(h_up, solver.dx, options.mfd_exponent) if options.mfd_isotropic else None
-    new, _ = solver.solve(h_up, R, solver.interior, solver.dx, law.k * law.dt, law.m, options.mfd_exponent,
-                          options.channel_area_m2, scale=scale)
-    eroded_step = float(np.maximum(_erosion(h_up, new, s), 0.0).sum()) * solver.cell_area
-    volumes.eroded += eroded_step
-    volumes.out += eroded_step  # detachment-limited: what is eroded leaves the map
+    if options.strata is not None and options.strata.k_factor != 1.0:
+        k_scale = np.where(options.strata.hard(h_up, rock_up), options.strata.k_factor, 1.0)
+        scale = k_scale if scale is None else scale * k_scale
+    new, _, sed = solver.solve(h_up, R, solver.interior, solver.dx, law.k * law.dt, law.m, options.mfd_exponent,
+                               options.channel_area_m2, scale=scale, deposition_g=options.deposition_g,
+                               source_m3=slid, deposit_start=volumes.deposit_last)
+    volumes.deposit_last = sed.deposit_m
+    e = _erosion(h_up, new, s, allow_raise=options.deposition_g > 0)
+    volumes.eroded += float(np.maximum(e, 0.0).sum()) * solver.cell_area
+    volumes.deposited += sed.deposited_m3
+    volumes.exported += sed.exported_m3
+    volumes.out += sed.out_m3
+    volumes.deposit_iterations = max(volumes.deposit_iterations, sed.iterations)
+    volumes.deposit_residual_m = max(volumes.deposit_residual_m, sed.residual_m)
+    volumes.flux_min = min(volumes.flux_min, sed.flux_min_m3)
     return new
 
 
-def _erosion(h_up: np.ndarray, new: np.ndarray, s: int) -> np.ndarray:
-    """h_up - new after checking the solve (finite, no cell raised)."""
+def _landslide(solver: _Solver, h: np.ndarray, rock_uplift_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Heights cut to the critical slope (the hard beds' where strata are
+    given), and the material cut per cell (m^3)."""
+    from . import hillslope
+
+    sc = solver.options.critical_slope
+    strata = solver.options.strata
+    if strata is not None:
+        sc = np.where(strata.hard(h, rock_uplift_m), strata.critical_slope, sc)
+    cut = hillslope.landslide(h, solver.dx, sc)
+    slid = (h - cut) * solver.cell_area
+    return cut, slid
+
+
+def _erosion(h_up: np.ndarray, new: np.ndarray, s: int, allow_raise: bool = False) -> np.ndarray:
+    """h_up - new after checking the solve (finite, no cell raised unless deposition may raise it)."""
     if not np.isfinite(new).all():
         raise StageError(f"erosion: stream power blew up at step {s + 1} (non-finite heights)")
     e = h_up - new
-    if (e < -1e-9 * (1.0 + np.abs(h_up))).any():
+    if not allow_raise and (e < -1e-9 * (1.0 + np.abs(h_up))).any():
         raise StageError(f"erosion: stream power raised a cell at step {s + 1} (broken invariant)")
     return e
 
@@ -617,7 +814,10 @@ def _result(h: np.ndarray, height_start: np.ndarray, solver: _Solver, steps: int
             breached_m3: float) -> StreamPowerResult:
     """The result and its stats: the mass balance down the flow paths and the volume budget."""
     v = volumes
-    err = abs(v.eroded - v.out) / v.eroded if v.eroded > 0 else 0.0
+    if solver.options.routing == "mfd":  # the net sources against what the flux carried to base level
+        err = abs(v.exported - (v.out - v.landslide_direct)) / abs(v.exported) if v.exported else 0.0
+    else:
+        err = abs(v.eroded - (v.out - v.landslide_direct)) / v.eroded if v.eroded > 0 else 0.0
     dvol = float((h - height_start).sum()) * solver.cell_area
     vol_err = abs(dvol - (v.uplifted - v.out - v.diffusion_out + v.lake_fill)) / max(v.uplifted, v.out, 1e-300)
     return StreamPowerResult(h, steps, v.eroded, v.uplifted, v.out, err, v.worst_newton,
@@ -627,4 +827,8 @@ def _result(h: np.ndarray, height_start: np.ndarray, solver: _Solver, steps: int
                               "stream_power_out_m3": v.out, "stream_power_budget_relative_error": err,
                               "stream_power_newton_iterations_max": v.worst_newton,
                               "stream_power_routing": solver.options.routing, "stream_power_breached_m3": breached_m3,
-                              "hillslope_diffusion_out_m3": v.diffusion_out, "lake_fill_m3": v.lake_fill})
+                              "hillslope_diffusion_out_m3": v.diffusion_out, "lake_fill_m3": v.lake_fill,
+                              "landslide_m3": v.landslide, "deposited_m3": v.deposited,
+                              "deposition_iterations_max": v.deposit_iterations,
+                              "deposition_residual_max_m": v.deposit_residual_m,
+                              "sediment_flux_min_m3": v.flux_min})

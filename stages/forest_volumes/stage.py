@@ -25,7 +25,11 @@ Volumetric Billboards, Decaudin and Neyret 2009).
    density float32, the other channels half floats; pxr24), and
    sectors.usda: over each forest tile /World/Vegetation/q<path> a
    FarVolume prim (purpose proxy) with a `mip` variant set of
-   UsdVol.Volume prims.
+   UsdVol.Volume prims. With vdb (the default) each level is also an
+   OpenVDB file q<path>.mip<k>.vdb (worldlib.volumes.vdb: the occupied
+   voxels, same transform), which the Volume's OpenVDBAsset fields name, so
+   that Blender, Houdini and Omniverse render the sectors; the levels of
+   many sectors go to one run of the system Python (VDB_BATCH_VOXELS).
 5. Error (column_errors) on error_sectors tiles: the sector's columns, from
    above and from the side, against the instances' own volumes at finer
    voxels: extinction kept, relative L1 per column, cover.
@@ -46,7 +50,7 @@ import numpy as np
 
 from pipeline import usdio
 from worldlib.volumes import dense as volume, sparse as sparse_volume
-from pipeline.contract import Artifact, Check, CheckContext, Input, Param, Params, RunContext, Stage
+from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, RunContext, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.limits import leading_key
 
@@ -58,6 +62,7 @@ MAX_DEPOSITS = 4_000_000  # bounds the error reference's index and weight buffer
 # are made from it (what is stored is what they average). The mips are zip, lossless, so they keep the stored finest
 # level's mean coverage.
 COMPRESSION = ("pxr24", "zip")
+VDB_BATCH_VOXELS = 8_000_000  # occupied voxels held for one run of the OpenVDB writer (about 300 MB of arrays)
 
 
 class ForestVolumesParams(Params):
@@ -82,6 +87,10 @@ class ForestVolumesParams(Params):
                                le=100_000)
     forest_min_height_m: float = Param(1.0, units="m", description="species whose volume is lower than this (grass, "
                                        "flowers) are left out of the sectors", ge=0.0, le=200.0)
+    vdb: bool = Param(True, description="also write each sector level as OpenVDB (q<path>.mip<k>.vdb, grids density "
+                      "and albedo, the OpenVDBAsset fields of the UsdVol.Volume that Blender, Houdini and Omniverse "
+                      "render); needs Debian's python3-openvdb (worldlib/volumes/vdb.py): without it the bake is "
+                      "refused before any stage runs, never baked without the .vdb files")
 
 
 class SpeciesVolume:
@@ -383,7 +392,9 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) ->
     report: dict[str, Any] = {"forest_species": sorted(forest), "sectors": {}}
     # run time is a run record (metrics), never content: the layer and stats.json are the same every bake
     seconds_per_sector: dict[str, float] = {}
-    phases = {"read": time.perf_counter() - t0, "splat": 0.0, "mips": 0.0, "error": 0.0, "write": 0.0, "usd": 0.0}
+    phases = {"read": time.perf_counter() - t0, "splat": 0.0, "mips": 0.0, "error": 0.0, "write": 0.0, "usd": 0.0,
+              "vdb": 0.0}
+    pending_vdb: list = []  # (file, level) not yet written: a batch goes to one run of the system Python
     # the error is measured on error_sectors tiles spread evenly over the list (deterministic)
     measured = set(np.linspace(0, len(tiles) - 1, min(params.error_sectors, len(tiles))).round().astype(int).tolist()
                    if tiles and params.error_sectors else [])
@@ -421,6 +432,11 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) ->
             entry["bytes_file"] = (ctx.out_dir / f).stat().st_size
             info["levels"].append(entry)
         phases["write"] += time.perf_counter() - t_write
+        vdb_files = [f"{stem}.mip{k}.vdb" for k in range(len(chain))] if params.vdb else None
+        if vdb_files:
+            pending_vdb += [(ctx.out_dir / f, lv) for f, lv in zip(vdb_files, chain)]
+            if sum(len(lv.index) for _, lv in pending_vdb) > VDB_BATCH_VOXELS:
+                phases["vdb"] += _write_vdbs(pending_vdb)
         seconds_per_sector[tile.path] = time.perf_counter() - t
         t_usd = time.perf_counter()
         parts = tile.path.split("/")
@@ -429,12 +445,14 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) ->
         far = UsdGeom.Xform.Define(stage, f"{tile.path}/FarVolume")
         Usd.ModelAPI(far).SetKind(Kind.Tokens.subcomponent)
         far.CreatePurposeAttr(UsdGeom.Tokens.proxy)
-        volume.define_mip_volumes(stage, f"{tile.path}/FarVolume", chain, [f"./{f}" for f in files])
+        volume.define_mip_volumes(stage, f"{tile.path}/FarVolume", chain, [f"./{f}" for f in files],
+                                  vdb_files=[f"./{f}" for f in vdb_files] if vdb_files else None)
         far.GetPrim().SetCustomDataByKey("worldbake:volume", json.dumps(info, sort_keys=True))
         lo, hi = chain[0].origin, chain[0].bbox_max
         UsdGeom.ModelAPI(far).SetExtentsHint(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
         report["sectors"][tile.path] = info
         phases["usd"] += time.perf_counter() - t_usd
+    phases["vdb"] += _write_vdbs(pending_vdb)
     t_usd = time.perf_counter()
     stage.GetRootLayer().Save()
     errors = usdio.validate(layer)
@@ -451,6 +469,17 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ForestVolumesParams) ->
     return {"forest_volumes.sectors": layer, "forest_volumes.stats": report}
 
 
+def _write_vdbs(pending: list) -> float:
+    """Write the pending (file, level) pairs as .vdb and empty the list;
+    returns the seconds it took."""
+    from worldlib.volumes.vdb import write_vdbs
+
+    t = time.perf_counter()
+    write_vdbs(pending)
+    pending.clear()
+    return time.perf_counter() - t
+
+
 MAX_SECTOR_VOXELS = 4e9  # a sector's levels plus the measured sectors' (the defaults: about 4e7)
 
 
@@ -462,6 +491,14 @@ def check(params: ForestVolumesParams, ctx: CheckContext) -> Check:
     quadtree's, not a param): one sector's levels, at most max_voxels and
     its mips, plus the error_sectors sectors' columns measured against their
     instances (each up to max_voxels), at most MAX_SECTOR_VOXELS."""
+    if params.vdb:
+        from worldlib.volumes.vdb import available
+
+        why = available()
+        if why is not None:
+            raise ParamError("vdb", f"no OpenVDB writer: {why}; install Debian's python3-openvdb "
+                             "(apt-get install python3-openvdb) or set WORLDBAKE_VDB_PYTHON, or set vdb = false "
+                             "(sectors without .vdb files: no DCC renders them)")
     levels = 8 / 7 * (1 - 8.0 ** -params.mip_levels)  # a sector's levels, each 1/8 of the one before
     work = params.max_voxels * (levels + params.error_sectors)
     return Check(memory_bytes=90.0 * params.max_voxels + 40.0 * MAX_DEPOSITS,
@@ -479,11 +516,13 @@ STAGE = Stage(
     "splatted from the species volumes at every instance",
     inputs=(Input("volumes", one_of=("volumes.assets",), description="the species volumes (volumes.usda and its atlases)"),
             Input("instances", one_of=("vegetation.instances",), description="the PointInstancers per quadtree tile")),
-    outputs=(Artifact("forest_volumes.sectors", kind="usd", file="sectors.usda", shape="any", beside=("*.mip*.exr",),
+    outputs=(Artifact("forest_volumes.sectors", kind="usd", file="sectors.usda", shape="any",
+                      beside=("*.mip*.exr", "*.mip*.vdb"),
                       description="over each forest tile /World/Vegetation/q<path>: FarVolume (purpose proxy) with a "
                       "`mip` variant set of UsdVol.Volume prims; each level q<path>.mip<k>.exr holds the occupied "
                       "voxels as column runs (worldlib.volumes.sparse: part voxels, half floats but density float32; "
-                      "part columns, run.y0/length/offset per (x, z))"),
+                      "part columns, run.y0/length/offset per (x, z)); with vdb = true also q<path>.mip<k>.vdb "
+                      "(worldlib.volumes.vdb), the Volume's OpenVDBAsset fields"),
              Artifact("forest_volumes.stats", kind="json", file="stats.json", shape="any",
                       description="per sector: instances per species, grid, voxel size, memory, occupied voxels, "
                       "file size and mean coverage per level, time, and on error_sectors sectors the column errors "

@@ -32,8 +32,9 @@ def flow_vectors(code: np.ndarray, data: np.ndarray) -> np.ndarray:
 
 
 def output_grids(land: Land, surfaces: Surfaces, flow: Flow, discharge: np.ndarray, lakes, riv, twi: np.ndarray,
-                 moisture: np.ndarray, usd_path) -> dict:
-    """Every artifact but the stats, in the declaration's order."""
+                 moisture: np.ndarray, usd_path, water) -> dict:
+    """Every artifact but the stats, in the declaration's order; the river
+    mask holds the network and every cell under a river surface (water.wet)."""
     def grid(a, channels):
         return Grid(np.ascontiguousarray(np.asarray(a), dtype=np.float32), land.dx, channels, land.origin_m)
 
@@ -41,7 +42,8 @@ def output_grids(land: Land, surfaces: Surfaces, flow: Flow, discharge: np.ndarr
     data, lake_depth = land.data, lakes.depth
     depth32 = np.where(data, lake_depth, nan)
     lakes_grid = np.stack([depth32, np.where(lake_depth > 0, lakes.level, nan), lakes.lake_id.astype(np.float32)], -1)
-    rivers_grid = np.stack([riv.mask.astype(np.float32), np.where(riv.mask, riv.width, 0.0), riv.order.astype(np.float32)], -1)
+    wet = riv.mask | (water.wet & (lake_depth <= 0))
+    rivers_grid = np.stack([wet.astype(np.float32), np.where(riv.mask, riv.width, 0.0), riv.order.astype(np.float32)], -1)
     acc_grid = np.stack([np.where(data, flow.area_m2, nan), np.where(data, discharge, nan)], -1)
     return {
         "hydrology.filled": grid(np.where(data, surfaces.filled, nan), ("height",)),
@@ -52,6 +54,7 @@ def output_grids(land: Land, surfaces: Surfaces, flow: Flow, discharge: np.ndarr
         "hydrology.rivers": grid(rivers_grid, ("river.mask", "river.width", "river.order")),
         "hydrology.wetness": grid(twi, ("wetness",)),
         "hydrology.moisture": grid(moisture, ("moisture",)),
+        "hydrology.ground": grid(np.where(data, water.ground, nan), ("height",)),
         "hydrology.water": usd_path,
-        "hydrology.preview": preview(grid(land.h, ("height",)), lake_depth, riv.mask),
+        "hydrology.preview": preview(grid(land.h, ("height",)), lake_depth, wet),
     }

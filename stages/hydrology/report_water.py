@@ -1,14 +1,15 @@
 """The report's map of rivers and lakes as the composed world.usda holds
-them (what a DCC tool shows, not the grids): the BasisCurves drawn at their
-widths and the meshes under a water prim, over the terrain's hillshade.
-Declared in STAGE.report (pipeline.contract.DrawnMap)."""
+them (what a DCC tool shows, not the grids): the river and lake meshes under
+the water prim (rivers at least a pixel wide), over the terrain's hillshade;
+and the table of river width against drainage area. Declared in
+STAGE.report (pipeline.contract.DrawnMap, ReportTable)."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
 
-from pipeline.contract import Drawn, MapFrame
+from pipeline.contract import Drawn, MapFrame, Table
 
 RIVER_RGB = (40, 110, 220)
 LAKE_RGB = (30, 80, 190)
@@ -33,14 +34,60 @@ def draw_water(world_usda: Path, frame: MapFrame) -> Drawn:
             it.PruneChildren()
         elif prim.IsA(UsdGeom.BasisCurves):
             n_curves += _draw_curves(river_mask, UsdGeom.BasisCurves(prim), frame, centres)
+        elif prim.IsA(UsdGeom.Mesh) and "/rivers/" in str(prim.GetPath()).lower():
+            n_curves += _draw_ribbon(river_mask, UsdGeom.Mesh(prim), frame)
         elif prim.IsA(UsdGeom.Mesh) and "water" in str(prim.GetPath()).lower():
             _draw_mesh(lake_mask, UsdGeom.Mesh(prim), frame)
             n_lakes += 1
     rgb[river_mask] = RIVER_RGB
     rgb[lake_mask] = LAKE_RGB
     return Drawn(rgb.astype(np.uint8), (
-        (RIVER_RGB, f"rivers ({n_curves} curves, drawn at their USD widths, at least 3 pixels wide)"),
+        (RIVER_RGB, f"rivers ({n_curves} river surface quads or curves, at least a pixel wide)"),
         (LAKE_RGB, f"lakes ({n_lakes} lake meshes)")))
+
+
+def _draw_ribbon(mask: np.ndarray, mesh, frame: MapFrame) -> int:
+    """Mark the pixels under a river mesh's quads, and the pixels along each
+    quad's centreline so a river narrower than a pixel still shows; returns the quads."""
+    _draw_mesh(mask, mesh, frame)
+    pts = np.asarray(mesh.GetPointsAttr().Get() or [], np.float64)
+    idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], np.int64).reshape(-1, 4)
+    if not len(idx):
+        return 0
+    (ox, oz), px = frame.origin_m, frame.metres_per_px
+    a = 0.5 * (pts[idx[:, 0]] + pts[idx[:, 1]])
+    b = 0.5 * (pts[idx[:, 2]] + pts[idx[:, 3]])
+    for f in np.linspace(0.0, 1.0, 5):
+        x, z = a[:, 0] + f * (b[:, 0] - a[:, 0]), a[:, 2] + f * (b[:, 2] - a[:, 2])
+        c, r = np.floor((x - ox) / px).astype(np.int64), np.floor((z - oz) / px).astype(np.int64)
+        ok = (r >= 0) & (r < mask.shape[0]) & (c >= 0) & (c < mask.shape[1])
+        mask[r[ok], c[ok]] = True
+    return int(len(idx))
+
+
+def width_tables(world_usda: Path) -> tuple[Table, ...]:
+    """Bankfull width against drainage area, as the water layer records it
+    (customData worldbake:width_by_area on /World/Water/Rivers)."""
+    from pxr import Usd
+
+    from .water_usd import WIDTH_TABLE_KEY
+
+    stage = Usd.Stage.Open(str(world_usda))  # held: a prim expires with its stage
+    prim = stage.GetPrimAtPath("/World/Water/Rivers")
+    data = prim.GetCustomDataByKey(WIDTH_TABLE_KEY) if prim else None
+    if not data:
+        return ()
+    cols = {k: list(v) for k, v in data.items()}
+    rows = []
+    for i in range(len(cols["cells"])):
+        hi = cols["area_km2_to"][i]
+        rows.append((f"{cols['area_km2_from'][i]:g} - {hi:g}" if hi >= 0 else f">= {cols['area_km2_from'][i]:g}",
+                     int(cols["cells"][i]), round(cols["width_min_m"][i], 2), round(cols["width_median_m"][i], 2),
+                     round(cols["width_max_m"][i], 2)))
+    return (Table(("drainage area (km^2)", "network cells", "least width (m)", "median width (m)",
+                   "largest width (m)"), tuple(rows),
+                  note="bankfull width w = a Q_bf^b over the channel network's cells (the hydrology stage's "
+                  "hydraulic geometry); rivers narrower than river_mesh_min_width_m have no surface mesh"),)
 
 
 def _draw_curves(mask: np.ndarray, curves, frame: MapFrame, centres: tuple[np.ndarray, np.ndarray]) -> int:

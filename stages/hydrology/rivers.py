@@ -1,6 +1,6 @@
-"""Rivers: extraction by drainage area, Strahler order, widths from
-discharge (seed 003: cross-section = Q / v, v from slope), polylines whose
-water surface never rises downstream, and Hack's law."""
+"""Rivers: extraction by drainage area, Strahler order, bankfull width and
+depth by hydraulic geometry (channels.py), a water level that never rises
+downstream, and Hack's law."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -9,6 +9,8 @@ import numpy as np
 
 from worldlib.flow import reference as ref
 from worldlib.terrain.stats import topological_levels
+
+from .channels import LAKE_FULL_TOLERANCE_M, bankfull_discharge, drawn_lakes, hydraulic_geometry, water_level
 
 
 def topo_levels(rcv: np.ndarray, cells: np.ndarray | None = None) -> list[np.ndarray]:
@@ -76,37 +78,28 @@ def hack_exponent(code: np.ndarray, area_m2: np.ndarray, dx: float, min_area_m2:
 
 @dataclass
 class Rivers:
-    mask: np.ndarray  # bool, river cells outside lakes
-    width: np.ndarray  # m, 0 off rivers
+    mask: np.ndarray  # bool, river cells outside the lakes the USD draws
+    width: np.ndarray  # bankfull width (m), 0 off rivers
+    depth: np.ndarray  # bankfull mean depth (m), 0 off rivers
+    discharge_bf: np.ndarray  # bankfull discharge (m^3/s), 0 off rivers
     order: np.ndarray  # Strahler order, 0 off rivers
-    surface: np.ndarray  # water surface height of river cells (non-increasing downstream), NaN elsewhere
-    curves: list  # list of (cell index array) per polyline, upstream first
+    surface: np.ndarray  # water level of network cells (non-increasing downstream), NaN elsewhere
+    net: np.ndarray  # bool, every network cell (lakes included)
+    drawn_lake: np.ndarray  # bool, cells of the lakes the USD draws (the rest are pools of the rivers)
     stats: dict
 
 
-def extract(code: np.ndarray, area_m2: np.ndarray, discharge: np.ndarray, h: np.ndarray, lake_depth: np.ndarray,
-            ground: np.ndarray, dx: float, threshold_m2: float, k_v: float, v_min: float, v_max: float,
-            min_slope: float, width_depth_ratio: float, lift_m: float) -> Rivers:
-    """`ground` is the height the curves sit on (the world's mesh at cell
-    centres); the surface is the running minimum of ground + lift_m."""
-    rows, cols = code.shape
-    n = rows * cols
-    rcv = ref.receivers(code)
-    net = (area_m2.ravel() >= threshold_m2) & (code.ravel() != ref.NODATA_CODE)
-    cells = np.flatnonzero(net)
+def strahler(rcv: np.ndarray, net: np.ndarray, levels: list) -> np.ndarray:
+    """Strahler order of every network cell (flat; 0 off it), sources first."""
+    n = rcv.size
     order = np.zeros(n, np.int32)
-    surface = np.full(n, np.nan)
-    g = ground.ravel() + lift_m
     r_in = np.where(net & (rcv >= 0), rcv, -1)
     r_in = np.where((r_in >= 0) & net[np.maximum(r_in, 0)], r_in, -1)
-    levels = topo_levels(rcv, cells)
     maxo = np.zeros(n, np.int32)
     nmax = np.zeros(n, np.int32)
-    low = np.full(n, np.inf)
     for lev in levels:
         o = np.where(maxo[lev] == 0, 1, np.where(nmax[lev] >= 2, maxo[lev] + 1, maxo[lev]))
         order[lev] = o
-        surface[lev] = np.minimum(g[lev], low[lev])
         t = r_in[lev]
         ok = t >= 0
         src, tt = lev[ok], t[ok]
@@ -124,104 +117,43 @@ def extract(code: np.ndarray, area_m2: np.ndarray, discharge: np.ndarray, h: np.
             eq = tmax == maxo[ut]
             nmax[ut] = np.where(newmax, cnt, np.where(eq, nmax[ut] + cnt, nmax[ut]))
             maxo[ut] = np.maximum(maxo[ut], tmax)
-            np.minimum.at(low, tt, surface[src])
-    # widths: Q / v, v = k_v sqrt(S) clamped, rectangular section of width = ratio * depth
+    return np.where(net, order, 0)
+
+
+def extract(code: np.ndarray, area_m2: np.ndarray, discharge: np.ndarray, h: np.ndarray, lakes, filled: np.ndarray,
+            dx: float, params) -> Rivers:
+    """The network (drainage area >= river_threshold_m2), its Strahler
+    order, bankfull discharge, width and depth (channels.py) and water level.
+    `lakes`: the stage's LakeMaps (depth, level); `filled`: the pure fill,
+    whose level a full lake reaches."""
+    rows, cols = code.shape
+    rcv = ref.receivers(code)
+    net = (area_m2.ravel() >= params.river_threshold_m2) & (code.ravel() != ref.NODATA_CODE)
+    cells = np.flatnonzero(net)
+    levels = topo_levels(rcv, cells)
+    order = strahler(rcv, net, levels)
+    q_bf = np.where(net, bankfull_discharge(discharge.ravel(), params.bankfull_discharge_ratio), 0.0)
+    width, depth = hydraulic_geometry(q_bf, params.width_coefficient, params.width_exponent,
+                                      params.depth_coefficient, params.depth_exponent)
+    width, depth = np.where(net, width, 0.0), np.where(net, depth, 0.0)
+    in_lake = lakes.depth.ravel() > 0
+    lake_level = np.where(in_lake, lakes.level.ravel(), np.nan)
+    full = in_lake & (lake_level >= filled.ravel() - LAKE_FULL_TOLERANCE_M)
+    hf = h.ravel().astype(np.float64)
+    surface = water_level(rcv, net, levels, hf, lake_level, full)
+    # lakes too small for the USD are pools the river runs through
+    drawn = drawn_lakes(lakes.lake_id, dx * dx, params.lake_min_area_m2).ravel()
+    mask = net & ~drawn
     k = np.clip(code.ravel(), 0, 7)
     dist = np.where(k % 2 == 1, dx * np.sqrt(2.0), dx)
-    hf = h.ravel().astype(np.float64)
-    slope = np.where(rcv >= 0, (hf - hf[np.maximum(rcv, 0)]) / dist, 0.0)
-    slope = np.maximum(np.nan_to_num(slope, nan=0.0), min_slope)
-    v = np.clip(k_v * np.sqrt(slope), v_min, v_max)
-    section = discharge.ravel() / v
-    width = np.where(net, np.sqrt(width_depth_ratio * np.maximum(section, 0.0)), 0.0)
-    in_lake = lake_depth.ravel() > 0
-    mask = net & ~in_lake
-    # polylines: from heads and confluences down to the next confluence, lake or outlet
-    ndon = np.bincount(r_in[r_in >= 0], minlength=n)
-    starts = np.flatnonzero(mask & (ndon != 1))
-    curves = []
-    for s in starts.tolist():
-        seg = [s]
-        c = s
-        while True:
-            t = int(rcv[c])
-            if t < 0 or not net[t]:
-                break
-            seg.append(t)
-            if in_lake[t] or ndon[t] != 1:
-                break
-            c = t
-        if len(seg) >= 2:
-            curves.append(np.array(seg, np.int64))
     stats = {"river_cells": int(mask.sum()), "river_length_m": float(dist[mask].sum()),
-             "strahler_max": int(order.max()) if cells.size else 0, "river_curves": len(curves),
+             "strahler_max": int(order.max()) if cells.size else 0,
              "river_width_max_m": float(width.max()) if cells.size else 0.0,
+             "river_depth_max_m": float(depth.max()) if cells.size else 0.0,
+             "bankfull_discharge_max_m3_s": float(q_bf.max()) if cells.size else 0.0,
              "drainage_density_per_km": float(dist[mask].sum() / (np.isfinite(hf).sum() * dx * dx) * 1e3)}
-    return Rivers(mask.reshape(rows, cols), width.reshape(rows, cols), np.where(net, order, 0).reshape(rows, cols),
-                  surface.reshape(rows, cols), curves, stats)
 
-
-def extract_on(ground: np.ndarray, code: np.ndarray, area_m2: np.ndarray, discharge: np.ndarray, h: np.ndarray,
-               lake_depth: np.ndarray, dx: float, params) -> Rivers:
-    """extract() with the stage's river parameters."""
-    return extract(code, area_m2, discharge, h, lake_depth, ground, dx, params.river_threshold_m2,
-                   params.river_velocity_coefficient_m_s, params.river_velocity_min_m_s,
-                   params.river_velocity_max_m_s, params.river_min_slope, params.river_width_depth_ratio,
-                   params.river_lift_m)
-
-
-def rivers_on_mesh(land, code: np.ndarray, area_m2: np.ndarray, discharge: np.ndarray, lake_depth: np.ndarray,
-                   params):
-    """The stage's step 5: the terrain mesh the curves sit on (None for a
-    grid thinner than 2 cells) and the rivers, whose surfaces follow the mesh
-    at the cells the curves pass."""
-    from pipeline.grid import Grid
-    from worldlib.terrain.mesh import build_terrain_mesh, height_on_mesh
-
-    h, dx, hmin = land.h, land.dx, land.hmin
-    rows, cols = land.shape
-    mesh = None
-    if rows >= 2 and cols >= 2:
-        mesh = build_terrain_mesh(Grid(np.nan_to_num(h, nan=hmin), dx, ("height",), land.origin_m), params.mesh_max_vertices)
-    ground = np.nan_to_num(h, nan=hmin).astype(np.float64)
-    riv = extract_on(ground, code, area_m2, discharge, h, lake_depth, dx, params)
-    if mesh is not None and riv.curves:
-        used = np.unique(np.concatenate(riv.curves))
-        ox, oz = land.origin_m
-        gm = ground.ravel().copy()
-        gm[used] = height_on_mesh(mesh, ox + (used % cols + 0.5) * dx, oz + (used // cols + 0.5) * dx)
-        riv = extract_on(gm.reshape(rows, cols), code, area_m2, discharge, h, lake_depth, dx, params)
-    return mesh, riv
-
-
-def follow_mesh(surface, x: np.ndarray, y: np.ndarray, z: np.ndarray, width: np.ndarray, discharge: np.ndarray,
-                max_rise_m: float, samples_per_segment: int = 16, rounds: int = 4):
-    """Insert vertices where a straight segment would pass over higher ground.
-
-    surface(x, z) gives the height a curve vertex sits at (the terrain mesh
-    plus the river's lift). Along each segment the surface is sampled at
-    samples_per_segment points; where it rises more than max_rise_m above
-    the higher of the segment's two ends, a vertex is inserted at the highest
-    sample (on the surface; width and discharge interpolated), and the new
-    segments are checked again, up to `rounds` times. Returns the new
-    (x, y, z, width, discharge)."""
-    f = np.linspace(0.0, 1.0, samples_per_segment + 2)[1:-1]
-    for _ in range(rounds):
-        if x.size < 2:
-            break
-        sx = x[:-1, None] + (x[1:, None] - x[:-1, None]) * f
-        sz = z[:-1, None] + (z[1:, None] - z[:-1, None]) * f
-        ground = surface(sx.ravel(), sz.ravel()).reshape(sx.shape)
-        top = np.argmax(ground, axis=1)
-        rise = ground[np.arange(ground.shape[0]), top] - np.maximum(y[:-1], y[1:])
-        bad = np.flatnonzero(rise > max_rise_m)
-        if not bad.size:
-            break
-        t = f[top[bad]]
-        new = {"x": sx[bad, top[bad]], "z": sz[bad, top[bad]], "y": ground[bad, top[bad]],
-               "w": width[bad] + (width[bad + 1] - width[bad]) * t,
-               "q": discharge[bad] + (discharge[bad + 1] - discharge[bad]) * t}
-        at = bad + 1
-        x, y, z = np.insert(x, at, new["x"]), np.insert(y, at, new["y"]), np.insert(z, at, new["z"])
-        width, discharge = np.insert(width, at, new["w"]), np.insert(discharge, at, new["q"])
-    return x, y, z, width, discharge
+    def grid(a):
+        return a.reshape(rows, cols)
+    return Rivers(grid(mask), grid(width), grid(depth), grid(q_bf), grid(order), grid(surface), grid(net), grid(drawn),
+                  stats)

@@ -13,12 +13,14 @@ Pipeline (every step exact against reference.py, see the tests):
    from the rain field. MFD (Quinn 1991) accumulation optionally feeds the
    wetness index.
 4. Lakes (lakes.py): Fill-Spill-Merge with V = S * K_r (seed 003 algorithm 2).
-5. Rivers (rivers.py): drainage area >= threshold, Strahler order, width
-   from Q / v with v from slope; curves on the world's terrain mesh whose
-   water surface never rises downstream.
+5. Rivers (rivers.py, channels.py, water_layer.py): drainage area >=
+   threshold, Strahler order; bankfull discharge from the runoff, width and
+   depth by hydraulic geometry; a water level that never rises downstream;
+   the beds carved into the ground (hydrology.ground) and the river surfaces
+   as ribbon meshes on them.
 6. Wetness ln(a / tan b) and moisture (moisture.py, kernel wetness).
-7. The USD water layer (water_layer.py draws it, water_usd.py writes it)
-   and the grids (grids.py).
+7. The USD water layer (water_usd.py: ribbons and lakes with the water
+   material) and the grids (grids.py).
 
 No-data (NaN or infinite heights) cells are outlets: their data neighbours
 are edge cells that water leaves the map through, like the map border.
@@ -32,20 +34,21 @@ from typing import Any, Literal, Optional
 import numpy as np
 
 from pipeline.contract import (Artifact, Check, CheckContext, DrawnMap, Input, Param, ParamError, Params, ProjectPath,
-                               Relief, ReportMap, RunContext, Stage, ValueRange)
+                               Relief, ReportMap, ReportTable, RunContext, Stage, ValueRange)
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
 from worldlib.terrain import TERRAIN_SOURCES
 from worldlib.terrain.hillshade import hillshade
 from worldlib.terrain.stats import terrain_statistics
 
+from . import channels
 from . import lakes as lakes_mod
 from worldlib.flow import reference as ref
 from . import rivers as rivers_mod
 from . import water_layer
 from .grids import output_grids
 from .moisture import wetness_and_moisture
-from .report_water import draw_water
+from .report_water import draw_water, width_tables
 from .routing import (SECONDS_PER_YEAR, Land, Timings, condition, discharge_m3_s, flow_directions, land_of,
                       rain_m_per_year, wetness_area)
 
@@ -78,22 +81,38 @@ class HydrologyParams(Params):
         CHANNEL_HEAD_AREA_M2, units="m^2", description="drainage area at which a channel (river) starts: the "
         "channel heads of the network whose Strahler order, Hack exponent and concavity stats.json reports",
         gt=0.0, le=1e12)
-    river_velocity_coefficient_m_s: float = Param(
-        12.0, units="m/s", description="flow velocity v = k sqrt(slope) (Chezy-like), clamped to the min/max below",
+    bankfull_discharge_ratio: float = Param(
+        7.0, units="", description="bankfull discharge (about the 1.5-year flood, Leopold, Wolman and Miller 1964) "
+        "over the mean annual discharge (runoff x drainage area): the flood that shapes the channel; in small "
+        "mountain basins a few to about ten times the mean", gt=0.0, le=1000.0)
+    width_coefficient: float = Param(
+        4.33, units="m (m^3/s)^-b", description="a of the bankfull width w = a Q_bf^b (Leopold and Maddock 1953); "
+        "4.33: Hey and Thorne 1986, gravel-bed rivers with grassy banks (3.33 to 2.34 with more trees on the banks)",
         gt=0.0, le=1000.0)
-    river_velocity_min_m_s: float = Param(0.2, units="m/s", description="slowest river flow (flats, lakes)", gt=0.0, le=100.0)
-    river_velocity_max_m_s: float = Param(4.0, units="m/s", description="fastest river flow", gt=0.0, le=100.0)
-    river_min_slope: float = Param(1e-4, units="m/m", description="slope floor for velocities", gt=0.0, le=1.0)
-    river_width_depth_ratio: float = Param(12.0, units="", description="channel width / depth; width = sqrt(ratio * Q / v)", gt=0.0, le=1000.0)
-    river_lift_m: float = Param(0.3, units="m", description="height of river curves above the terrain mesh", ge=0.0, le=100.0)
+    width_exponent: float = Param(0.5, units="", description="b of w = a Q_bf^b (about 0.5 downstream)", gt=0.0, le=1.0)
+    depth_coefficient: float = Param(
+        0.22, units="m (m^3/s)^-f", description="c of the bankfull mean depth d = c Q_bf^f (Hey and Thorne 1986)",
+        gt=0.0, le=100.0)
+    depth_exponent: float = Param(0.37, units="", description="f of d = c Q_bf^f (0.3-0.4 downstream)", gt=0.0, le=1.0)
+    river_mesh_min_width_m: float = Param(
+        2.0, units="m", description="narrowest river drawn as a surface mesh and carved into the ground (narrower "
+        "channels are only in the maps)", gt=0.0, le=1e4)
+    river_floor_m: float = Param(
+        2.0, units="m", description="floor either side of the channel, rising gently from the water level, so "
+        "the ground grid resolves a channel narrower than its cells", ge=0.0, le=1e4)
+    river_bank_m: float = Param(
+        16.0, units="m", description="width over which the cut blends back into the terrain beyond the floor",
+        ge=0.0, le=1e4)
     lakes: bool = Param(True, description="compute lakes (Fill-Spill-Merge); off: no lakes, nothing computed")
     lake_runoff_depth_m: float = Param(
         0.05, units="m", description="K_r of seed 003: depth of water over each catchment that its basins receive "
         "(V = S * K_r), scaled by the local rain relative to the mean", ge=0.0, le=1000.0)
-    lake_min_area_m2: float = Param(20000.0, units="m^2", description="smallest lake written to USD (all lakes are in the maps)", ge=0.0, le=1e12)
+    lake_min_area_m2: float = Param(
+        2000.0, units="m^2", description="smallest lake written to USD (all lakes are in the maps); 2000 m^2: a pond "
+        "about 45 m across, a few pixels in a view of the whole default world", ge=0.0, le=1e12)
     mesh_max_vertices: int = Param(
-        513, units="vertices", description="terrain mesh vertices per side the curves sit on: keep equal to "
-        "world.mesh_max_vertices", ge=2, le=8193)
+        513, units="vertices", description="terrain mesh vertices per side (the world's): stats.json reports "
+        "the share of the river surface that shows above this mesh of the carved ground", ge=2, le=8193)
     wetness_min_slope: float = Param(1e-3, units="m/m", description="slope floor in ln(a / tan b)", gt=0.0, le=1.0)
     wetness_dry: float = Param(3.0, units="ln(m)", description="wetness index mapped to moisture 0", ge=-50.0, le=50.0)
     wetness_wet: float = Param(12.0, units="ln(m)", description="wetness index mapped to moisture 1", ge=-50.0, le=50.0)
@@ -142,21 +161,26 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
         lakes = lakes_mod.lake_maps(ctx.cl, land, surfaces.filled, flow.code, rain, params)
     ctx.progress(0.6, "rivers")
     with T.lap("rivers_s"):
-        mesh, riv = rivers_mod.rivers_on_mesh(land, flow.code, flow.area_m2, discharge, lakes.depth, params)
+        riv = rivers_mod.extract(flow.code, flow.area_m2, discharge, land.h, lakes, surfaces.filled, land.dx, params)
+    with T.lap("river_beds_s"):
+        water = water_layer.river_water(land, flow.code, riv, lakes.lake_id, lakes.level, params)
     ctx.progress(0.7, "wetness and moisture")
     with T.lap("wetness_s"):
-        twi, moisture = wetness_and_moisture(ctx.cl, land, twi_area, riv.mask | (lakes.depth > 0),
+        twi, moisture = wetness_and_moisture(ctx.cl, land, twi_area, riv.mask | water.wet | (lakes.depth > 0),
                                              inputs.get("erosion_moisture"), params)
     hack, terrain_stats = _network_statistics(land, surfaces, flow, params, T)
     ctx.progress(0.8, "water layer")
+    width_table = channels.width_table(flow.area_m2, riv.width, riv.net)
     with T.lap("usd_s"):
-        usd_path, uinfo = _write_water_layer(ctx, land, riv, discharge, mesh, lakes, params)
-    out = output_grids(land, surfaces, flow, discharge, lakes, riv, twi, moisture, usd_path)
+        usd_path, uinfo = _write_water_layer(ctx, land, water, width_table, lakes, params)
+    out = output_grids(land, surfaces, flow, discharge, lakes, riv, twi, moisture, usd_path, water)
     for name, g in out.items():
         if isinstance(g, Grid) and np.isinf(g.data).any():
             raise StageError(f"hydrology: {name} has infinite values")
     T["total_s"] = time.perf_counter() - t_all
-    stats = _stats(land, surfaces, flow, discharge, lakes.stats, riv.stats, hack, uinfo, terrain_stats)
+    stats = _stats(land, surfaces, flow, discharge, lakes.stats, {**riv.stats, **water.stats}, hack, uinfo,
+                   terrain_stats)
+    stats.update(_climate(land, rain, params), river_width_by_area=width_table)
     ctx.metrics.update(stats, timings=dict(T))
     out["hydrology.stats"] = stats
     ctx.progress(1.0, "done")
@@ -191,17 +215,26 @@ def _network_statistics(land: Land, surfaces, flow, params: HydrologyParams, T: 
     return hack, terrain_stats
 
 
-def _write_water_layer(ctx: RunContext, land: Land, riv, discharge: np.ndarray, mesh, lakes,
+def _write_water_layer(ctx: RunContext, land: Land, water, width_table: list, lakes,
                        params: HydrologyParams) -> tuple[Path, dict]:
-    """/World/Water: the river curves and the lakes of at least lake_min_area_m2."""
+    """/World/Water: the river ribbons and the lakes of at least lake_min_area_m2."""
     from . import water_usd
 
-    pts, ws, qs, orders = water_layer.river_curves(land, riv, discharge, mesh, params.river_lift_m)
     lake_list = []
     if params.lakes and lakes.stats.get("lakes", 0):
         lake_list = water_layer.lake_outlines(land, lakes.lake_id, lakes.level, params.lake_min_area_m2)
     usd_path = ctx.path("hydrology.water")
-    return usd_path, water_usd.write(usd_path, ctx.provenance, pts, ws, qs, orders, lake_list, land.dx, tuple(land.origin_m))
+    return usd_path, water_usd.write(usd_path, ctx.provenance, water.ribbons, width_table, lake_list, land.dx,
+                                     tuple(land.origin_m))
+
+
+def _climate(land: Land, rain: np.ndarray, params: HydrologyParams) -> dict:
+    """The climate the discharge comes from: mean rain and runoff (mm/year) and
+    the bankfull discharge per km^2 of drainage area (m^3/s)."""
+    runoff_m = float(rain[land.data].mean() * params.runoff_coefficient)
+    return {"rain_mean_mm_per_year": float(rain[land.data].mean() * 1000.0), "runoff_mm_per_year": runoff_m * 1000.0,
+            "mean_discharge_per_km2_m3_s": runoff_m * 1e6 / SECONDS_PER_YEAR,
+            "bankfull_discharge_per_km2_m3_s": runoff_m * 1e6 / SECONDS_PER_YEAR * params.bankfull_discharge_ratio}
 
 
 def _stats(land: Land, surfaces, flow, discharge: np.ndarray, lstats: dict, river_stats: dict, hack: dict,
@@ -227,7 +260,7 @@ def _grid(name, file, channels, units, description, nodata_nan=False):
                     nodata_nan=nodata_nan)
 
 
-BYTES_PER_CELL = 160  # about 20 float64/float32 fields: heights, fills, codes, accumulation, lakes, rivers, moisture
+BYTES_PER_CELL = 184  # about 23 float64/float32 fields: heights, fills, codes, accumulation, lakes, rivers, ground, moisture
 
 
 def check(params: HydrologyParams, ctx: CheckContext) -> Check:
@@ -270,12 +303,18 @@ STAGE = Stage(
         _grid("hydrology.lakes", "lakes.exr", ("lake.depth", "lake.level", "lake.id"), "m, m, 1",
               "lake water depth (m), water level (m, NaN where dry) and lake id (0 = dry)", nodata_nan=True),
         _grid("hydrology.rivers", "rivers.exr", ("river.mask", "river.width", "river.order"), "1, m, 1",
-              "river mask (0/1), channel width (m) and Strahler order"),
+              "river mask (0/1: the network and every cell under a river surface), bankfull width (m) and Strahler "
+              "order"),
         _grid("hydrology.wetness", "wetness.exr", ("wetness",), "ln(m)", "topographic wetness index ln(a / tan b)"),
         _grid("hydrology.moisture", "moisture.exr", ("moisture",), "1",
               "moisture 0..1 from the wetness index, open water and the erosion stage's moisture"),
+        _grid("hydrology.ground", "ground.exr", ("height",), "m",
+              "the terrain with the river beds carved (bankfull channel, floor and banks) and the pools the rivers "
+              "pass (lakes below lake_min_area_m2) filled to their level: the ground the world's mesh and the "
+              "vegetation use", nodata_nan=True),
         Artifact("hydrology.water", kind="usd", file="water.usda", shape="any",
-                 description="/World/Water: rivers as BasisCurves with widths, lakes as flat water meshes, material"),
+                 description="/World/Water: river surfaces as ribbon meshes at their water level, lakes as flat "
+                 "meshes at their level, all bound to one UsdPreviewSurface water material; the width table"),
         Artifact("hydrology.stats", kind="json", file="stats.json", shape="any",
                  description="counts, budgets, Hack's law exponent, terrain statistics (grid anisotropy, share of area "
                  "in closed depressions, Strahler order, Hack exponent, concavity theta, drainage density, "
@@ -287,6 +326,7 @@ STAGE = Stage(
     run=run,
     check=check,
     report=(DrawnMap("water", "Rivers and lakes (as in the USD)", draw_water, Relief(hillshade, TERRAIN_SOURCES, "height")),
+            ReportTable("River width against drainage area", width_tables),
             ReportMap("hydrology.moisture", "moisture", name="moisture", title="Moisture ({artifact})", palette="wet",
                       values=ValueRange(0.0, 1.0), relief=Relief(hillshade, TERRAIN_SOURCES, "height"))),
     source_dir=Path(__file__).resolve().parent,

@@ -1,44 +1,91 @@
-"""What the USD water layer draws: river curves on the terrain mesh and lake outlines."""
+"""What the USD water layer draws: river ribbons on their carved beds and lake outlines."""
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
+from worldlib.flow import reference as ref
+
+from . import channels
 from . import rivers as rivers_mod
 from .routing import Land
 
-RIVER_MAX_RISE_M = 0.5  # a river segment may pass over ground this much above its higher end, no more
+BED_TOLERANCE_M = 0.5  # a ribbon's banks lie within this of the carved ground
 
 
-def river_curves(land: Land, riv: rivers_mod.Rivers, discharge: np.ndarray, mesh, lift_m: float):
-    """Per river polyline: points (x, y, z), widths (never narrowing downstream),
-    discharges and its Strahler order."""
-    from worldlib.terrain.mesh import height_on_mesh
+@dataclass
+class RiverWater:
+    reaches: list  # channels.Reach
+    ribbons: channels.Ribbons
+    ground: np.ndarray  # the terrain with the beds carved (float64, NaN kept)
+    wet: np.ndarray  # bool: cells whose centre is under a ribbon
+    stats: dict
 
-    cols, dx = land.shape[1], land.dx
-    ox, oz = land.origin_m
-    pts, ws, qs, orders = [], [], [], []
-    surf = riv.surface.ravel()
-    for seg in riv.curves:
-        x = ox + (seg % cols + 0.5) * dx
-        z = oz + (seg // cols + 0.5) * dx
-        if mesh is not None:
-            # the curve lies on the terrain mesh (lifted by river_lift_m), also where it ends on a lake's shore:
-            # the coarse mesh can stand above a small lake's level, and a vertex at the level would be buried
-            y = height_on_mesh(mesh, x, z) + lift_m
-        else:
-            y = surf[seg]
-        if not np.isfinite(y).all():
-            continue
-        w = np.maximum.accumulate(riv.width.ravel()[seg])
-        q = discharge.ravel()[seg]
-        if mesh is not None:
-            x, y, z, w, q = rivers_mod.follow_mesh(lambda px, pz: height_on_mesh(mesh, px, pz) + lift_m,
-                                                   x, y, z, w, q, RIVER_MAX_RISE_M)
-        pts.append(np.stack([x, y, z], 1))
-        ws.append(w)
-        qs.append(q)
-        orders.append(int(riv.order.ravel()[seg[0]]))
-    return pts, ws, qs, orders
+
+def river_water(land: Land, code: np.ndarray, riv: rivers_mod.Rivers, lake_id: np.ndarray, lake_level: np.ndarray,
+                params) -> RiverWater:
+    """Reaches of the rivers at least river_mesh_min_width_m wide, their
+    ribbons, the carved ground and how well the ribbons sit on it."""
+    rcv = ref.receivers(code)
+    in_lake = riv.drawn_lake.ravel()
+    shown = riv.mask.ravel() & (riv.width.ravel() >= params.river_mesh_min_width_m)
+    rs = channels.reaches(rcv, shown, in_lake & riv.net.ravel(), land.shape, land.dx, tuple(land.origin_m),
+                          riv.surface.ravel(), riv.width.ravel(), riv.depth.ravel(), riv.discharge_bf.ravel(),
+                          riv.order.ravel())
+    pools = _pools(lake_id, shown)  # filled up to their level (sediment), so the river runs over them
+    base = np.where(pools, np.fmax(land.h, lake_level), land.h)
+    ground, wet = channels.carve(base, land.dx, tuple(land.origin_m), rs, params.river_floor_m, params.river_bank_m)
+    rib = channels.ribbons(rs)
+    stats = {"river_reaches": len(rs), "river_mesh_vertices": int(len(rib.points)),
+             "river_mesh_quads": int(len(rib.counts)),
+             "river_mesh_min_width_m": params.river_mesh_min_width_m,
+             "river_carve_max_m": float(np.nanmax(land.h - ground)) if land.data.any() else 0.0,
+             "river_carved_cells": int((np.nan_to_num(land.h - ground) > 1e-6).sum()),
+             "river_wet_cells": int(wet.sum()),
+             "river_segments_climbing": int(sum((np.diff(r.level) > 0).sum() for r in rs)),
+             "river_pool_cells_filled": int(pools.sum()),
+             **bed_fit(rib, np.where(riv.drawn_lake, lake_level, ground), land, in_lake, params.mesh_max_vertices)}
+    return RiverWater(rs, rib, ground, wet, stats)
+
+
+def _pools(lake_id: np.ndarray, shown: np.ndarray) -> np.ndarray:
+    """Cells of the lakes the USD leaves out (pools) that a shown river passes."""
+    ids = np.unique(lake_id.ravel()[shown])
+    ids = ids[ids > 0]
+    return np.isin(lake_id, ids)
+
+
+def bed_fit(rib: channels.Ribbons, ground: np.ndarray, land: Land, in_lake: np.ndarray, mesh_max_vertices: int) -> dict:
+    """How the ribbons sit on the carved ground: at every bank vertex off
+    the lakes, its height above the ground (bilinear between cell centres):
+    the share within BED_TOLERANCE_M and the extremes; and the share of bank
+    vertices and centreline points not below the world's terrain mesh of
+    the carved ground (mesh_max_vertices per side: what a renderer shows)."""
+    out = {"river_bank_vertices": 0, "river_banks_on_bed_share": 1.0, "river_bank_above_ground_max_m": 0.0,
+           "river_bank_below_ground_max_m": 0.0, "river_visible_over_mesh_share": 1.0}
+    if not len(rib.points):
+        return out
+    p = rib.points.astype(np.float64)
+    keep = ~in_lake[rib.edge_cells]
+    g0 = np.nan_to_num(ground, nan=land.hmin)
+    dy = p[keep, 1] - channels.bilinear_at(g0, land.dx, tuple(land.origin_m), p[keep, 0], p[keep, 2])
+    out.update(river_bank_vertices=int(keep.sum()))
+    if dy.size:
+        out.update(river_banks_on_bed_share=float((np.abs(dy) <= BED_TOLERANCE_M).mean()),
+                   river_bank_above_ground_max_m=float(max(dy.max(), 0.0)),
+                   river_bank_below_ground_max_m=float(max(-dy.min(), 0.0)))
+    rows, cols = land.shape
+    if rows >= 2 and cols >= 2:
+        from pipeline.grid import Grid
+        from worldlib.terrain.mesh import build_terrain_mesh, height_on_mesh
+
+        mesh = build_terrain_mesh(Grid(g0.astype(np.float32), land.dx, ("height",), land.origin_m), mesh_max_vertices)
+        mid = 0.5 * (p[0::2] + p[1::2])
+        q = np.concatenate([p[keep], mid[keep[0::2]]])
+        vis = q[:, 1] >= height_on_mesh(mesh, q[:, 0], q[:, 2]) - 0.05
+        out["river_visible_over_mesh_share"] = float(vis.mean()) if vis.size else 1.0
+    return out
 
 
 def lake_outlines(land: Land, lake_id: np.ndarray, lake_level: np.ndarray, min_area_m2: float) -> list:

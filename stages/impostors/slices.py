@@ -22,7 +22,8 @@ in a 4:1 strip of square tiles, and 1 horizontal quad at half height
 carrying the tuft seen from above, in a square sheet of its own.
 
 Tile texels: straight linear albedo padded into transparent texels, alpha
-(coverage), tangent-space normal of the tile's quad.
+(coverage), tangent-space normal of the tile's quad. Each quad is cut to
+its tile's covered texels (and one more around them), with its uv.
 """
 from __future__ import annotations
 
@@ -109,14 +110,35 @@ def _place(sheet: Sheet, row: int, col: int, rgba, normal, corners: np.ndarray, 
     rgba = rgba.copy()
     normal = np.ascontiguousarray(normal @ np.stack([right, up, view], 1))
     normal[rgba[..., 3] <= 0] = (0.0, 0.0, 1.0)
+    (s0, s1), (t0, t1) = _covered_span(rgba[..., 3])
     _pad(rgba, normal)
     sheet.rgba[row * t:(row + 1) * t, col * t:(col + 1) * t] = rgba
     sheet.normal[row * t:(row + 1) * t, col * t:(col + 1) * t] = normal
     u0, u1 = col / sheet.cols, (col + 1) / sheet.cols
     v0, v1 = 1.0 - (row + 1) / sheet.rows, 1.0 - row / sheet.rows
-    sheet.positions.append(corners)
-    sheet.uvs.append(np.array([[u0, v0], [u1, v0], [u1, v1], [u0, v1]]))
+    # the quad cut to the tile's covered texels: fewer empty layers for a ray to cross (a DCC's path tracer
+    # stops after a few transparent hits: Cycles' 8 by default, and draws black past them)
+    c = np.asarray(corners, np.float64)
+    du, dv = c[1] - c[0], c[3] - c[0]
+    sheet.positions.append(np.array([c[0] + s * du + q * dv for s, q in ((s0, t0), (s1, t0), (s1, t1), (s0, t1))]))
+    su, sv = u1 - u0, v1 - v0
+    sheet.uvs.append(np.array([[u0 + s0 * su, v0 + t0 * sv], [u0 + s1 * su, v0 + t0 * sv],
+                               [u0 + s1 * su, v0 + t1 * sv], [u0 + s0 * su, v0 + t1 * sv]]))
     sheet.tiles.append((row, col))
+
+
+def _covered_span(alpha: np.ndarray, margin: int = 1) -> tuple[tuple[float, float], tuple[float, float]]:
+    """((s0, s1), (t0, t1)): the part of a tile (0..1 across, 0..1 up; rows
+    run down) that holds its covered texels and `margin` more on each side,
+    on texel edges (a bilinear fetch at the silhouette reads the padding
+    inside); the whole tile when nothing is covered."""
+    rows, cols = np.nonzero(alpha > 0)
+    h, w = alpha.shape
+    if len(rows) == 0:
+        return (0.0, 1.0), (0.0, 1.0)
+    c0, c1 = max(int(cols.min()) - margin, 0), min(int(cols.max()) + 1 + margin, w)
+    r0, r1 = max(int(rows.min()) - margin, 0), min(int(rows.max()) + 1 + margin, h)
+    return (c0 / w, c1 / w), (1.0 - r1 / h, 1.0 - r0 / h)
 
 
 def _slab_edges(scene: Scene, direction: np.ndarray, slabs: int) -> np.ndarray:
@@ -213,7 +235,8 @@ def sheet_scene(sheets: list[Sheet], rows: tuple[int, ...] | None = None) -> Sce
             n /= max(np.linalg.norm(n), 1e-12)
             P.append(corners)
             N.append(np.tile(n, (4, 1)))
-            UV.append(np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float))
+            # the quad's uv in its own tile (a quad cut to the covered texels spans part of it)
+            UV.append((np.asarray(s.uvs[q], np.float64) - [c / s.cols, 1.0 - (r + 1) / s.rows]) * [s.cols, s.rows])
             T.append(np.array([[0, 1, 2], [0, 2, 3]]) + first)
             TEX += [len(stack) - 1] * 2
             first += 4

@@ -1,12 +1,19 @@
 """Writing a species' textures into the artifact's textures/ (images.py's
 writers): the view atlas (EXR with its mips, sRGB PNG of the albedo), each
-slice sheet (layered EXR, PNG, the normal alone) and the six cards views."""
+slice sheet (layered EXR, PNG, the normal alone) and the six cards views.
+
+The layered EXRs (atlas, sheets) are an engine's data: their normal.XYZ hold
+signed unit normals. The sheet's `_normal.exr`, the one file a material's
+normal input reads, holds them 0.5 n + 0.5 as the UsdPreviewSurface spec's
+normal maps do (worldlib.materials.encode_normal)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from worldlib import materials
 
 from . import atlas, images
 
@@ -45,6 +52,8 @@ def _write_sheet(tex_dir: Path, name: str, provenance: dict, sheet) -> dict[str,
                      {**provenance, "species": name, "tiles": {"rows": sheet.rows, "cols": sheet.cols,
                                                                "tile_px": sheet.tile_px}})
     images.write_png(tex_dir / f"{stem}.png", sheet.rgba[..., :3], sheet.rgba[..., 3])
-    # the material's normal input reads R, G, B: the normal alone, not the layered file's first channels
-    images.write_exr(tex_dir / f"{stem}_normal.exr", [sheet.normal], ("R", "G", "B"), {**provenance, "species": name})
+    # the material's normal input reads R, G, B: the normal alone, not the layered file's first channels, stored
+    # 0..1 as the spec's normal maps are (its UsdUVTexture decodes with scale 2, bias -1)
+    images.write_exr(tex_dir / f"{stem}_normal.exr", [materials.encode_normal(sheet.normal)], ("R", "G", "B"),
+                     {**provenance, "species": name, "encoding": "0.5 n + 0.5"})
     return {"albedo": f"{stem}.png", "exr": f"{stem}.exr", "normal": f"{stem}_normal.exr"}

@@ -17,8 +17,9 @@ over /Plants/<species> (GeomModelAPI)
     over Geom (purpose render, proxyPrim -> Impostor): the mesh of every
       LODk variant;
     def Xform Impostor: the slice billboards (Mesh Slices, or Tuft and
-      TuftTop for grass) with their UsdPreviewSurface (albedo PNG sRGB,
-      alpha-tested at 0.5, tangent-space normal EXR);
+      TuftTop for grass) with their UsdPreviewSurface (albedo PNG sRGB
+      with the plant's foliage translucency gain, alpha-tested at 0.5,
+      tangent-space normal EXR stored 0..1 with scale 2 and bias -1);
     variantSet lod: every existing LODk variant sets Impostor's purpose to
       proxy (drawn in viewports beside the render-purpose mesh); the new
       variant `impostor` holds no mesh and draws Impostor as the model
@@ -73,7 +74,11 @@ def card_views(prepared: Prepared, lo: np.ndarray, hi: np.ndarray, size: int, sa
     return out
 
 
-def _material(stage, path: str, albedo: str, normal: str | None):
+def _material(stage, path: str, albedo: str, normal: str | None, gain: float = 1.0):
+    """Albedo PNG (sRGB) as diffuseColor, brightened by the plant's foliage
+    translucency gain (materials.bake_translucency: the DCC look of LOD0's
+    foliage), its alpha cut out at 0.5 through a second reader of the PNG,
+    and the tangent-space normal EXR (raw, 0..1, the spec's scale and bias)."""
     from pxr import Sdf
 
     mat, surf, texture_at = materials.textured_preview_surface(stage, path, roughness=0.8)
@@ -84,13 +89,28 @@ def _material(stage, path: str, albedo: str, normal: str | None):
     colour = texture("AlbedoTexture", albedo, "sRGB")
     surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
         colour.CreateOutput("rgb", Sdf.ValueTypeNames.Float3))
-    surf.CreateInput("opacity", Sdf.ValueTypeNames.Float).ConnectToSource(colour.CreateOutput("a", Sdf.ValueTypeNames.Float))
+    if gain != 1.0:
+        materials.bake_translucency(colour, gain)
+    cutout = texture("OpacityTexture", albedo, "sRGB")
+    surf.CreateInput("opacity", Sdf.ValueTypeNames.Float).ConnectToSource(cutout.CreateOutput("a", Sdf.ValueTypeNames.Float))
     surf.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(0.5)
     if normal:
-        nmap = texture("NormalTexture", normal, "raw")  # tangent-space, stored -1..1 in the EXR
-        surf.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(
-            nmap.CreateOutput("rgb", Sdf.ValueTypeNames.Float3))
+        materials.connect_normal_map(surf, texture("NormalTexture", normal, "raw"))
     return mat
+
+
+def foliage_gain(plants_layer: Path | None, name: str) -> float:
+    """The translucency gain the plant asset's foliage colour carries (the
+    largest materials.TRANSLUCENCY_GAIN under its prim; 1 without)."""
+    from pxr import Usd
+
+    if plants_layer is None:
+        return 1.0
+    stage = Usd.Stage.Open(str(plants_layer))
+    prim = stage.GetPrimAtPath(plant_asset_prim(name))
+    gains = [float(p.GetCustomDataByKey(materials.TRANSLUCENCY_GAIN)) for p in Usd.PrimRange(prim)
+             if p.GetCustomDataByKey(materials.TRANSLUCENCY_GAIN) is not None] if prim else []
+    return max(gains, default=1.0)
 
 
 def _billboards(stage, path: str, sheet, material) -> None:
@@ -162,11 +182,12 @@ def write(path: Path, provenance: dict, baked: list[dict], plants_layer: Path | 
         UsdGeom.Imageable(geom).CreateProxyPrimRel().SetTargets([Sdf.Path(f"{base}/Impostor")])
         imp = UsdGeom.Xform.Define(stage, f"{base}/Impostor")
         UsdGeom.Scope.Define(stage, f"{base}/Impostor/Looks")
+        gain = foliage_gain(plants_layer, name)
         for sheet in b["sheets"]:
             files = b["sheet_files"][sheet.name]
             prim_name = {"slices": "Slices", "tuft": "Tuft", "tuft_top": "TuftTop"}[sheet.name]
             mat = _material(stage, f"{base}/Impostor/Looks/{prim_name}", f"./textures/{files['albedo']}",
-                            f"./textures/{files['normal']}")
+                            f"./textures/{files['normal']}", gain)
             _billboards(stage, f"{base}/Impostor/{prim_name}", sheet, mat)
         lo, hi = b["lo"], b["hi"]
         UsdGeom.ModelAPI(imp).SetExtentsHint([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))])

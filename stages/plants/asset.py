@@ -8,7 +8,11 @@
       and the model's extentsHint for that level;
     /<species>/Looks/Bark, /Looks/FoliageCards, /Looks/Blades: UsdPreviewSurface
       reading textures/ (UsdUVTexture: albedo PNG sRGB, its alpha as opacity
-      with opacityThreshold 0.5 on cards, tangent-space normal EXR raw);
+      with opacityThreshold 0.5 on cards through a second reader, OpacityTexture,
+      tangent-space normal EXR raw stored 0..1 with scale 2 and bias -1); the
+      foliage looks' AlbedoTexture carries the species' translucency gain
+      (scale g, g, g, 1; customData worldbake:translucency_gain), the light
+      through the leaves that UsdPreviewSurface cannot transmit;
       /Looks/GrassSlices: the slice tuft's atlas (cards.bake_grass_slices);
       /Looks/Foliage reads primvars:displayColor (untextured species);
       the foliage looks (FoliageCards, Blades, GrassSlices) also hold a
@@ -88,7 +92,9 @@ def _textured_material(stage, path: str, look: dict, roughness: float):
     stored as 0.5 n + 0.5, so scale 2 and bias -1). `look`: albedo, normal
     (paths relative to the layer), wrap ("repeat" for bark, "clamp" for
     cards), alpha_test (bool), tint (bool: read the per-instance tint),
-    translucency, thickness (optional data EXRs, see TRANSLUCENCY_SCHEME)."""
+    translucency, thickness (optional data EXRs, see TRANSLUCENCY_SCHEME),
+    gain (the foliage's translucency gain on the colour, see
+    materials.bake_translucency)."""
     from pxr import Gf, Sdf, UsdShade
 
     mat, surf, texture_at = materials.textured_preview_surface(stage, path, roughness)
@@ -99,9 +105,13 @@ def _textured_material(stage, path: str, look: dict, roughness: float):
     albedo = texture("AlbedoTexture", look["albedo"], "sRGB")
     surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
         albedo.CreateOutput("rgb", Sdf.ValueTypeNames.Float3))
+    if look.get("gain", 1.0) != 1.0:
+        materials.bake_translucency(albedo, look["gain"])
     if look.get("alpha_test"):
+        # a second reader of the PNG: its alpha is the cut-out whatever scale the colour reader carries
+        cutout = texture("OpacityTexture", look["albedo"], "sRGB")
         surf.CreateInput("opacity", Sdf.ValueTypeNames.Float).ConnectToSource(
-            albedo.CreateOutput("a", Sdf.ValueTypeNames.Float))
+            cutout.CreateOutput("a", Sdf.ValueTypeNames.Float))
         surf.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(0.5)
     if look.get("tint"):
         # the per-instance tint the PointInstancers carry (primvars:tint, one colour per instance); UsdPreviewSurface
@@ -118,11 +128,7 @@ def _textured_material(stage, path: str, look: dict, roughness: float):
             data.CreateOutput("r", Sdf.ValueTypeNames.Float)
             mat.GetPrim().SetCustomDataByKey(f"worldbake:{key}", TRANSLUCENCY_SCHEME[key])
     if look.get("normal"):
-        normal = texture("NormalTexture", look["normal"], "raw")
-        normal.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(2.0, 2.0, 2.0, 1.0))
-        normal.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(-1.0, -1.0, -1.0, 0.0))
-        surf.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(
-            normal.CreateOutput("rgb", Sdf.ValueTypeNames.Float3))
+        materials.connect_normal_map(surf, texture("NormalTexture", look["normal"], "raw"))
     return mat
 
 

@@ -152,7 +152,23 @@ def instance(env, tmpl: Template, rec: np.ndarray) -> Part:
     verts = geometry.leaf_instances(env, rec, tmpl.rows)
     nl, nt = len(rec), len(tmpl.rows)
     tris = (tmpl.tris[None, :, :] + (np.arange(nl) * nt)[:, None, None]).reshape(-1, 3)
-    return Part(verts, tris, np.arange(len(verts), dtype=np.int64))
+    return Part(verts, facing_normals(verts, tris), np.arange(len(verts), dtype=np.int64))
+
+
+def facing_normals(verts: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """The triangles wound (counter-clockwise, USD's rightHanded) toward
+    their vertices' normals. The template's x-y-z (L, H, U) is a left-handed
+    frame, so placing it mirrors every leaf's winding: a DCC whose shading
+    normal then points behind the face sees a leaf lit from its front as
+    lit from behind (Cycles renders such foliage black), and worldlib.render,
+    which turns the normal with the face, shades it from the wrong side and
+    finds its AO rays blocked by the leaf itself."""
+    p = verts[:, 0:3].astype(np.float64)
+    face = np.cross(p[tris[:, 1]] - p[tris[:, 0]], p[tris[:, 2]] - p[tris[:, 0]])
+    flip = (face * verts[:, 3:6].astype(np.float64)[tris].sum(1)).sum(1) < 0
+    out = tris.copy()
+    out[flip] = out[flip][:, [0, 2, 1]]
+    return out
 
 
 def polygon_part(sk: Skeleton, bw_of_segment: np.ndarray) -> Part:

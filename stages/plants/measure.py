@@ -212,3 +212,50 @@ def crown_opacity(env, parts: dict[str, Part], spec, card_rgba: np.ndarray | Non
     if half < azimuths:
         values = values + values
     return {"mean": float(np.mean(values)), "per_azimuth": values}
+
+
+def _display_light():
+    """(sun direction, sun gain G, share T of it through surfaces facing
+    away) of the renderer's display light (Image.shaded's defaults), probed
+    on two pixels so this stays what the pictures use."""
+    import inspect
+
+    from worldlib.render import Image
+
+    sun = np.asarray(inspect.signature(Image.shaded).parameters["sun"].default, np.float32)
+    sun /= np.linalg.norm(sun)
+    n = np.stack([sun, -sun])[None]
+    probe = Image(np.ones((1, 2, 3), np.float32), np.ones((1, 2), np.float32), n, np.zeros((1, 2), np.float32),
+                  np.zeros((1, 2), np.float32))
+    lit = probe.shaded(background=(0.0, 0.0, 0.0))[0, :, 1]
+    return sun, float(lit[0]), float(lit[1] / lit[0])
+
+
+def translucency_gain(env, parts: dict[str, Part], spec, card_rgba: np.ndarray | None,
+                      slices_rgba: np.ndarray | None = None, azimuths: int = 4, size: int = 96) -> float:
+    """The factor by which the foliage's transmitted light brightens it in
+    the renderer's display light (Image.shaded passes a share T of the sun
+    through surfaces facing away from it): over the foliage pixels of side
+    views with ambient occlusion, the luminance of the shaded picture over
+    that picture without the transmitted term. What a DCC's opaque
+    UsdPreviewSurface must multiply the foliage's diffuse colour by to show
+    the crown as bright (materials.bake_translucency); 1 without foliage."""
+    from worldlib.render import Settings
+
+    foliage = plant_scene(parts, spec, card_rgba, None, foliage_only=True, slices_rgba=slices_rgba)
+    if foliage.n_triangles == 0:
+        return 1.0
+    sun, gain, share = _display_light()
+    pts = foliage.positions.astype(np.float64)
+    radius = 0.5 * float(np.linalg.norm(pts.max(0) - pts.min(0)))
+    prepared = Prepared(env, foliage)
+    lum = np.array([0.2126, 0.7152, 0.0722], np.float32)
+    full = without = 0.0
+    for cam in side_cameras(pts, azimuths):
+        img = prepared.render(cam, Settings(size, size, samples=2, ao_rays=4, ao_radius_m=0.1 * radius))
+        shaded = img.shaded(background=(0.0, 0.0, 0.0)) @ lum
+        nrm = img.normal / np.maximum(np.linalg.norm(img.normal, axis=2, keepdims=True), 1e-6)
+        through = (img.albedo @ lum) * gain * share * np.clip(-(nrm @ sun), 0.0, None)
+        full += float(shaded.sum())
+        without += float((shaded - through).sum())
+    return full / without if without > 0 else 1.0

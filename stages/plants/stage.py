@@ -30,6 +30,7 @@ from pipeline import usdio
 from pipeline.contract import (Artifact, Check, CheckContext, Input, Param, ParamError, Params, ReportTable, RunContext,
                                Stage)
 from pipeline.errors import InputError, StageError
+from worldlib import materials
 
 from . import measure, textures
 from .asset import write_species, write_top
@@ -112,7 +113,7 @@ def _write_textures(out_dir: Path, layer: Path, name: str, spec, res: PlantResul
         return tex_dir / f"{stem}.png"
 
     def normal(stem: str, n) -> Path:
-        textures.write_exr(tex_dir / f"{stem}.exr", 0.5 * n + 0.5, ("R", "G", "B"), provenance)
+        textures.write_exr(tex_dir / f"{stem}.exr", materials.encode_normal(n), ("R", "G", "B"), provenance)
         return tex_dir / f"{stem}.exr"
 
     if any(p.get("Wood") is not None and p["Wood"].n_tris for p in res.lods):
@@ -161,7 +162,8 @@ def _measure_looks(env, spec, res: PlantResult) -> dict:
            "foliage_to_wood": l0["foliage_area_m2"] / l0["wood_area_m2"] if l0["wood_area_m2"] > 0 else None,
            "leaf_area_index": measure.leaf_area_index(res.lods[0], cov, cpc), "crown_opacity": l0["crown_opacity"],
            "crown_opacity_lod_max_drop": max(l0["crown_opacity"] - e["crown_opacity"] for e in levels),
-           "card_coverage": cov, "levels": levels}
+           "card_coverage": cov, "levels": levels,
+           "translucency_gain": round(measure.translucency_gain(env, res.lods[0], spec, rgba, slices_rgba=slices), 4)}
     for name in ("foliage_area_m2", "wood_area_m2", "foliage_to_wood", "leaf_area_index", "crown_opacity",
                  "crown_opacity_lod_max_drop"):
         if out[name] is not None and not np.isfinite(out[name]):
@@ -183,6 +185,10 @@ def _species_job(name: str, spec, seed: int, cfg: Settings, out_dir: Path, top: 
     res.metrics["seconds_foliage_textures"] = res.metrics.get("seconds_foliage_textures", 0.0) + time.perf_counter() - t
     t = time.perf_counter()
     measures = _measure_looks(cfg.cl, spec, res)
+    # the foliage's light through the leaves, which UsdPreviewSurface cannot pass, baked into its colour
+    for key in ("foliage", "blades", "slices"):
+        if key in looks:
+            looks[key]["gain"] = measures["translucency_gain"]
     res.metrics["seconds_look_measures"] = time.perf_counter() - t
     res.metrics["looks"] = measures
     t = time.perf_counter()

@@ -32,6 +32,12 @@ from pipeline.config import deep_merge
 KAPPA = 0.60
 FILL = 0.8
 MAX_PLANT_SPECIES = 16
+# No species grows on ground steeper than this: closed forest rarely stands
+# above 35-40 deg, scattered trees reach about 45 deg and above 50 deg the
+# ground is rock and scree (avalanche and protection forests: Bebi et al.
+# 2009; Swiss NaiS guidelines, Frehner et al. 2005); a steeper slope_deg.max
+# is refused.
+MAX_SPECIES_SLOPE_DEG = 50.0
 
 
 class Spec(pydantic.BaseModel):
@@ -108,9 +114,22 @@ class SpeciesEcology(Spec):
         "0 none, 1 gaps and clumps)", ge=0.0, le=1.0)
     cluster_size_m: float = Param(100.0, units="m", description="wavelength of the clumping noise", gt=0.0, le=1e5)
     tilt_deg: float = Param(3.0, units="deg", description="largest random lean of an instance from the vertical", ge=0.0, le=45.0)
+    tree: bool = Param(
+        False, description="a tree: counted as forest (the forest by slope class of the stats and report) and "
+        "kept out of avalanche paths and clearings, where shrubs, grass and herbs still grow")
+    riparian: Preference = Param(
+        Preference(min=-1.0, max=2.0, edge=0.0), units="1",
+        description="preferred riparian index: 1 on the banks of rivers and lakes and on the flood-prone valley "
+        "floor, 0 away from the water or high above it (see riparian_height_m, riparian_distance_m); the default "
+        "range ignores it")
 
     @pydantic.model_validator(mode="after")
     def _consistent(self):
+        if self.slope_deg.max > MAX_SPECIES_SLOPE_DEG:
+            raise ValueError(
+                f"slope_deg.max = {self.slope_deg.max:g} deg: no species grows on ground steeper than "
+                f"{MAX_SPECIES_SLOPE_DEG:g} deg (closed forest rarely above 35-40 deg, scattered trees to about 45 deg, "
+                "rock and scree above; the splat's rock_slope_* and scree_slope_* cover it)")
         if self.scale_range[1] < self.scale_range[0]:
             raise ValueError(f"scale_range {list(self.scale_range)} must be [smaller, larger]")
         if self.kind == "plant":
@@ -131,31 +150,45 @@ def _pref(lo, hi, edge):
     return {"min": lo, "max": hi, "edge": edge}
 
 
-# Defaults tuned for the default world before landscape evolution (8 km,
-# heights about 200 .. 1500 m, median slope near 40 degrees; the eroded
-# default world, median cell slope 54 degrees, overrides the slope and
-# altitude limits and the splat slopes in configs/default.toml): spruce-like conifers from the valleys
-# up to the tree line, broadleaves low and moist, shrubs everywhere up to the
-# crests, grass in the open. Tree scales are relative to the plant presets
-# (conifer about 5.5 m, broadleaf about 6 m, shrub 1.3 m, grass tuft 0.4 m).
+# Defaults for a temperate mountain range (heights about 200 .. 1500 m; the
+# default world's configs/default.toml sets its own zones): spruce-like
+# conifers from the valleys up to the tree line, broadleaves low and moist,
+# shrubs everywhere up to the crests, grass in the open. Tree scales are
+# relative to the plant presets (conifer about 5.5 m, broadleaf about 6 m,
+# shrub 1.3 m, grass tuft 0.4 m).
+# Slope limits (the stage's cell slope; the factor is 1 up to max - edge and
+# 0 at max; min = -edge keeps the lower soft edge off flat ground): closed forest rarely stands on slopes over 35-40 deg and
+# scattered trees reach about 45 deg (forestry slope classes: ground-based
+# harvesting ends near 35 deg, cable yarding beyond; Bebi et al. 2009 and
+# Frehner et al. 2005 on avalanche forests, whose release zones are the
+# 30-50 deg slopes where the canopy is open); conifers (spruce, larch) hold
+# the steepest ground, broadleaves (beech) less; shrubs (green alder, dwarf
+# pine) and grass reach 50 deg, where rock and scree take over.
+# Moisture: dry crests thin the conifers to half (the factor is 0.5 at
+# moisture 0), waterlogged ground too (0.5 at 1).
+# Banks (riparian index): spruce avoids the flooded soils of the bank zone
+# (grey alder, willow and ash take them: the broadleaf and shrub species
+# here), so the conifer's riparian preference ends at 0.6.
 DEFAULT_SPECIES: dict[str, dict[str, Any]] = {
     "conifer": dict(
-        altitude_m=_pref(500.0, 1480.0, 200.0), slope_deg=_pref(0.0, 48.0, 10.0), moisture=_pref(0.05, 1.0, 0.1),
-        sunlight=_pref(0.15, 3.0, 0.15), density_per_ha=80.0, min_spacing_m=4.5, collision_radius_m=1.0,
-        radius_m=4.0, height_m=5.5, scale_range=[0.5, 3.2], maturity_years=40.0, lifespan_years=250.0,
-        shade_tolerance=0.85, seed_rate=0.6, dispersal_m=30.0, clustering=0.3, cluster_size_m=150.0, tilt_deg=2.0),
+        altitude_m=_pref(500.0, 1480.0, 200.0), slope_deg=_pref(-10.0, 45.0, 10.0), moisture=_pref(-0.1, 1.1, 0.2),
+        sunlight=_pref(0.15, 3.0, 0.15), riparian=_pref(-1.0, 0.6, 0.3), density_per_ha=80.0, min_spacing_m=4.5,
+        collision_radius_m=1.0, radius_m=4.0, height_m=5.5, scale_range=[0.5, 3.2], maturity_years=40.0,
+        lifespan_years=250.0, shade_tolerance=0.85, seed_rate=0.6, dispersal_m=30.0, clustering=0.3,
+        cluster_size_m=150.0, tilt_deg=2.0, tree=True),
     "broadleaf": dict(
-        altitude_m=_pref(100.0, 1100.0, 200.0), slope_deg=_pref(0.0, 40.0, 8.0), moisture=_pref(0.2, 1.0, 0.2),
+        altitude_m=_pref(100.0, 1100.0, 200.0), slope_deg=_pref(-10.0, 40.0, 10.0), moisture=_pref(0.2, 1.0, 0.2),
         sunlight=_pref(0.45, 3.0, 0.2), density_per_ha=70.0, min_spacing_m=5.0, collision_radius_m=1.2,
         radius_m=5.0, height_m=6.0, scale_range=[0.5, 3.3], maturity_years=30.0, lifespan_years=180.0,
-        shade_tolerance=0.7, seed_rate=0.6, dispersal_m=25.0, clustering=0.3, cluster_size_m=120.0, tilt_deg=4.0),
+        shade_tolerance=0.7, seed_rate=0.6, dispersal_m=25.0, clustering=0.3, cluster_size_m=120.0, tilt_deg=4.0,
+        tree=True),
     "shrub": dict(
-        altitude_m=_pref(100.0, 1560.0, 100.0), slope_deg=_pref(0.0, 52.0, 8.0), moisture=_pref(0.0, 0.95, 0.1),
+        altitude_m=_pref(100.0, 1560.0, 100.0), slope_deg=_pref(-10.0, 50.0, 10.0), moisture=_pref(0.0, 1.1, 0.1),
         sunlight=_pref(0.3, 3.0, 0.15), density_per_ha=100.0, min_spacing_m=3.0, collision_radius_m=0.5,
         radius_m=1.8, height_m=1.3, scale_range=[0.4, 1.3], maturity_years=8.0, lifespan_years=30.0,
         shade_tolerance=0.8, seed_rate=0.6, dispersal_m=12.0, clustering=0.4, cluster_size_m=60.0, tilt_deg=6.0),
     "grass": dict(
-        kind="grass", altitude_m=_pref(0.0, 1600.0, 120.0), slope_deg=_pref(0.0, 42.0, 8.0),
+        kind="grass", altitude_m=_pref(0.0, 1600.0, 120.0), slope_deg=_pref(-10.0, 50.0, 10.0),
         moisture=_pref(0.02, 1.0, 0.1), sunlight=_pref(0.2, 3.0, 0.2), density_per_ha=400.0,
         height_m=0.4, scale_range=[0.6, 1.4], clustering=0.3, cluster_size_m=40.0, tilt_deg=8.0),
 }
@@ -206,6 +239,49 @@ class VegetationParams(Params):
     moisture_fallback_scale_m: float = Param(
         40.0, units="m", description="without hydrology: a cell this far below its surroundings has moisture 1, this "
         "far above 0", gt=0.0, le=1e4)
+    # sites: tree line by aspect, banks, avalanche paths, clearings (sites.py)
+    treeline_aspect_shift_m: float = Param(
+        150.0, units="m", description="how much higher every species' altitude range lies on a steep sun-facing "
+        "slope than on a steep shaded one (south- against north-facing in the northern hemisphere; half of it up, "
+        "half down, less on gentler ground, none on the flat): tree lines on sunny slopes are typically 100-200 m "
+        "higher (Holtmeier 2009; Koerner 2012)", ge=0.0, le=2000.0)
+    riparian_height_m: float = Param(
+        3.0, units="m", description="the riparian index falls from 1 at the water's level to 0 this high above the "
+        "nearest river or lake (the flood-prone banks and valley floor, a height above the nearest drainage)",
+        gt=0.0, le=1000.0)
+    riparian_distance_m: float = Param(
+        60.0, units="m", description="the riparian index falls to 0 this far from the river's edge (half its "
+        "width from its centre line) or the lake shore", gt=0.0, le=1e5)
+    avalanche_release_min_m: float = Param(
+        1150.0, units="m", description="avalanches release only above this altitude (enough snow)",
+        ge=-11000.0, le=9000.0)
+    avalanche_release_slope_min_deg: float = Param(
+        30.0, units="deg", description="gentlest release slope (slab avalanches release on 30-50 deg slopes: "
+        "Schweizer et al. 2003; McClung and Schaerer 2006)", ge=0.0, le=90.0)
+    avalanche_release_slope_max_deg: float = Param(
+        50.0, units="deg", description="steepest release slope (steeper ground sheds its snow in small sluffs)",
+        ge=0.0, le=90.0)
+    avalanche_release_share: float = Param(
+        0.3, units="", description="share of the possible release area (altitude and slope) where avalanches "
+        "release: patches of a counter-based noise of wavelength avalanche_release_patch_m; 0: no avalanches",
+        ge=0.0, le=1.0)
+    avalanche_release_patch_m: float = Param(
+        300.0, units="m", description="wavelength of the noise that picks the release patches", gt=0.0, le=1e5)
+    avalanche_alpha_deg: float = Param(
+        26.0, units="deg", description="run-out angle: an avalanche runs down the steepest descent from its "
+        "release until the line at this angle below the horizontal from its release meets the ground (the alpha "
+        "angle of the alpha-beta model, Lied and Bakkehoi 1980: about 20-30 deg for large paths)",
+        gt=5.0, le=60.0)
+    avalanche_track_width_m: float = Param(
+        40.0, units="m", description="width of the tree-free track along an avalanche's flow line (a soft edge as "
+        "wide again); typical tracks are 20-100 m wide", ge=0.0, le=1e4)
+    clearing_share: float = Param(
+        0.06, units="", description="share of the land in clearings (windthrow, fire, old pastures: natural "
+        "gaps and disturbance patches) where no tree grows; patches of a counter-based noise; 0: none",
+        ge=0.0, le=0.9)
+    clearing_size_m: float = Param(
+        250.0, units="m", description="wavelength of the clearing noise: clearings are about a third of it across",
+        gt=0.0, le=1e5)
     # ecosystem simulation
     years: int = Param(100, units="years", description="years of the ecosystem simulation (seeding, growth, "
                        "self-thinning, death by age)", ge=0, le=100000)
@@ -313,7 +389,8 @@ class VegetationParams(Params):
     def _ranges(self):
         for lo, hi in (("snow_min_m", "snow_max_m"), ("rock_slope_min_deg", "rock_slope_max_deg"),
                        ("rock_min_m", "rock_max_m"), ("scree_slope_min_deg", "scree_slope_max_deg"),
-                       ("alpine_min_m", "alpine_max_m")):
+                       ("alpine_min_m", "alpine_max_m"),
+                       ("avalanche_release_slope_min_deg", "avalanche_release_slope_max_deg")):
             if not getattr(self, hi) > getattr(self, lo):
                 raise ValueError(f"{hi} ({getattr(self, hi):g}) must be above {lo} ({getattr(self, lo):g})")
         return self

@@ -4,19 +4,27 @@ without overlap, instanced in USD.
 1. Local attributes (attributes.py, kernel `attributes`): slope, aspect,
    curvature, sky view and sunlight with terrain shadows; altitude; moisture
    from hydrology (else erosion, else the topographic position); water
-   (lakes, rivers) blocks everything.
+   (lakes, rivers) blocks everything. Sites (sites.py): the effective
+   altitude (tree line by aspect), the riparian index (banks and
+   flood-prone valley floors), avalanche tracks and clearings.
 2. Splat weights (kernels `moisture_filter`, `splat`): rock, scree, grass,
    dry grass, mud, snow from slope, altitude, filtered moisture and water,
    seed 004 with both defects fixed; they sum to 1.
-3. Suitability per species (kernel `suitability`): soft ranges of altitude,
-   slope, moisture, sunlight, curvature.
+3. Suitability per species (kernel `suitability`): soft ranges of altitude
+   (the effective altitude), slope, moisture, sunlight, curvature; then the
+   site factors: the riparian preference, and for trees 1 - avalanche and
+   1 - clearing. No species' slope limit is over 50 deg (params.py).
 4. Competition (ecosystem.py): the self-thinning simulation for `years`, on
    a grid of sim_cell_m; each species' share of space.
 5. Targets and placement (placement.py): density maps = density x
    suitability x relative yield x clumping; variable-radius Poisson disk by grid
    phases, exact counts per block, trunk clearance between species.
 6. Grass (grass.py): density and height fields, jittered-grid tufts.
-7. The USD layer (usd_layer.py), a preview, maps and statistics.
+7. The USD layer (usd_layer.py), a preview, maps and statistics: among
+   them the forest by slope class against the land's and the plants per
+   hectare on the banks and elsewhere (stats.json, customData of
+   /World/Vegetation, the report's tables: report_tables.py), and each
+   species' steepest instance (checked under its slope limit).
 """
 from __future__ import annotations
 
@@ -30,22 +38,27 @@ from typing import Any
 import numpy as np
 
 from pipeline import exr
-from pipeline.contract import (Artifact, Check, CheckContext, Input, ParamError, Relief, ReportMap, ReportWarning, RunContext,
-                               Stage, ValueRange)
+from pipeline.contract import (Artifact, Check, CheckContext, Input, ParamError, Relief, ReportMap, ReportTable,
+                               ReportWarning, RunContext, Stage, ValueRange)
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
 from pipeline.limits import leading_key
 from worldlib.ground import GROUND_MAP_COLOURS, SPLAT_CHANNELS
 from worldlib.plant_asset import prototype_prim
-from worldlib.terrain import TERRAIN_SOURCES
+from worldlib.terrain import GROUND_SOURCES, TERRAIN_SOURCES
 from worldlib.terrain.hillshade import hillshade
 
 from . import attributes as attrs
 from . import ecosystem, grass, placement, tint, usd_layer
+from . import sites as sites_mod
 from .params import FILL, KAPPA, NPREF_ORDER, VegetationParams
+from .report_tables import forest_tables
 
 SPECIES_MAPS = "species.exr"
 ATTR_CHANNELS = ("attr.slope", "attr.aspect", "attr.curvature", "attr.sky_view", "attr.sunlight", "attr.moisture")
+SITE_CHANNELS = sites_mod.CHANNELS
+SITE_COLOURS = (("other", (120, 150, 90)), ("riparian", (60, 120, 200)), ("avalanche", (235, 235, 245)),
+                ("clearing", (230, 190, 80)))
 F = np.float32
 
 
@@ -156,6 +169,23 @@ def _water(inputs: dict[str, Any], shape: tuple[int, int]) -> np.ndarray:
     return water
 
 
+def _water_levels(inputs: dict[str, Any], h: np.ndarray, water: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per water cell its level (a lake's level, else the ground) and half
+    its width (rivers; 0 for lakes), for the riparian index."""
+    level = h.astype(np.float64).copy()
+    half = np.zeros(h.shape)
+    lakes, rivers = inputs.get("lakes"), inputs.get("rivers")
+    if lakes is not None and "lake.level" in lakes.channels and "lake.depth" in lakes.channels:
+        depth = np.nan_to_num(lakes.channel("lake.depth").astype(np.float64), nan=0.0)
+        lv = lakes.channel("lake.level").astype(np.float64)
+        use = (depth > 0) & np.isfinite(lv)
+        level = np.where(use, lv, level)
+    if rivers is not None and "river.width" in rivers.channels:
+        w = np.nan_to_num(rivers.channel("river.width").astype(np.float64), nan=0.0)
+        half = np.where(water, 0.5 * np.maximum(w, 0.0), 0.0)
+    return level, half
+
+
 def _species_maps(plants, gname, sets, dom, suit, share, n_t, gsuit, gdens, g) -> Grid | None:
     """vegetation.species_maps: per plant species suitability, relative
     yield, target and placed density (plants per ha); for the grass species
@@ -223,6 +253,7 @@ class _Land:
     moisture: np.ndarray  # float32 0..1
     moisture_source: str
     water: np.ndarray  # bool: lakes or rivers
+    sites: sites_mod.Sites  # effective altitude, riparian index, avalanche tracks, clearings
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -286,14 +317,23 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
     ctx.progress(0.75, "instances")
     with clock.lap("instances_s"):
         sets, dropped, tints = _instances(land, growth, grass_layer, params, seed)
+        forest = _forest(land, growth, sets, params)
     ctx.progress(0.8, "USD layer")
-    usd_path, ustats = _write_usd(ctx, land, sets, tints, params, clock)
+    usd_path, ustats = _write_usd(ctx, land, sets, tints, params, clock,
+                                  {usd_layer.FOREST_BY_SLOPE_KEY: forest["by_slope"],
+                                   **({usd_layer.BANKS_KEY: forest["banks"]} if forest["banks"]["species"] else {})})
     ctx.progress(0.9, "maps")
     with clock.lap("maps_s"):
         species_maps = _species_maps(growth.plants, growth.grass_name, sets, growth.dom, growth.suit, growth.share,
                                      growth.n_t, grass_layer.suit, grass_layer.density, _grid_maker(land))
     report = _report(params, sets, growth, grass_layer, species_maps)
     stats, timings = _stats(land, splat, growth, grass_layer, sets, dropped, tints, ustats, clock)
+    by = forest["by_slope"]
+    stats.update(forest_by_slope=by, plants_on_banks=forest["banks"],
+                 forest_by_slope_class={c: {"land_pct": round(100 * a, 2), "trees_pct": round(100 * t, 2),
+                                            "trees_per_ha": d} for c, a, t, d in
+                                        zip(by["classes_deg"], by["land_share"], by["tree_share"], by["trees_per_ha"])},
+                 steepest_instance_slope_deg=forest["steepest"], sites=land.sites.stats)
     ctx.metrics.update(_metrics(stats, report, growth), timings=timings)
     ctx.progress(1.0, "done")
     return _outputs(land, splat, growth, grass_layer, sets, usd_path, report, species_maps, stats)
@@ -306,7 +346,11 @@ def _land(ctx: RunContext, inputs: dict[str, Any], terrain: tuple, params: Veget
     with clock.lap("attributes_s"):
         a = attrs.compute(h, dx, params, be)
     moist, source = _moisture(ctx, inputs, h, dx, params)
-    return _Land(h, nodata, dx, origin, a, moist, source, _water(inputs, h.shape))
+    water = _water(inputs, h.shape)
+    with clock.lap("sites_s"):
+        level, half = _water_levels(inputs, h, water)
+        sites = sites_mod.compute(h, a, water, water | nodata, level, half, params, dx, origin, int(ctx.seed))
+    return _Land(h, nodata, dx, origin, a, moist, source, water, sites)
 
 
 def _splat(land: _Land, params: VegetationParams, seed: int, be) -> _Splat:
@@ -345,13 +389,17 @@ def _grow(ctx: RunContext, land: _Land, params: VegetationParams, seed: int, be,
 
 
 def _suitability(land: _Land, params: VegetationParams, grow: list, be) -> np.ndarray:
-    """(species to grow, rows, cols) suitability; water and no-data cells blocked."""
+    """(species to grow, rows, cols) suitability; water and no-data cells
+    blocked; altitude judged by the effective altitude (tree line by aspect),
+    then the site factors (riparian preference; trees out of avalanche
+    tracks and clearings: sites.py)."""
     if not grow:
         return np.zeros((0, *land.shape), F)
     a = land.attributes
     blocked = (land.water | land.nodata).astype(np.uint8)
-    return be.suitability(land.h, a["slope"], land.moisture, a["sunlight"], a["curvature"], blocked,
+    suit = be.suitability(land.sites.altitude, a["slope"], land.moisture, a["sunlight"], a["curvature"], blocked,
                           preference_table(params, grow))
+    return sites_mod.apply(suit, grow, params, land.sites)
 
 
 def _compete(ctx: RunContext, land: _Land, suit: np.ndarray, params: VegetationParams, plants: list, seed: int, be):
@@ -407,8 +455,31 @@ def _instances(land: _Land, growth: _Growth, grass_layer: _Grass, params: Vegeta
     return sets, dropped, tints
 
 
+def _forest(land: _Land, growth: _Growth, sets: dict, params: VegetationParams) -> dict:
+    """The forest by slope class (sites.forest_by_slope) and per plant
+    species the steepest cell slope under one of its instances, checked
+    against its slope limit: a plant never stands where it may not grow."""
+    slope = land.attributes["slope"]
+    trees, steepest, cells = [], {}, {}
+    for name in growth.plants:
+        inst = sets[name]
+        if not len(inst):
+            continue
+        tr, tc = cells[name] = growth.dom.world_cell(inst.positions)
+        steepest[name] = round(float(slope[tr, tc].max()), 3)
+        limit = params.species[name].slope_deg.max
+        if steepest[name] >= limit:
+            raise StageError(f"vegetation: a {name} stands on a {steepest[name]:g} deg slope, its limit is {limit:g} deg")
+        if params.species[name].tree:
+            trees.append((tr, tc))
+    land_mask = ~(land.water | land.nodata)
+    return {"by_slope": sites_mod.forest_by_slope(slope, land_mask, trees, land.dx),
+            "banks": sites_mod.plants_on_banks(land.sites.riparian, land_mask, cells, land.dx),
+            "steepest": steepest}
+
+
 def _write_usd(ctx: RunContext, land: _Land, sets: dict, tints: dict, params: VegetationParams,
-               clock: _PhaseClock) -> tuple[Path, dict]:
+               clock: _PhaseClock, custom: dict) -> tuple[Path, dict]:
     """Step 7: the instances layer, written and validated."""
     from pipeline import usdio
 
@@ -419,7 +490,8 @@ def _write_usd(ctx: RunContext, land: _Land, sets: dict, tints: dict, params: Ve
         written = {n: s for n, s in sets.items() if len(s)}
         ustats = usd_layer.write(usd_path, ctx.provenance, written, {n: params.species[n].height_m for n in written},
                                  {n: params.species[n].kind for n in written}, land.origin[0], land.origin[1], size,
-                                 params.tile_max_instances, params.tile_min_size_m, {n: tints[n] for n in written})
+                                 params.tile_max_instances, params.tile_min_size_m, {n: tints[n] for n in written},
+                                 custom)
     with clock.lap("usd_validate_s"):
         errors = usdio.validate(usd_path)
         if errors:
@@ -510,6 +582,7 @@ def _outputs(land: _Land, splat: _Splat, growth: _Growth, grass_layer: _Grass, s
         "vegetation.splat": g(splat.weights, SPLAT_CHANNELS),
         "vegetation.grass": g(np.stack([grass_layer.density, grass_layer.height], -1), ("grass.density", "grass.height")),
         "vegetation.canopy": g(np.stack([grass_layer.cover, total_density], -1), ("canopy.cover", "canopy.density")),
+        "vegetation.sites": g(*land.sites.channels()),
         "vegetation.instances": usd_path,
         "vegetation.species": report,
         "vegetation.species_maps": species_maps,
@@ -524,11 +597,12 @@ def _grid(name, file, channels, units, description):
     return Artifact(name, kind="grid", file=file, channels=channels, units=units, description=description)
 
 
-# Memory: about 60 float32/float64 fields a terrain cell (attributes,
-# moisture, splat, grass, canopy, the horizon scan's buffers) and 6 per
+# Memory: about 70 float32/float64 fields a terrain cell (attributes,
+# moisture, sites and their distance transforms, splat, grass, canopy, the
+# horizon scan's buffers) and 6 per
 # species (suitability, yield, densities, placed counts); the simulation
 # grid holds about 12 float64 values a simulation cell and 2 per species.
-BYTES_PER_CELL, BYTES_PER_CELL_SPECIES = 320, 48
+BYTES_PER_CELL, BYTES_PER_CELL_SPECIES = 400, 48
 BYTES_PER_SIM_CELL, BYTES_PER_SIM_CELL_SPECIES = 96, 16
 MAX_CELL_STEPS = 1e10  # simulation cell-steps and Poisson cell-passes of a run (the default world: about 1e8)
 MAX_HORIZON_SAMPLES = 256  # samples per direction of the horizon scan (growth 1.3 over 1500 m of 1 m cells: 28)
@@ -586,12 +660,13 @@ def poisson_cells(params: VegetationParams, width_m: float, depth_m: float) -> f
 STAGE = Stage(
     name="vegetation",
     version=1,
-    description="Vegetation map: local attributes and sunlight, per-species suitability, competition by an ecosystem "
+    description="Vegetation map: local attributes and sunlight, sites (tree line by aspect, river banks, avalanche "
+    "tracks, clearings), per-species suitability with slope limits of real plants, competition by an ecosystem "
     "simulation (Deussen 1998 self-thinning), variable-radius Poisson-disk placement on the terrain mesh, grass "
     "density and tufts, terrain splat weights (seed 004, fixed), and the instances as UsdGeom.PointInstancers in "
     "quadtree tiles",
     inputs=(
-        Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height", channels=("height",), units="m"),
+        Input("terrain", one_of=GROUND_SOURCES, description="the ground: the final terrain with the river beds carved", channels=("height",), units="m"),
         Input("moisture", one_of=("hydrology.moisture", "erosion.moisture"), optional=True, channels=("moisture",),
               units="1", description="moisture 0..1: hydrology's, else the erosion storm's, else none (the stage "
               "derives it from the topographic position)"),
@@ -610,6 +685,10 @@ STAGE = Stage(
               "grass density (probability of a tuft, 0..1) and grass height (m)"),
         _grid("vegetation.canopy", "canopy.exr", ("canopy.cover", "canopy.density"), "1, 1/ha",
               "tree and shrub crown cover (0..1) and their total target density (plants per ha)"),
+        _grid("vegetation.sites", "sites.exr", SITE_CHANNELS, "1, 1, 1, 1, m",
+              "sites (sites.py), weights 0..1: the rest (1 - the largest of the others), riparian index (banks and "
+              "flood-prone valley floor), avalanche track, clearing; and the effective altitude the species' "
+              "altitude ranges judge (lower on sun-facing slopes: the tree line by aspect)"),
         Artifact("vegetation.instances", kind="usd", file="instances.usdc", shape="any", beside=("tiles/*.usdc",),
                  description="/World/Vegetation: quadtree tiles of UsdGeom.PointInstancers, one per species per tile, "
                  "each leaf tile a payload (tiles/q<digits>.usdc), whose instanceable prototypes inherit "
@@ -635,9 +714,12 @@ STAGE = Stage(
     params=VegetationParams,
     run=run,
     check=check,
-    report=(ReportMap("vegetation.splat", "splat.{ground}", name="ground",
+    report=(ReportTable("Forest by slope class, plants on the banks", forest_tables),
+            ReportMap("vegetation.splat", "splat.{ground}", name="ground",
                       title="Ground types ({artifact}, largest weight)", categories=tuple(GROUND_MAP_COLOURS.items()),
                       relief=Relief(hillshade, TERRAIN_SOURCES, "height", strength=0.4)),
+            ReportMap("vegetation.sites", "site.{site}", name="sites", title="Sites ({artifact}, largest weight)",
+                      categories=SITE_COLOURS, relief=Relief(hillshade, TERRAIN_SOURCES, "height", strength=0.5)),
             ReportMap("vegetation.species_maps", "density.{species}", name="density_{species}", title="Density: {species}",
                       palette="greens", values=ValueRange(lo=0.0), relief=Relief(hillshade, TERRAIN_SOURCES, "height")),
             ReportWarning("vegetation.species_maps", "suitability.{species}",

@@ -37,6 +37,8 @@ from worldlib.plant_asset import VEGETATION_PROTOTYPES, plant_asset_prim, protot
 from .placement import Instances
 
 TILES_DIR = "tiles"  # beside the layer: one payload file per leaf tile
+FOREST_BY_SLOPE_KEY = "worldbake:forest_by_slope"  # customData of /World/Vegetation: sites.forest_by_slope
+BANKS_KEY = "worldbake:plants_on_banks"  # customData of /World/Vegetation: sites.plants_on_banks
 
 PALETTE = {  # displayColor of the placeholders and preview dots
     "conifer": (0.04, 0.22, 0.16), "broadleaf": (0.45, 0.80, 0.12), "shrub": (0.80, 0.55, 0.20),
@@ -102,10 +104,12 @@ def _extent(inst: Instances, ii: np.ndarray, bound: float) -> np.ndarray:
 
 def write(path: Path, provenance: dict, sets: dict[str, Instances], heights: dict[str, float], kinds: dict[str, str],
           x0: float, z0: float, size: float, max_instances: int, min_size: float,
-          tints: dict[str, np.ndarray] | None = None) -> dict:
+          tints: dict[str, np.ndarray] | None = None, custom: dict | None = None) -> dict:
     """Write the layer; `sets` holds only species with instances; tints:
     per species (n, 3) per-instance colour factors (tint.py), written as
-    primvars:tint (color3f[], interpolation vertex: one per instance)."""
+    primvars:tint (color3f[], interpolation vertex: one per instance);
+    custom: customData of /World/Vegetation (the forest by slope class and
+    the plants on the banks, for the report's tables of the composed world)."""
     from pxr import Kind, Sdf, Usd, UsdGeom
 
     from pipeline import usdio
@@ -114,6 +118,8 @@ def write(path: Path, provenance: dict, sets: dict[str, Instances], heights: dic
     stage, _ = usdio.create_stage(path, provenance)
     veg = UsdGeom.Xform.Define(stage, "/World/Vegetation")
     Usd.ModelAPI(veg).SetKind(Kind.Tokens.group)
+    for key, value in (custom or {}).items():
+        veg.GetPrim().SetCustomDataByKey(key, value)
     protos = stage.DefinePrim(VEGETATION_PROTOTYPES, "Scope")
     protos.SetSpecifier(Sdf.SpecifierClass)
     names = [n for n in sets if len(sets[n])]

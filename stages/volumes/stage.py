@@ -15,8 +15,11 @@ Billboards' 128^3 colour volume), measured against its mesh.
    views: alpha IoU, PSNR of premultiplied colour; the woody solid's
    occupied volume against manifold3d's volume of the Wood mesh.
 5. Write each level as an EXR Z-slice atlas (worldlib.volumes.dense.write_atlas,
-   layout and errors in the header) and volumes.usda: /Volumes/<species>
-   with a `mip` variant set whose variants hold a UsdVol.Volume.
+   layout and errors in the header), with vdb (the default) also as an
+   OpenVDB file (worldlib.volumes.vdb, every level of a species in one run
+   of the system Python), and volumes.usda: /Volumes/<species> with a `mip`
+   variant set whose variants hold a UsdVol.Volume (OpenVDBAsset fields
+   density and albedo naming the .vdb).
 
 Only placed species are voxelized; an unchanged plant asset gives the same
 key (its content is the key's input), so it is never voxelized again.
@@ -65,8 +68,10 @@ class VolumesParams(Params):
                                     "loses coverage)", ge=1, le=4)
     use_opencl: bool = Param(True, description="voxelize and composite with the OpenCL kernels (false: the numpy "
                              "reference, small meshes only)")
-    vdb: bool = Param(False, description="also write each level as OpenVDB (<species>.mip<k>.vdb, the fields of the "
-                      "UsdVol.Volume); needs Debian's python3-openvdb (pipeline/vdb.py)")
+    vdb: bool = Param(True, description="also write each level as OpenVDB (<species>.mip<k>.vdb, grids density and "
+                      "albedo, the OpenVDBAsset fields of the UsdVol.Volume that Blender, Houdini and Omniverse "
+                      "render); needs Debian's python3-openvdb (worldlib/volumes/vdb.py): without it the bake is "
+                      "refused before any stage runs, never baked without the .vdb files")
 
 
 def _manifold_volume(scene, wood: np.ndarray) -> float | None:
@@ -140,13 +145,14 @@ def volume_species(env, name: str, asset, params: VolumesParams, out_dir: Path,
         file = f"{name}.mip{k}.exr"
         entry["file"] = file
         if params.vdb:
-            from worldlib.volumes.vdb import write_vdb
-
-            write_vdb(out_dir / f"{name}.mip{k}.vdb", lv)
             entry["vdb"] = f"{name}.mip{k}.vdb"
         volume.write_atlas(out_dir / file, lv, k, {**provenance, "species": name},
                            {"volume_errors": {k2: v for k2, v in entry.items() if k2 not in ("file", "views")}})
         report["levels"].append(entry)
+    if params.vdb:  # every level in one run of the system Python
+        from worldlib.volumes.vdb import write_vdbs
+
+        write_vdbs([(out_dir / e["vdb"], lv) for e, lv in zip(report["levels"], chain)])
     report["seconds_error"] = time.perf_counter() - t
     report["seconds"] = time.perf_counter() - t0
     return report, chain
@@ -238,7 +244,8 @@ def check(params: VolumesParams, ctx: CheckContext) -> Check:
         why = available()
         if why is not None:
             raise ParamError("vdb", f"no OpenVDB writer: {why}; install Debian's python3-openvdb "
-                             "(apt-get install python3-openvdb) or set WORLDBAKE_VDB_PYTHON, or set vdb = false")
+                             "(apt-get install python3-openvdb) or set WORLDBAKE_VDB_PYTHON, or set vdb = false "
+                             "(a world without .vdb volumes: no DCC renders them)")
     n = params.voxels ** 3
     solid = n * params.solid_columns ** 2
     views = params.error_views * params.error_view_pixels ** 2 if params.error_view_pixels else 0
@@ -266,7 +273,8 @@ STAGE = Stage(
                       description="/Volumes (kind group): per species a `mip` variant set of UsdVol.Volume prims, "
                       "each level an EXR Z-slice atlas <species>.mip<k>.exr (channels albedo.RGB premultiplied by "
                       "density, density 1/m, normal.xyz, surface m^2/m^3; layout and errors in the header) and, "
-                      "with vdb = true, <species>.mip<k>.vdb"),
+                      "with vdb = true, <species>.mip<k>.vdb (worldlib.volumes.vdb: the same voxels, albedo not "
+                      "premultiplied) that the Volume's OpenVDBAsset fields name"),
              Artifact("volumes.stats", kind="json", file="stats.json", shape="any",
                       description="per species: grid, per mip level memory, mean coverage, alpha IoU and "
                       "PSNR against the mesh from held-out views; the woody solid's volume against manifold3d's "

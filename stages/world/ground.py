@@ -22,18 +22,9 @@ import math
 
 import numpy as np
 
-from worldlib.ground import SPLAT_CHANNELS
+from worldlib.ground import GROUND_COLOURS, SPLAT_CHANNELS  # noqa: F401 (GROUND_COLOURS: the kernel's)
 
 SPLAT_ORDER = SPLAT_CHANNELS
-# linear albedo per splat channel (rock, scree, grass, dry_grass, mud, snow): typical measured albedos
-GROUND_COLOURS = np.array([
-    [0.20, 0.19, 0.18],  # rock
-    [0.30, 0.28, 0.25],  # scree
-    [0.07, 0.13, 0.04],  # grass
-    [0.24, 0.21, 0.11],  # dry grass
-    [0.12, 0.09, 0.06],  # mud
-    [0.80, 0.82, 0.86],  # snow
-], np.float32)
 # detail contrast per type (relative brightness swing) and its coarsest wavelength in metres
 DETAIL_CONTRAST = np.array([0.45, 0.35, 0.30, 0.30, 0.25, 0.06], np.float32)
 DETAIL_WAVELENGTH_M = np.array([16.0, 4.0, 8.0, 8.0, 6.0, 32.0])

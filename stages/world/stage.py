@@ -23,10 +23,11 @@ from pipeline.grid import Grid
 from pipeline.limits import leading_key
 from worldlib.ground import SPLAT_CHANNELS
 from worldlib.plant_asset import plant_asset_prim
-from worldlib.terrain import TERRAIN_SOURCES
+from worldlib.terrain import GROUND_SOURCES
 
 from worldlib.terrain.mesh import bilinear, build_terrain_mesh
 
+from .dcc_layer import write_dcc_layer
 from .impostor_layer import IMPOSTOR_INPUT, bind_impostors
 from .report_view import world_picture
 from .volume_layer import SECTOR_VOLUMES
@@ -62,6 +63,21 @@ class WorldParams(Params):
         "vegetation stage's splat weights are baked: the whole world at this size, MIP-mapped, so the texel is this "
         "fine wherever the camera is near")
     ground_tile_texels: int = Param(2048, ge=16, le=8192, units="texels", description="texels per side of each UDIM tile")
+    ground_detail: bool = Param(True, description="write the ground's detail layer (a tiling albedo and normal "
+                                "texture per ground type, blended by the splat weights; worldlib.ground_detail) and "
+                                "bake the blend over a near square (needs the vegetation stage's splat weights)")
+    ground_detail_texels: int = Param(512, ge=16, le=4096, units="texels", description="texels per side of each "
+                                      "ground type's detail texture (it tiles over 2-4 m: worldlib.ground_detail)")
+    ground_near_m: float = Param(64.0, ge=0.0, le=4096.0, units="m", description="side of the square near the world's "
+                                 "centre (moved by ground_near_east_m, ground_near_south_m) whose detail blend is "
+                                 "baked for plain UsdPreviewSurface (rounded to whole mesh quads); 0: none")
+    ground_near_texels: int = Param(2048, ge=16, le=8192, units="texels",
+                                    description="most texels per side of the near square's baked albedo and normal "
+                                    "(its texel is ground_texel_m / 32 or, capped by this, larger)")
+    ground_near_east_m: float = Param(0.0, ge=-1e6, le=1e6, units="m", description="the near square's centre, east "
+                                      "of the world's centre")
+    ground_near_south_m: float = Param(0.0, ge=-1e6, le=1e6, units="m", description="the near square's centre, "
+                                       "south of the world's centre")
 
 
 # Ground colours (linear RGB): reasoned from typical albedo of the materials.
@@ -94,10 +110,12 @@ def ground_colour(height: Grid, size: int, params: WorldParams) -> np.ndarray:
 
 
 def write_terrain_layer(path: Path, height: Grid, texture: str, params: WorldParams, provenance: dict,
-                        udim: tuple[str, int] | None = None, normal_texture: str | None = None) -> dict:
+                        udim: tuple[str, int] | None = None, normal_texture: str | None = None,
+                        detail: dict | None = None) -> dict:
     """udim: (file pattern with <UDIM>, tiles per side): the albedo from UDIM
     tiles read through primvar st_udim = st * tiles; normal_texture: a
-    tangent-space normal map (encoded 0..1) over the whole terrain."""
+    tangent-space normal map (encoded 0..1) over the whole terrain; detail:
+    the ground's detail layer (ground_near.author_detail)."""
     from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade, Vt
 
     stage, world = usdio.create_stage(path, provenance)
@@ -159,6 +177,13 @@ def write_terrain_layer(path: Path, height: Grid, texture: str, params: WorldPar
     surface.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(albedo.ConnectableAPI(), "rgb")
     material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
     UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+    if detail is not None:
+        from .ground_near import author_detail, near_faces
+
+        near = detail.get("near")
+        if near is not None:
+            near = dict(near, faces=near_faces(mesh_data, near["square"]), roughness=params.roughness)
+        author_detail(stage, mesh.GetPrim(), mesh_data, detail["files"], near)
 
     world.GetPrim()  # /World stays the defaultPrim of this layer too
     stage.GetRootLayer().Save()
@@ -171,7 +196,9 @@ GROUND_TILE_THREADS = 2  # UDIM tiles baked at once (each holds about 40 B a tex
 
 
 # what the ground textures read of the params (the unit's key; the rest shapes the layers only)
-GROUND_PARAMS = ("texture_size", "ground_texel_m", "ground_tile_texels", "mesh_max_vertices")
+GROUND_PARAMS = ("texture_size", "ground_texel_m", "ground_tile_texels", "mesh_max_vertices", "ground_detail",
+                 "ground_detail_texels",
+                 "ground_near_m", "ground_near_texels", "ground_near_east_m", "ground_near_south_m")
 
 
 def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, params: WorldParams, albedo_path: Path,
@@ -232,7 +259,36 @@ def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, param
     mesh_h = bilinear(lattice, ri, ci)
     images.write_mipmapped_texture(folder / "normal.exr", ground.normal_map(h, mesh_h, dx), provenance)
     ctx.metrics.update(ground_udim_tiles=tiles * tiles, ground_texel_m=texel_m, ground_tile_texels=texels)
+    if params.ground_detail:
+        ctx.progress(0.76, "ground detail layer")
+        ctx.metrics["ground_detail"] = write_ground_detail(ctx, h, splat, height, mesh, params, folder, provenance)
     return ("./ground.<UDIM>.exr", tiles), "./normal.exr"
+
+
+def write_ground_detail(ctx: RunContext, h: np.ndarray, splat: np.ndarray, height: Grid, mesh, params: WorldParams,
+                        folder: Path, provenance: dict) -> dict:
+    """The detail textures, the splat textures and the near square's bake
+    (ground_near); what write_terrain_layer's `detail` takes."""
+    import time
+
+    from worldlib import ground_detail
+
+    from .ground_near import write_detail_files, write_near
+
+    t0 = time.perf_counter()
+    textures = ground_detail.detail_textures(ctx.seed, params.ground_detail_texels)
+    files = write_detail_files(folder, textures, splat, provenance)
+    detail = {"files": files, "near": None}
+    if params.ground_near_m > 0:
+        layer = ground_detail.DetailLayer.from_textures(textures)
+        t1 = time.perf_counter()
+        detail["near"] = write_near(folder, layer, splat, h, height.cell_size_m, height.origin_m, mesh,
+                                    params.ground_near_m, (params.ground_near_east_m, params.ground_near_south_m),
+                                    params.ground_near_texels, params.ground_texel_m / 32)
+        ctx.metrics["ground_near_bake_s"] = round(time.perf_counter() - t1, 2)
+        files += [detail["near"]["albedo"], detail["near"]["normal"]]
+    ctx.metrics["ground_detail_s"] = round(time.perf_counter() - t0, 2)
+    return detail
 
 
 def bind_plant_assets(root_path: Path, placed: dict, plants_layer: Path, ctx: RunContext) -> dict[str, str]:
@@ -289,14 +345,15 @@ def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
                                                       terrain_path.parent, unit.provenance)
             folder = terrain_path.parent
             files = [albedo_path.name, normal_file.removeprefix("./")] + sorted(
-                p.name for p in folder.glob("ground.*.exr"))
+                p.name for p in folder.glob("ground.*.exr")) + ctx.metrics.get("ground_detail", {}).get("files", [])
             unit.save(folder, files, {"udim": list(udim), "normal": normal_file,
-                                      "metrics": {k: v for k, v in ctx.metrics.items() if k not in metrics_before}})
+                                      "metrics": {k: v for k, v in ctx.metrics.items()
+                                                  if k not in metrics_before and not k.endswith("_s")}})
             ctx.metrics["ground_reused"] = False
 
     ctx.progress(0.8, "terrain mesh")
     ctx.metrics.update(write_terrain_layer(terrain_path, height, "./" + albedo_path.name, params, ctx.provenance,
-                                           udim, normal_file))
+                                           udim, normal_file, ctx.metrics.get("ground_detail")))
 
     ctx.progress(0.9, "world layer")
     root_path = ctx.path("world.root")
@@ -309,6 +366,9 @@ def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
         if "impostors" in inputs:
             ctx.metrics["impostors"] = bind_impostors(root_path, ctx.metrics["plant_assets"], inputs["placed"],
                                                       inputs["impostors"], ctx)
+            # what a DCC, which cannot switch LODs by distance, renders (dcc_layer.py)
+            ctx.metrics["dcc"] = write_dcc_layer(root_path, inputs["vegetation"], inputs["impostors"],
+                                                 ctx.metrics["impostors"], ctx.provenance) if "vegetation" in inputs else {}
     return {"world.root": root_path, "world.terrain": terrain_path, "world.albedo": albedo_path}
 
 
@@ -349,7 +409,14 @@ def check(params: WorldParams, ctx: CheckContext) -> Check:
     parts = [overview, f"{vertices:,} vertices x 80 B", udim]
     if tile_bytes > 256 * texels:  # the larger size first: a memory refusal names the file that set it
         parts = [udim, f"{vertices:,} vertices x 80 B", overview]
-    return Check(memory_bytes=256 * texels + 80 * vertices + tile_bytes, memory_how=" + ".join(parts),
+    # the detail layer: 12 textures with their MIP levels (float32 RGB, and float64 while made), and a
+    # chunk of 128 near rows in the blend (about 600 B a texel)
+    detail_bytes = 0
+    if params.ground_detail and tiles:
+        detail_bytes = 12 * 24 * 2 * params.ground_detail_texels ** 2 + 600 * 128 * params.ground_near_texels
+        parts.append(f"ground detail {12 * 24 * 2 * params.ground_detail_texels ** 2 // 2 ** 20} MiB + near rows "
+                     f"{600 * 128 * params.ground_near_texels // 2 ** 20} MiB")
+    return Check(memory_bytes=256 * texels + 80 * vertices + tile_bytes + detail_bytes, memory_how=" + ".join(parts),
                  work=texels + ground_texels, work_unit="texels", work_limit=MAX_GROUND_TEXELS,
                  work_key=leading_key(params, grows=("texture_size",), shrinks=("ground_texel_m",)),
                  work_how=f"{texels:,} overview texels + {tiles} x {tiles} UDIM tiles of {tile_texels}^2 texels")
@@ -359,20 +426,22 @@ STAGE = Stage(
     name="world",
     version=1,
     description="Assemble world.usda: the terrain mesh and material, and every upstream USD layer.",
-    inputs=(Input("terrain", one_of=TERRAIN_SOURCES, description="the final terrain height", channels=("height",),
+    inputs=(Input("terrain", one_of=GROUND_SOURCES, description="the ground: the final terrain with the river beds carved", channels=("height",),
                   units="m"),
             Input("splat", one_of=("vegetation.splat",), optional=True,
                   description="ground splat weights: the ground material's one definition of rock, scree, grass, "
                   "dry grass, mud and snow", channels=SPLAT_CHANNELS, units="1"),) + LAYER_INPUTS + ASSET_INPUTS,
     outputs=(
-        Artifact("world.root", kind="usd", file="world.usda", shape="any", publish=True,
-                 description="the root layer composing every layer of the world"),
+        Artifact("world.root", kind="usd", file="world.usda", shape="any", publish=True, beside=("dcc.usdc",),
+                 description="the root layer composing every layer of the world; beside it dcc.usdc, its strongest "
+                 "sublayer: the per-tile `lod` selection a DCC renders with (dcc_layer.py)"),
         Artifact("world.terrain", kind="usd", file="terrain.usdc", shape="any",
                  description="the terrain mesh and its material"),
         Artifact("world.albedo", kind="texture", file="albedo.exr", shape="any", units="linear RGB",
-                 beside=("ground.*.exr", "normal.exr"),
+                 beside=("ground.*.exr", "normal.exr", "splat_*.exr", "near_*.png", "detail/*.png"),
                  description="ground colour texture (an overview), tiled and mip-mapped; beside it the UDIM albedo "
-                 "tiles ground.<UDIM>.exr from the splat weights and the normal map from the final height"),
+                 "tiles ground.<UDIM>.exr from the splat weights and the normal map from the final height; the "
+                 "detail layer (detail/*.png, splat_*.exr, near_*.png: stages/world/ground_near.py)"),
     ),
     params=WorldParams,
     run=run,

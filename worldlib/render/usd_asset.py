@@ -7,9 +7,12 @@ Only what USD says is read: each UsdGeom.Mesh (fan-triangulated, composed
 transform, invisible and proxy/guide-purpose subtrees skipped) and the
 UsdPreviewSurface bound to it: diffuseColor from a UsdUVTexture (its file,
 UDIM tiles included, sourceColorSpace, the primvar its st reads; sRGB made
-linear, alpha kept as the cut-out), from a UsdPrimvarReader (that primvar,
-e.g. displayColor), or a constant; primvars:displayColor without a
-material. One Scene row per triangle corner.
+linear, alpha kept as the cut-out; its scale applied as authored, less the
+foliage translucency gain of worldlib.materials.bake_translucency, since
+the display light passes that light itself), from a UsdPrimvarReader (that
+primvar, e.g. displayColor), or a constant; primvars:displayColor without
+a material. Normal maps are not read: shading uses the meshes' normals.
+One Scene row per triangle corner.
 
     levels = load_asset("conifer.usdc")            # per LOD variant: Scene and mesh name per triangle
     plant = load_plant(plants_usda, "/Plants/conifer")   # one variant, in the layer's space, with its bounds
@@ -38,6 +41,7 @@ class Look:
     st_name: str  # the primvar the texture reads
     alpha_test: bool
     primvar: str | None = None  # the colour comes from this primvar (a UsdPrimvarReader)
+    scale: tuple[float, float, float] = (1.0, 1.0, 1.0)  # the texture's rgb scale, less a translucency gain
 
 
 def shader_look(prim) -> Look | None:
@@ -75,13 +79,29 @@ def shader_look(prim) -> Look | None:
                 reader = UsdShade.Shader(st_in.GetConnectedSource()[0].GetPrim())
                 var = reader.GetInput("varname")
                 st_name = str(var.Get()) if var and var.Get() else "st"
-            return Look((1.0, 1.0, 1.0), path, str(cs.Get()) if cs and cs.Get() else "auto", st_name, alpha_test)
+            return Look((1.0, 1.0, 1.0), path, str(cs.Get()) if cs and cs.Get() else "auto", st_name, alpha_test,
+                        scale=texture_scale(tex))
         if shader_id.startswith("UsdPrimvarReader"):
             var = tex.GetInput("varname")
             return Look((0.5, 0.5, 0.5), None, "raw", "st", False, str(var.Get()) if var and var.Get() else "displayColor")
         return Look((0.5, 0.5, 0.5), None, "raw", "st", False)
     v = diffuse.Get()
     return Look(tuple(float(c) for c in v) if v is not None else (0.5, 0.5, 0.5), None, "raw", "st", False)
+
+
+def texture_scale(tex) -> tuple[float, float, float]:
+    """The rgb factor a colour UsdUVTexture applies (its scale; a bias would
+    need a texture of its own: refused), divided by the translucency gain
+    recorded on it (worldlib.materials.TRANSLUCENCY_GAIN)."""
+    from worldlib.materials import TRANSLUCENCY_GAIN
+
+    bias = tex.GetInput("bias")
+    if bias and bias.Get() is not None and any(float(b) != 0.0 for b in list(bias.Get())[:3]):
+        raise ValueError(f"{tex.GetPath()}: a bias on a colour texture is not read by the renderer")
+    scale = tex.GetInput("scale")
+    rgb = [float(c) for c in list(scale.Get())[:3]] if scale and scale.Get() is not None else [1.0, 1.0, 1.0]
+    gain = float(tex.GetPrim().GetCustomDataByKey(TRANSLUCENCY_GAIN) or 1.0)
+    return tuple(c / gain for c in rgb)
 
 
 def read_image(path: str, colour_space: str) -> np.ndarray:
@@ -211,7 +231,7 @@ def mesh_scene(prim, to_world: np.ndarray, textures: dict) -> Scene | None:
     elif look.texture is None:
         tint = np.broadcast_to(np.asarray(look.colour), (ntri, 3))
     else:
-        tint = np.ones((ntri, 3))
+        tint = np.broadcast_to(np.asarray(look.scale, np.float64), (ntri, 3))
     tris = np.arange(len(P)).reshape(-1, 3)
     # the texture index is local to `textures`; the stack is filled by the caller (placeholder 1-texel stack here)
     return Scene(P, N, uv, tris, np.clip(tint, 0.0, None), np.full(ntri, tex_id),

@@ -38,6 +38,7 @@ from pipeline.exr import srgb8
 from . import Prepared
 from .scene import Camera, Image, Scene, Settings
 from .usd_asset import load_texture, resized, subtree_scene, with_stack
+from .ground_detail import with_ground_detail
 
 ATLAS_SIZE = 1024  # texels per side of every texture the world picture uses (the ground's and the billboard atlas)
 
@@ -260,6 +261,7 @@ def render_world(env, world_usda: str | Path, width: int = 1600, height: int = 9
     progress(f"world view: {scene.n_triangles:,} triangles, instances {summary['instances']}")
     img: Image = prepared.render(cam, Settings(width, height, samples=samples, ao_rays=ao_rays,
                                                       ao_radius_m=25.0, seed=1))
+    img = with_ground_detail(img, world_usda, cam, width, height)  # the ground's detail layer up close
     shaded = img.shaded(sun=sun, sky=0.5, background=(0.55, 0.68, 0.85))
     alpha = np.round(np.clip(img.alpha, 0.0, 1.0) * 255.0).astype(np.uint8)
     if stats is not None:

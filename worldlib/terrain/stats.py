@@ -21,7 +21,10 @@ height and its D8 flow tree:
   long do not decide it; concavity_theta_cell is the same fit with the
   slope to the next cell;
 - drainage_density_per_km: channel length per area (km / km^2);
-- hypsometric_integral: (mean - min) / (max - min) of the height.
+- hypsometric_integral: (mean - min) / (max - min) of the height;
+- slope_*: slope percentiles and area shares of the height averaged over
+  SLOPE_BLOCK_M blocks (the resolution of public DEMs), so that they compare
+  with measurements on real ranges (slope_statistics).
 
 D8 codes are the hydrology convention: 0..7 = N, NE, E, SE, S, SW, W, NW,
 negative = outlet (no receiver). Everything here is plain numpy, float64.
@@ -37,6 +40,59 @@ DC = np.array([0, 1, 1, 1, 0, -1, -1, -1])
 GRID_DIRECTIONS_DEG = (0.0, 45.0, 90.0, 135.0)
 ANISOTROPY_HALF_WIDTH_DEG = 1.5
 SLOPE_REACH_M = 200.0
+SLOPE_BLOCK_M = 30.0
+STEEP_DEG, GENTLE_DEG = 40.0, 10.0  # the slope shares reported: steeper than 40 degrees, flatter than 10
+
+
+def block_weights(n: int, dx: float, block_m: float) -> np.ndarray:
+    """(blocks, n) weights averaging n cells of dx into whole blocks of
+    block_m (each cell by the length it overlaps the block, so a block need
+    not hold a whole number of cells); the remainder at the far edge is dropped."""
+    blocks = int(math.floor(n * dx / block_m + 1e-9))
+    lo = np.arange(blocks)[:, None] * block_m
+    cell = np.arange(n)[None, :] * dx
+    overlap = np.clip(np.minimum(lo + block_m, cell + dx) - np.maximum(lo, cell), 0.0, None)
+    return overlap / block_m
+
+
+def block_average(h: np.ndarray, dx: float, block_m: float) -> np.ndarray:
+    """The height averaged over block_m x block_m blocks (area-weighted, float64)."""
+    h = np.asarray(h, np.float64)
+    wr = block_weights(h.shape[0], dx, block_m)
+    wc = block_weights(h.shape[1], dx, block_m)
+    return wr @ h @ wc.T
+
+
+def slope_degrees(h: np.ndarray, dx: float) -> np.ndarray:
+    """Slope in degrees of the interior cells by Horn's (1981) 3x3 gradient,
+    the GIS standard; shape (rows - 2, cols - 2)."""
+    z = np.asarray(h, np.float64)
+    a, b, c = z[:-2, :-2], z[:-2, 1:-1], z[:-2, 2:]
+    d, f = z[1:-1, :-2], z[1:-1, 2:]
+    g, hh, i = z[2:, :-2], z[2:, 1:-1], z[2:, 2:]
+    gx = ((c + 2.0 * f + i) - (a + 2.0 * d + g)) / (8.0 * dx)
+    gy = ((g + 2.0 * hh + i) - (a + 2.0 * b + c)) / (8.0 * dx)
+    return np.degrees(np.arctan(np.hypot(gx, gy)))
+
+
+def slope_statistics(h: np.ndarray, dx: float, block_m: float = SLOPE_BLOCK_M) -> dict:
+    """Slope of the height averaged to block_m blocks (block_average, Horn's
+    gradient on the blocks, the outer ring of blocks left out): the 10th,
+    50th and 90th percentiles in degrees, the shares of the area steeper than
+    STEEP_DEG and flatter than GENTLE_DEG, and the mean. Finer cells than the
+    block are averaged; coarser grids are measured as they are (block =
+    cell size)."""
+    h = np.asarray(h, np.float64)
+    block = max(float(block_m), float(dx))
+    hb = block_average(h, dx, block) if block > dx else h
+    if min(hb.shape) < 3:
+        raise ValueError(f"slope_statistics: {h.shape} cells of {dx:g} m make fewer than 3 x 3 blocks of {block:g} m")
+    s = slope_degrees(hb, block)
+    p10, p50, p90 = np.percentile(s, [10.0, 50.0, 90.0])
+    return {"slope_block_m": block, "slope_p10_deg": float(p10), "slope_median_deg": float(p50),
+            "slope_p90_deg": float(p90), "slope_mean_deg": float(s.mean()),
+            "slope_share_over_40_deg": float((s > STEEP_DEG).mean()),
+            "slope_share_under_10_deg": float((s < GENTLE_DEG).mean())}
 
 
 def _band_spectrum(height: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -252,6 +308,8 @@ def terrain_statistics(height: np.ndarray, filled: np.ndarray, code: np.ndarray,
         "concavity_slope_reach_m": SLOPE_REACH_M,
         "drainage_density_per_km": channel_length_m / 1000.0 / area_km2 if area_km2 > 0 else 0.0,
         "hypsometric_integral": float((hv.mean() - hv.min()) / span) if span > 0 else 0.0,
+        **(slope_statistics(np.where(data, h, hv.mean()), dx) if hv.size and min(rows, cols) * dx >= 3 * SLOPE_BLOCK_M
+           else {}),
         "relief_m": span,
         "channel_area_m2": float(channel_area_m2),
         "channel_cells": int(channel.sum()),

@@ -285,8 +285,9 @@ def read_atlas(path: Path | str) -> VolumeLevel:
 def define_volume_prim(stage, path: str, level: VolumeLevel, atlas_file: str, purpose: str | None = None,
                        vdb_file: str | None = None):
     """A UsdVol.Volume prim for one level: extent = the grid's box, and a
-    field per channel group. With `vdb_file` (worldlib.volumes.vdb) the fields are
-    OpenVDBAsset prims naming its grids, which Houdini, usdview and
+    field per channel group. With `vdb_file` (worldlib.volumes.vdb) the
+    fields are OpenVDBAsset prims naming its grids density and albedo (the
+    plain colour there, not premultiplied), which Blender, Houdini and
     Omniverse render. Without it: EXR atlases are no field format USD knows
     (UsdVol has OpenVDB and Field3D assets only), so the fields are
     Field3DAsset prims that name no file. Either way the atlas path, layout
@@ -299,7 +300,7 @@ def define_volume_prim(stage, path: str, level: VolumeLevel, atlas_file: str, pu
     if purpose:
         vol.CreatePurposeAttr(purpose)
     nx, ny, nz = level.shape_xyz
-    for name in ("density", "albedo", "normal"):
+    for name in ("density", "albedo") if vdb_file else ("density", "albedo", "normal"):
         if vdb_file:
             fld = UsdVol.OpenVDBAsset.Define(stage, f"{path}/{name}")
             fld.CreateFilePathAttr(vdb_file)
@@ -307,6 +308,8 @@ def define_volume_prim(stage, path: str, level: VolumeLevel, atlas_file: str, pu
             fld = UsdVol.Field3DAsset.Define(stage, f"{path}/{name}")
         fld.CreateFieldNameAttr(name)
         fld.CreateFieldDataTypeAttr("float" if name == "density" else "float3")
+        if vdb_file and name == "albedo":  # how Houdini and Omniverse read a vec3 grid
+            fld.CreateVectorDataRoleHintAttr("Color")
         vol.CreateFieldRelationship(name, fld.GetPath())
     info = level.atlas_info()
     data = {"file": atlas_file, "grid": Vt.IntArray([nx, ny, nz]), "voxel_m": float(level.voxel_m),

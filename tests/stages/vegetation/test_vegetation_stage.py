@@ -29,7 +29,7 @@ def test_contract():
     assert isinstance(STAGE, Stage) and STAGE.name == "vegetation" and STAGE.version >= 1
     assert STAGE.uses_seed and STAGE.uses_opencl and "mesh_max_vertices" in STAGE.shared_params
     roles = {i.role: i for i in STAGE.inputs}
-    assert roles["terrain"].one_of == ("erosion.height", "heightmap.height") and not roles["terrain"].optional
+    assert roles["terrain"].one_of[-2:] == ("erosion.height", "heightmap.height") and not roles["terrain"].optional
     assert all(roles[r].optional for r in ("moisture", "lakes", "rivers"))
     assert roles["moisture"].one_of == ("hydrology.moisture", "erosion.moisture")
     s = STAGE.output("vegetation.splat")
@@ -258,7 +258,9 @@ def test_instances_on_the_mesh_and_where_they_may_grow(baked):
         assert not water[tr, tc].any(), name
         e = params.species[name]
         assert (attrs.channel("attr.slope")[tr, tc] < e.slope_deg.max).all(), name
-        assert ((h[tr, tc] > e.altitude_m.min) & (h[tr, tc] < e.altitude_m.max)).all(), name
+        alt = out["vegetation.sites"].channel("altitude.effective")  # the altitude shifted by aspect
+        assert ((alt[tr, tc] > e.altitude_m.min) & (alt[tr, tc] < e.altitude_m.max)).all(), name
+        assert np.abs(alt - h).max() <= 0.5 * params.treeline_aspect_shift_m + 1e-3
         # inside the mesh footprint: first to last cell centre
         assert (pos[:, 0] >= dom.x0).all() and (pos[:, 0] <= dom.x0 + dom.width).all()
 

@@ -46,7 +46,7 @@ def plants(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def volumes(plants, tmp_path_factory):
-    params = VolumesParams(voxels=32, mip_levels=3, error_view_pixels=64)
+    params = VolumesParams(voxels=32, mip_levels=3, error_view_pixels=64, vdb=False)
     out, ctx = _run(STAGE, params, {"plants": plants, "placed": {"placed": ["bush", "oak"]}},
                     tmp_path_factory.mktemp("volumes"))
     return out, ctx
@@ -58,7 +58,7 @@ def test_an_unchanged_asset_is_not_voxelized_again(plants, tmp_path):
     from pipeline.store import Store
     from pipeline.units import Units
 
-    params = VolumesParams(voxels=16, mip_levels=2, error_view_pixels=32)
+    params = VolumesParams(voxels=16, mip_levels=2, error_view_pixels=32, vdb=False)
     inputs = {"plants": plants, "placed": {"placed": ["bush"]}}
 
     def run(out, build):
@@ -81,7 +81,7 @@ def test_only_placed_species_with_an_asset_get_volumes(plants, volumes, tmp_path
     stats = out["volumes.stats"]
     assert stats["voxelized"] == ["bush"] and stats["not_voxelized"] == ["oak"]
     assert sorted(p.name for p in out["volumes.assets"].parent.glob("*.exr")) == [f"bush.mip{k}.exr" for k in range(3)]
-    none, _ = _run(STAGE, VolumesParams(voxels=16, mip_levels=2, error_view_pixels=0),
+    none, _ = _run(STAGE, VolumesParams(voxels=16, mip_levels=2, error_view_pixels=0, vdb=False),
                    {"plants": plants, "placed": {"placed": ["grass"]}}, tmp_path / "none")
     assert none["volumes.stats"]["voxelized"] == [] and not list((tmp_path / "none").glob("*.exr"))
     assert usdio.validate(none["volumes.assets"]) == []
@@ -168,7 +168,7 @@ def forest(volumes, tmp_path_factory):
     usd_layer.write(layer, {"stage": "vegetation"}, sets, {"bush": 0.6, "grass": 0.3}, {"bush": "plant", "grass": "grass"},
                     0.0, 0.0, 32.0, 40, 8.0)
     out, _ = volumes
-    params = ForestVolumesParams(voxel_m=0.5, mip_levels=2, forest_min_height_m=0.1)
+    params = ForestVolumesParams(voxel_m=0.5, mip_levels=2, forest_min_height_m=0.1, vdb=False)
     res, _ = _run(FOREST, params, {"volumes": out["volumes.assets"], "instances": layer}, tmp_path / "out")
     return layer, res, tmp_path / "out"
 
@@ -253,27 +253,82 @@ def test_the_sector_is_measured_against_its_instances(forest, volumes):
 
 
 def test_vdb_levels_read_back_with_the_same_values(plants, tmp_path):
-    """With vdb = true every level is also an OpenVDB file (Debian's
-    python3-openvdb through pipeline/vdb.py) whose grids equal the atlas's,
-    and the Volume's fields name it."""
+    """With vdb = true (the default) every level is also an OpenVDB file
+    (Debian's python3-openvdb through worldlib/volumes/vdb.py) whose grids
+    density and albedo, read by OpenVDB itself, equal the atlas's (albedo as
+    the plain colour, albedo / density), whose voxel (0, 0, 0) sits where the atlas puts it,
+    and which the Volume's fields name and resolve to."""
     from pxr import Usd, UsdVol
 
     from worldlib.volumes import vdb
 
     if vdb.available() is not None:
         pytest.skip(f"no OpenVDB writer here: {vdb.available()}")
-    params = VolumesParams(voxels=16, mip_levels=2, error_view_pixels=0, vdb=True)
+    params = VolumesParams(voxels=16, mip_levels=2, error_view_pixels=0)
+    assert params.vdb
     out, _ = _run(STAGE, params, {"plants": plants, "placed": {"placed": ["bush"]}}, tmp_path)
     assert usdio.validate(out["volumes.assets"]) == []
     for k in range(2):
         lv = volume.read_atlas(tmp_path / f"bush.mip{k}.exr")
         grids = vdb.read_vdb(tmp_path / f"bush.mip{k}.vdb", lv.shape_xyz)
-        for name in ("density", "albedo", "normal", "surface"):
-            assert np.array_equal(grids[name], getattr(lv, name)), name
+        assert set(grids) >= {"density", "albedo"} and "normal" not in grids  # what a DCC's volume shader reads
+        assert np.array_equal(grids["density"], lv.density)
+        occupied = lv.density > 0
+        # the albedo grid is saved as half floats (the EXR form's precision)
+        np.testing.assert_allclose(grids["albedo"][occupied], lv.albedo[occupied] / lv.density[occupied][:, None],
+                                   rtol=1e-3)
+        assert not grids["albedo"][~occupied].any() and str(grids["density_class"]) == "fog volume"
         np.testing.assert_allclose(grids["density_voxel"], lv.voxel_m, rtol=1e-12)
+        np.testing.assert_allclose(grids["density_world0"], lv.origin + lv.voxel_m / 2, rtol=0, atol=1e-9)
     stage = Usd.Stage.Open(str(out["volumes.assets"]))
-    field = UsdVol.OpenVDBAsset(stage.GetPrimAtPath("/Volumes/bush/Volume/density"))
-    assert field.GetFilePathAttr().Get().path == "./bush.mip0.vdb" and field.GetFieldNameAttr().Get() == "density"
+    vol = UsdVol.Volume(stage.GetPrimAtPath("/Volumes/bush/Volume"))
+    assert set(vol.GetFieldPaths()) == {"density", "albedo"}
+    for name, path in vol.GetFieldPaths().items():
+        field = UsdVol.OpenVDBAsset(stage.GetPrimAtPath(path))
+        asset = field.GetFilePathAttr().Get()
+        assert asset.path == "./bush.mip0.vdb" and field.GetFieldNameAttr().Get() == name
+        assert Path(asset.resolvedPath) == tmp_path / "bush.mip0.vdb"
+    assert UsdVol.OpenVDBAsset(stage.GetPrimAtPath("/Volumes/bush/Volume/albedo")).GetVectorDataRoleHintAttr().Get() \
+        == "Color"
+
+
+def test_forest_sectors_are_openvdb_volumes_too(forest, volumes, tmp_path):
+    """With vdb = true (the default) every sector level is also a .vdb: the
+    occupied voxels of its column runs, at the EXR's place, named by the
+    Volume's OpenVDBAsset fields density and albedo; all levels of the bake
+    in one run of the writer."""
+    from pxr import Usd, UsdVol
+
+    from worldlib.volumes import sparse as sparse_volume, vdb
+
+    if vdb.available() is not None:
+        pytest.skip(f"no OpenVDB writer here: {vdb.available()}")
+    layer, _, _ = forest
+    params = ForestVolumesParams(voxel_m=0.5, mip_levels=2, forest_min_height_m=0.1, error_sectors=0)
+    res, ctx = _run(FOREST, params, {"volumes": volumes[0]["volumes.assets"], "instances": layer}, tmp_path)
+    path = next(iter(res["forest_volumes.stats"]["sectors"]))
+    stem = path.rsplit("/", 1)[-1]
+    for k in range(2):
+        runs = sparse_volume.read_runs(tmp_path / f"{stem}.mip{k}.exr")
+        grids = vdb.read_vdb(tmp_path / f"{stem}.mip{k}.vdb", runs.shape_xyz)
+        lv = runs.to_dense()
+        assert np.array_equal(grids["density"], lv.density)
+        occupied = lv.density > 0
+        # the EXR holds albedo in half floats, the .vdb the float32 the stage computed
+        np.testing.assert_allclose(grids["albedo"][occupied], lv.albedo[occupied] / lv.density[occupied][:, None],
+                                   rtol=2e-3)
+        np.testing.assert_allclose(grids["density_world0"], runs.origin + runs.voxel_m / 2, atol=1e-9)
+        lo, hi = grids["density_active"]
+        z, y, x = np.nonzero(occupied)
+        assert list(lo) == [x.min(), y.min(), z.min()] and list(hi) == [x.max(), y.max(), z.max()]
+    stage = Usd.Stage.Open(str(res["forest_volumes.sectors"]))
+    vol = UsdVol.Volume(stage.GetPrimAtPath(f"{path}/FarVolume/Volume"))
+    for name in ("density", "albedo"):
+        field = UsdVol.OpenVDBAsset(stage.GetPrimAtPath(vol.GetFieldPath(name)))
+        assert field.GetFieldNameAttr().Get() == name
+        assert Path(field.GetFilePathAttr().Get().resolvedPath) == tmp_path / f"{stem}.mip0.vdb"
+    assert ctx.metrics["phases_seconds"]["vdb"] > 0
+    assert usdio.validate(res["forest_volumes.sectors"]) == []
 
 
 def test_a_sector_is_clipped_to_its_occupied_voxels_in_whole_mips():

@@ -130,7 +130,8 @@ def test_ground_material_udim_tiles_and_normal_map(cl_env, tmp_path):
     ctx = RunContext(cl=cl_env, stage=STAGE, key="k", out_dir=tmp_path, seed=0, provenance={"stage": "world", "key": "k"},
                      project_root=tmp_path)
     out = STAGE.run(ctx, {"terrain": terrain, "splat": splat},
-                    STAGE.params(mesh_max_vertices=17, texture_size=32, ground_texel_m=2.0, ground_tile_texels=256))
+                    STAGE.params(mesh_max_vertices=17, texture_size=32, ground_texel_m=2.0, ground_tile_texels=256,
+                                 ground_detail_texels=32, ground_near_texels=32))
     assert usdio.validate(out["world.root"]) == []
     # 40 x 25 m = 1000 m wide at 2 m per texel in 256-texel tiles: 2 x 2 tiles
     assert ctx.metrics["ground_udim_tiles"] == 4 and ctx.metrics["ground_texel_m"] <= 2.0
@@ -164,7 +165,8 @@ def test_the_ground_textures_are_reused_while_terrain_and_splat_do_not_change(cl
     from pipeline.units import Units
 
     terrain, splat = _terrain(), _splat(*_terrain().shape)
-    params = STAGE.params(mesh_max_vertices=17, texture_size=32, ground_texel_m=2.0, ground_tile_texels=256)
+    params = STAGE.params(mesh_max_vertices=17, texture_size=32, ground_texel_m=2.0, ground_tile_texels=256,
+                          ground_detail_texels=32, ground_near_texels=32)
 
     def run(out, build, splat_grid, roughness=0.9):
         store = Store(build)
@@ -172,13 +174,15 @@ def test_the_ground_textures_are_reused_while_terrain_and_splat_do_not_change(cl
                          project_root=tmp_path, units=Units(store.units, store.tmp, "world", {"stage": "world"}))
         out.mkdir(parents=True)
         STAGE.run(ctx, {"terrain": terrain, "splat": splat_grid}, params.model_copy(update={"roughness": roughness}))
-        return ctx.metrics["ground_reused"], {p.name: p.read_bytes() for p in sorted(out.glob("*.exr"))}
+        return ctx.metrics["ground_reused"], {p.relative_to(out).as_posix(): p.read_bytes() for p in sorted(out.rglob("*"))
+                                              if p.suffix in (".exr", ".png")}
 
     first = run(tmp_path / "a", tmp_path / "build", splat)
     again = run(tmp_path / "b", tmp_path / "build", splat, roughness=0.5)  # only the layer changes
     clean = run(tmp_path / "c", tmp_path / "clean", splat, roughness=0.5)
     assert (first[0], again[0], clean[0]) == (False, True, False)
-    assert again[1] == clean[1] == first[1] and len(first[1]) == 6  # overview, normal map, 4 UDIM tiles
+    # overview, normal map, 4 UDIM tiles; the detail layer: 2 splat textures, 2 near textures, 6 x 2 detail maps
+    assert again[1] == clean[1] == first[1] and len(first[1]) == 6 + 2 + 2 + 12
     other = run(tmp_path / "d", tmp_path / "build", _splat(*terrain.shape, seed=4))
     assert other[0] is False and other[1]["ground.1001.exr"] != first[1]["ground.1001.exr"]
 

@@ -125,3 +125,36 @@ def test_depressions_and_concavity_of_a_known_profile():
     assert st["strahler_order_max"] == 1  # one stem, no confluence of channels
     assert st["concavity_theta_cell"] == pytest.approx(0.5, abs=0.05)
     assert st["concavity_theta"] == pytest.approx(0.5, abs=0.08)
+
+
+def test_slope_statistics_of_planes_and_block_averaging():
+    dx = 8.0
+    r, c = np.mgrid[0:128, 0:128] * dx
+    for deg in (5.0, 25.0, 45.0):
+        plane = 100.0 + math.tan(math.radians(deg)) * (0.6 * c + 0.8 * r)
+        st = ts.slope_statistics(plane, dx)
+        assert st["slope_block_m"] == 30.0
+        for key in ("slope_p10_deg", "slope_median_deg", "slope_p90_deg", "slope_mean_deg"):
+            # a plane averages to a plane; cells cut by a block edge shift the blocks' centroids a little
+            assert st[key] == pytest.approx(deg, rel=1e-2)
+        assert st["slope_p90_deg"] - st["slope_p10_deg"] < 0.5
+        assert st["slope_share_over_40_deg"] == (1.0 if deg > 40 else 0.0)
+        assert st["slope_share_under_10_deg"] == (1.0 if deg < 10 else 0.0)
+    # 30 m blocks over 8 m cells: each block weighs its cells by the overlap (3.75 cells a block)
+    w = ts.block_weights(16, 8.0, 30.0)
+    assert w.shape == (4, 16)
+    np.testing.assert_allclose(w.sum(axis=1), 1.0)
+    np.testing.assert_allclose(w[0, :5], [8 / 30, 8 / 30, 8 / 30, 6 / 30, 0.0])
+
+
+def test_slope_statistics_average_away_what_is_finer_than_the_block():
+    """A 16 m ripple of 45 degrees on a gentle plane: at 30 m blocks the
+    ripple averages out and the plane's slope remains; measured per cell,
+    the ripple would dominate."""
+    dx = 2.0
+    r, c = np.mgrid[0:300, 0:300] * dx
+    base = math.tan(math.radians(8.0)) * c
+    ripple = 16.0 / (2 * math.pi) * np.sin(2 * math.pi * r / 16.0)  # slope amplitude 1: 45 degrees
+    st = ts.slope_statistics(base + ripple, dx)
+    assert st["slope_median_deg"] < 12.0 and st["slope_share_over_40_deg"] == 0.0
+    assert np.median(ts.slope_degrees(base + ripple, dx)) > 30.0

@@ -1,0 +1,315 @@
+"""Sites: what the terrain's shape and its water make of a place beyond
+the local attributes (host numpy; whole-map operations: distance
+transforms, flow lines), and how they change each species' suitability.
+
+- Effective altitude (tree line by aspect): altitude - shift / 2 * cos(aspect
+  - equator azimuth) * steepness, shift = treeline_aspect_shift_m and
+  steepness a smoothstep of the slope over 0 .. ASPECT_FULL_SLOPE_DEG. Every
+  species' altitude range is judged on it, so a steep sun-facing slope
+  carries each zone shift / 2 higher and a shaded one shift / 2 lower
+  (Holtmeier 2009, Koerner 2012: tree lines on sunny slopes typically
+  100-200 m higher).
+- Riparian index (banks and flood-prone valley floors), 0..1: for every cell
+  the nearest water cell (river or lake, Euclidean), its water level (lake
+  level; the river cell's ground) and distance from its edge (river: minus
+  half its width); index = (1 - S(height above / riparian_height_m)) x
+  (1 - S(distance / riparian_distance_m)), S the smoothstep on [0, 1]:
+  a height above the nearest drainage (HAND, Renno et al. 2008) limited to
+  the water's neighbourhood. 1 on the water.
+- Avalanche paths: release cells where altitude >= avalanche_release_min_m,
+  the slope is within avalanche_release_slope_{min,max}_deg and a
+  counter-based patch noise is in its top avalanche_release_share (whole
+  patches release, so a planar face sends a band, not a comb of lines); each
+  avalanche runs down the steepest descent (D8) while the line falling at
+  avalanche_alpha_deg from its release height stays above the ground (the
+  alpha angle of Lied and Bakkehoi 1980). A cell reached by several keeps
+  the highest such line (the path below depends on nothing else), so the
+  result is exact and does not depend on order. The track is the path
+  widened to avalanche_track_width_m with a soft edge.
+- Clearings: a three-octave counter-based value noise of wavelength
+  clearing_size_m in its top clearing_share (the noise's quantile measured on
+  a fixed reference sample, so the share does not depend on the world's
+  size), with a soft edge.
+Trees (species with tree = true) get suitability x (1 - avalanche) x (1 -
+clearing); every species gets its riparian preference factor.
+"""
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from . import reference as ref
+from .params import VegetationParams
+
+F = np.float32
+ASPECT_FULL_SLOPE_DEG = 20.0  # flat ground faces nowhere: the aspect shift grows to its full size by this slope
+CLEARING_OCTAVES = 3  # irregular outlines
+CLEARING_EDGE = 0.06  # soft edge of a clearing, in units of its noise (which spans about -1 .. 1)
+SLOPE_CLASSES_DEG = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 90.0)  # the forest-by-slope table's classes
+CHANNELS = ("site.other", "site.riparian", "site.avalanche", "site.clearing", "altitude.effective")  # the sites grid
+D8 = ((-1, 0), (0, 1), (1, 0), (0, -1), (-1, -1), (-1, 1), (1, 1), (1, -1))  # row, col: a fixed order (ties)
+
+
+@dataclass(frozen=True)
+class Sites:
+    altitude: np.ndarray  # float32 effective altitude (m) the altitude preferences judge
+    riparian: np.ndarray  # float32 0..1
+    avalanche: np.ndarray  # float32 0..1 (1 in the track)
+    clearing: np.ndarray  # float32 0..1
+    stats: dict = field(default_factory=dict)
+
+    def channels(self) -> tuple[np.ndarray, tuple[str, ...]]:
+        """The sites grid: the three site weights, the rest (1 - their
+        largest) and the effective altitude."""
+        rest = 1.0 - np.maximum(np.maximum(self.riparian, self.avalanche), self.clearing)
+        data = np.stack([rest, self.riparian, self.avalanche, self.clearing, self.altitude], -1)
+        return data.astype(F), CHANNELS
+
+
+def smooth01(t: np.ndarray) -> np.ndarray:
+    t = np.clip(t, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def effective_altitude(h: np.ndarray, slope_deg: np.ndarray, aspect_deg: np.ndarray, shift_m: float,
+                       latitude_deg: float) -> np.ndarray:
+    """The altitude the species' ranges judge: lower on sun-facing slopes."""
+    equator = 180.0 if latitude_deg >= 0.0 else 0.0
+    sunward = np.cos(np.radians(aspect_deg.astype(np.float64) - equator))
+    steep = smooth01(slope_deg.astype(np.float64) / ASPECT_FULL_SLOPE_DEG)
+    return (h.astype(np.float64) - 0.5 * shift_m * sunward * steep).astype(F)
+
+
+def riparian_index(h: np.ndarray, water: np.ndarray, level: np.ndarray, half_width: np.ndarray, dx: float,
+                   height_m: float, distance_m: float) -> np.ndarray:
+    """0..1: near the water and little above it (1 on the water)."""
+    if not water.any():
+        return np.zeros(h.shape, F)
+    dist, (ri, ci) = ndimage.distance_transform_edt(~water, return_indices=True)
+    above = h.astype(np.float64) - level[ri, ci]
+    away = np.maximum(dist * dx - half_width[ri, ci], 0.0)
+    out = (1.0 - smooth01(above / height_m)) * (1.0 - smooth01(away / distance_m))
+    return np.where(water, 1.0, out).astype(F)
+
+
+def d8_receivers(h: np.ndarray, dx: float) -> np.ndarray:
+    """Per cell (flat index) the D8 index of the steepest lower neighbour
+    (-1: none, a flat or a pit)."""
+    hp = np.pad(h.astype(np.float64), 1, constant_values=np.inf)
+    rows, cols = h.shape
+    best = np.zeros(h.shape)
+    way = np.full(h.shape, -1, np.int64)
+    for k, (dr, dc) in enumerate(D8):
+        drop = (h - hp[1 + dr:1 + dr + rows, 1 + dc:1 + dc + cols]) / (dx * math.hypot(dr, dc))
+        better = drop > best
+        best = np.where(better, drop, best)
+        way = np.where(better, k, way)
+    return way.ravel()
+
+
+def run_out(h: np.ndarray, release: np.ndarray, dx: float, alpha_deg: float) -> np.ndarray:
+    """bool: the cells avalanches from `release` reach, each running down
+    the D8 steepest descent (over a flat or a pit: straight on, where that
+    does not climb) while its alpha line (from its release height, falling
+    tan(alpha) per metre run) is at or above the ground. A cell keeps the
+    highest line that reaches it (and that line's direction, the lowest D8
+    index among equals), so the result does not depend on order."""
+    rows, cols = h.shape
+    hf = h.astype(np.float64).ravel()
+    way = d8_receivers(h, dx)
+    off = np.asarray(D8, np.int64)
+    run = dx * np.hypot(off[:, 0], off[:, 1])
+    tan_a = math.tan(math.radians(alpha_deg))
+    line = np.full(hf.size, -np.inf)
+    heading = np.full(hf.size, -1, np.int64)
+    active = np.flatnonzero(release.ravel())
+    line[active] = hf[active]
+    while active.size:
+        k = np.where(way[active] >= 0, way[active], heading[active])
+        r, c = np.divmod(active, cols)
+        r2, c2 = r + off[np.maximum(k, 0), 0], c + off[np.maximum(k, 0), 1]
+        inside = (k >= 0) & (r2 >= 0) & (r2 < rows) & (c2 >= 0) & (c2 < cols)
+        nxt = np.where(inside, r2 * cols + c2, 0)
+        e = line[active] - tan_a * run[np.maximum(k, 0)]
+        ok = inside & (e >= hf[nxt]) & ((way[active] >= 0) | (hf[nxt] <= hf[active]))
+        nxt, e, k = nxt[ok], e[ok], k[ok]
+        cells = np.unique(nxt)
+        before = line[cells].copy()
+        np.maximum.at(line, nxt, e)  # a maximum: the same in any order
+        moved = line[cells] > before
+        won = e == line[nxt]
+        pick = np.full(hf.size, len(D8), np.int64)
+        np.minimum.at(pick, nxt[won], k[won])
+        active = cells[moved]
+        heading[active] = pick[active]
+    return (line >= hf).reshape(h.shape)
+
+
+def _lattice_noise(x: np.ndarray, z: np.ndarray, key: int) -> np.ndarray:
+    """Value noise in [-1, 1] on the unit lattice at points (x, z):
+    counter-based values at the lattice corners, smoothstep blending."""
+    ix, iz = np.floor(x), np.floor(z)
+    fx, fz = smooth01(x - ix), smooth01(z - iz)
+    ix, iz = ix.astype(np.int64), iz.astype(np.int64)
+    x0, z0 = int(ix.min()), int(iz.min())
+    nx, nz = int(ix.max()) - x0 + 2, int(iz.max()) - z0 + 2
+    if nx * nz <= ix.size:  # hash each lattice corner once (the same values)
+        gz, gx = np.meshgrid(np.arange(z0, z0 + nz), np.arange(x0, x0 + nx), indexing="ij")
+        table = 2.0 * ref.uniform(key, gx & 0xFFFFFFFF, gz & 0xFFFFFFFF, 0).astype(np.float64) - 1.0
+
+        def v(a, b):
+            return table[b - z0, a - x0]
+    else:
+        def v(a, b):
+            return 2.0 * ref.uniform(key, a & 0xFFFFFFFF, b & 0xFFFFFFFF, 0).astype(np.float64) - 1.0
+    top = v(ix, iz) + (v(ix + 1, iz) - v(ix, iz)) * fx
+    bot = v(ix, iz + 1) + (v(ix + 1, iz + 1) - v(ix, iz + 1)) * fx
+    return top + (bot - top) * fz
+
+
+def noise(shape, dx: float, origin, wavelength: float, key: int, octaves: int) -> np.ndarray:
+    """Value noise at the cell centres in world coordinates (so a window of
+    a larger world is the same): octaves at wavelength / 2.3^k with
+    amplitude 0.5^k, each on a lattice turned by its own angle (no
+    axis-aligned blocks), divided by the amplitudes' sum."""
+    rows, cols = shape
+    x = (origin[0] + (np.arange(cols) + 0.5) * dx)[None, :]
+    z = (origin[1] + (np.arange(rows) + 0.5) * dx)[:, None]
+    total, amp, out = 0.0, 1.0, np.zeros(shape)
+    for k in range(octaves):
+        a, w = 0.6 + 1.1 * k, wavelength / 2.3 ** k
+        u, t = (x * math.cos(a) - z * math.sin(a)) / w, (x * math.sin(a) + z * math.cos(a)) / w
+        out += amp * _lattice_noise(u, t, (key + 0x9E3779B9 * k) & 0xFFFFFFFF)
+        total += amp
+        amp *= 0.5
+    return out / total
+
+
+@functools.lru_cache(maxsize=64)
+def noise_threshold(share: float, octaves: int) -> float:
+    """The noise value exceeded on `share` of the land: its quantile on a
+    fixed reference sample (512 x 512 points over 64 x 64 wavelengths)."""
+    sample = noise((512, 512), 1.0 / 8.0, (0.0, 0.0), 1.0, ref.stream_key(0, "noise-quantile"), octaves)
+    return float(np.quantile(sample, 1.0 - share))
+
+
+def release_cells(h, slope, blocked, params: VegetationParams, dx: float, origin, seed: int) -> np.ndarray:
+    """bool: where avalanches release (see the module's doc)."""
+    p = params
+    ok = ((h >= p.avalanche_release_min_m) & (slope >= p.avalanche_release_slope_min_deg)
+          & (slope <= p.avalanche_release_slope_max_deg) & ~blocked)
+    if p.avalanche_release_share <= 0.0 or not ok.any():
+        return np.zeros(h.shape, bool)
+    if p.avalanche_release_share < 1.0:
+        n = noise(h.shape, dx, origin, p.avalanche_release_patch_m, ref.stream_key(seed, "avalanche-release"), 1)
+        ok &= n > noise_threshold(p.avalanche_release_share, 1)
+    return ok
+
+
+def avalanche_tracks(h, slope, blocked, params: VegetationParams, dx: float, origin,
+                     seed: int) -> tuple[np.ndarray, dict]:
+    """0..1 track weight (1 on the flow lines, 0.5 at half the track width
+    from them) and statistics."""
+    release = release_cells(h, slope, blocked, params, dx, origin, seed)
+    if not release.any():
+        return np.zeros(h.shape, F), {"release_share": 0.0, "path_share": 0.0, "track_share": 0.0}
+    path = run_out(h, release, dx, params.avalanche_alpha_deg)
+    half = 0.5 * params.avalanche_track_width_m
+    if half > 0.0:
+        d = ndimage.distance_transform_edt(~path) * dx
+        track = 1.0 - smooth01((d - 0.5 * half) / half)
+    else:
+        track = path.astype(np.float64)
+    return track.astype(F), {"release_share": float(release.mean()), "path_share": float(path.mean()),
+                             "track_share": float((track >= 0.5).mean())}
+
+
+def clearings(shape, params: VegetationParams, dx: float, origin, seed: int) -> np.ndarray:
+    """0..1 clearing weight: the noise over its threshold, with a soft edge."""
+    if params.clearing_share <= 0.0:
+        return np.zeros(shape, F)
+    n = noise(shape, dx, origin, params.clearing_size_m, ref.stream_key(seed, "clearing"), CLEARING_OCTAVES)
+    t = noise_threshold(params.clearing_share, CLEARING_OCTAVES)
+    return smooth01((n - t) / CLEARING_EDGE + 0.5).astype(F)
+
+
+def compute(h, attributes: dict, water: np.ndarray, blocked: np.ndarray, level: np.ndarray,
+            half_width: np.ndarray, params: VegetationParams, dx: float, origin, seed: int) -> Sites:
+    """Every site field of the terrain (see the module's doc)."""
+    p = params
+    alt = effective_altitude(h, attributes["slope"], attributes["aspect"], p.treeline_aspect_shift_m, p.latitude_deg)
+    rip = riparian_index(h, water, level, half_width, dx, p.riparian_height_m, p.riparian_distance_m)
+    ava, astats = avalanche_tracks(h, attributes["slope"], blocked, p, dx, origin, seed)
+    clr = clearings(h.shape, p, dx, origin, seed)
+    land = ~blocked
+    n = max(int(land.sum()), 1)
+    stats = {"avalanche": astats, "riparian_share": float(((rip >= 0.5) & land).sum() / n),
+             "clearing_share": float(((clr >= 0.5) & land).sum() / n),
+             "altitude_shift_range_m": [round(float((h - alt)[land].min()), 2) if land.any() else 0.0,
+                                        round(float((h - alt)[land].max()), 2) if land.any() else 0.0]}
+    return Sites(alt, rip, np.where(blocked, F(0), ava).astype(F), clr, stats)
+
+
+def preference_factor(x: np.ndarray, pref) -> np.ndarray:
+    """The suitability kernel's soft range (ramp up from min, down to max)."""
+    def ramp(d):
+        if pref.edge > 0:
+            return smooth01(d / pref.edge)
+        return (d > 0).astype(np.float64)
+    x = x.astype(np.float64)
+    return ramp(x - pref.min) * ramp(pref.max - x)
+
+
+def apply(suit: np.ndarray, names: list[str], params: VegetationParams, sites: Sites) -> np.ndarray:
+    """Suitability x each species' riparian factor, and x (1 - avalanche)
+    x (1 - clearing) for trees."""
+    out = suit.astype(np.float64)
+    open_ground = (1.0 - sites.avalanche.astype(np.float64)) * (1.0 - sites.clearing)
+    for s, name in enumerate(names):
+        e = params.species[name]
+        out[s] *= preference_factor(sites.riparian, e.riparian)
+        if e.tree:
+            out[s] *= open_ground
+    return out.astype(F)
+
+
+def forest_by_slope(slope: np.ndarray, land: np.ndarray, trees: list[tuple[np.ndarray, np.ndarray]], dx: float) -> dict:
+    """Per slope class: its share of the land, its share of the trees
+    (instances of tree species; their cell's slope) and trees per hectare
+    of the class's land."""
+    edges = np.asarray(SLOPE_CLASSES_DEG)
+    cls = np.clip(np.digitize(slope, edges[1:-1]), 0, len(edges) - 2)
+    nclass = len(edges) - 1
+    land_cells = np.bincount(cls[land], minlength=nclass).astype(np.float64)
+    counts = np.zeros(nclass)
+    for tr, tc in trees:
+        counts += np.bincount(cls[tr, tc], minlength=nclass)
+    total_land, total_trees = max(land_cells.sum(), 1.0), max(counts.sum(), 1.0)
+    labels = [f"{edges[k]:g}-{edges[k + 1]:g}" if k < nclass - 1 else f">{edges[k]:g}" for k in range(nclass)]
+    return {"classes_deg": labels,
+            "land_share": [round(float(v / total_land), 5) for v in land_cells],
+            "tree_share": [round(float(v / total_trees), 5) for v in counts],
+            "trees_per_ha": [round(float(counts[k] / (land_cells[k] * dx * dx / 1e4)), 3) if land_cells[k] else 0.0
+                             for k in range(nclass)],
+            "trees": int(counts.sum())}
+
+
+BANK_INDEX = 0.5  # the banks of plants_on_banks: riparian index at least this
+
+
+def plants_on_banks(riparian: np.ndarray, land: np.ndarray, cells: dict, dx: float) -> dict:
+    """Per plant species its instances per hectare of land on the banks
+    (riparian index >= BANK_INDEX) and elsewhere: the banks' own mix."""
+    banks = land & (riparian >= BANK_INDEX)
+    rest = land & ~banks
+    ha_banks, ha_rest = banks.sum() * dx * dx / 1e4, rest.sum() * dx * dx / 1e4
+    species = sorted(cells)
+    on = [int(banks[tr, tc].sum()) for tr, tc in (cells[n] for n in species)]
+    off = [int(rest[tr, tc].sum()) for tr, tc in (cells[n] for n in species)]
+    return {"species": species, "bank_ha": round(float(ha_banks), 3), "elsewhere_ha": round(float(ha_rest), 3),
+            "banks_per_ha": [round(k / ha_banks, 3) if ha_banks else 0.0 for k in on],
+            "elsewhere_per_ha": [round(k / ha_rest, 3) if ha_rest else 0.0 for k in off]}

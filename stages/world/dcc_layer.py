@@ -1,0 +1,372 @@
+"""The `lod` selection a DCC renders with: a DCC tool (Blender, Houdini
+Solaris, Omniverse) draws the `lod` variant each prim selects and cannot
+switch by distance, so the plant assets' own selection (LOD0 everywhere)
+puts the finest mesh of every one of the world's trees into one render.
+
+dcc.usdc, beside the world stage's root layer and its strongest sublayer,
+selects per vegetation tile and species the `lod` variant that the
+impostors stage's switch distances (worldbake:lod_switch_m variant_m: each
+representation's measured error projected to error_px on its screen) give
+for the tile's nearest point to an eye (the world's centre at the median
+tile height). Farther, where a plant spans less than CROWN_PX pixels of that
+screen, a tile's instancer is deactivated and its plants are drawn as
+crowns: one mesh per species (/World/Vegetation/Crowns), a three-sided
+pyramid per plant around its bounding sphere's centre, of the area its
+slices cover, in the slices' mean albedo, thinned with distance (1 in k
+plants kept, k = (distance / crown distance)^2, each k times the area: the
+same cover). A renderer holds each instance as an object with its
+transform and a BVH instance (about a kilobyte in Cycles), a crown as three
+triangles. Where a plant spans less than MIN_PX pixels it is left out
+(grass at a few hundred metres: the ground's splat albedo carries its
+colour). Local opinions of the root layer stack: they beat the
+prototypes' inherited class and its asset's selection (LOD0). The tiles'
+prototypes stay instanceable: tiles with the same selection share one USD
+prototype.
+
+A renderer that switches by distance itself mutes dcc.usdc
+(Usd.Stage.MuteLayer; usdview's layer stack) and gets every asset's LOD0.
+For a shot away from the centre, or LOD0 everywhere in a DCC:
+
+    python -m stages.world.dcc_layer WORLD.usda OUT.usda --eye X Y Z   # metres, y up
+    python -m stages.world.dcc_layer WORLD.usda OUT.usda --lod LOD0
+
+writes OUT.usda, a root layer over WORLD.usda with its own selections.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+LAYER = "dcc.usdc"
+CROWNS = "/World/Vegetation/Crowns"
+CROWN = "crowns"  # the selection that draws a tile's plants as crowns
+CROWN_PX = 4.0  # a plant narrower than this on the switch distances' screen is drawn as a crown
+MIN_PX = 1.0  # a plant narrower than this is left out
+
+
+def leaf_tiles(vegetation_layer: Path) -> list[tuple[str, np.ndarray, list[str]]]:
+    """(prim path, bounds x0 z0 x1 z1 with y0 y1 when known, species
+    instancer names) of every leaf tile of the vegetation layer, read from
+    the layer and its tile files (Sdf only: nothing is composed)."""
+    from pxr import Sdf
+
+    layer = Sdf.Layer.FindOrOpen(str(vegetation_layer))
+    out = []
+
+    def walk(spec):
+        payloads = list(spec.payloadList.prependedItems) + list(spec.payloadList.explicitItems)
+        if payloads:
+            data = spec.customData.get("worldbake", {})
+            b = list(data.get("bounds_xz_m", [])) if hasattr(data, "get") else []
+            hint = spec.attributes.get("extentsHint")
+            if hint is not None and hint.default is not None and len(b) == 4:
+                b += [float(hint.default[0][1]), float(hint.default[1][1])]
+            names = []
+            tile = Sdf.Layer.FindOrOpen(str(Path(layer.realPath).parent / payloads[0].assetPath))
+            if tile is not None:
+                root = tile.GetPrimAtPath(payloads[0].primPath or tile.defaultPrim and "/" + tile.defaultPrim)
+                names = [c.name for c in root.nameChildren] if root else []
+            out.append((str(spec.path), np.asarray(b, np.float64), names))
+        for child in spec.nameChildren:
+            walk(child)
+
+    veg = layer.GetPrimAtPath("/World/Vegetation")
+    if veg is not None:
+        walk(veg)
+    return out
+
+
+def species_ladders(layer: Path, prims: dict[str, str]) -> dict[str, dict]:
+    """Per species: its `lod` variants with the distance each is used from,
+    its bounding sphere and crown look, read from `layer` at prims[species]:
+    the impostors layer at /Plants/<species> (a world being written does not
+    compose yet: its relative paths resolve once it is in place), or a
+    world's prototypes. Species without the impostors' switch distances
+    are left out (their assets' selection stands)."""
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(layer), Usd.Stage.LoadNone)
+    out = {}
+    for species, path in prims.items():
+        prim = stage.GetPrimAtPath(path)
+        switch = prim.GetCustomDataByKey("worldbake:lod_switch_m") if prim else None
+        info = prim.GetCustomDataByKey("worldbake:impostor") if prim else None
+        if not switch:
+            continue
+        s = json.loads(switch)
+        variants = set(prim.GetVariantSets().GetVariantSet("lod").GetVariantNames())
+        ladder = sorted(((d, v) for v, d in s["variant_m"].items() if v in variants))
+        sphere = json.loads(info)["bounding_sphere"] if info else {"radius_m": 1.0, "centre_m": [0.0, 1.0, 0.0]}
+        radius = float(sphere["radius_m"])
+        screen = s["screen_px"] / (2.0 * math.tan(math.radians(0.5 * s["fov_deg"])))  # pixels per radian at centre
+        out[species] = {"ladder": ladder, "cull_m": 2.0 * radius * screen / MIN_PX,
+                        "crown_m": 2.0 * radius * screen / CROWN_PX, "centre": list(sphere["centre_m"]),
+                        "radius": radius, "look": crown_look(prim, json.loads(info) if info else {})}
+    return out
+
+
+def crown_look(prim, info: dict) -> tuple[list[float], float]:
+    """(linear albedo, covered share) of the species' slices texture: the
+    mean colour of its covered texels and the share it covers."""
+    import OpenImageIO as oiio
+
+    from pipeline.exr import linear_from_srgb
+
+    rel = info.get("slice_files", {}).get("slices", {}).get("albedo")
+    layer = next((s.layer for s in prim.GetPrimStack()
+                  if "impostor" in s.GetInfo("customData").get("worldbake", {})), None)  # namespaced key
+    if not rel or layer is None:
+        return [0.05, 0.1, 0.04], 0.5
+    px = np.asarray(oiio.ImageBuf(str(Path(layer.realPath).parent / rel)).get_pixels(oiio.FLOAT), np.float32)
+    if px.ndim != 3 or px.shape[2] < 4:
+        return [0.05, 0.1, 0.04], 0.5
+    covered = px[..., 3] >= 0.5
+    if not covered.any():
+        return [0.05, 0.1, 0.04], 0.5
+    colour = linear_from_srgb(px[..., :3][covered]).mean(0)
+    return [round(float(c), 4) for c in colour], float(covered.mean())
+
+
+def tile_distance(bounds: np.ndarray, eye: np.ndarray) -> float:
+    """Nearest distance from eye (x, y, z) to the tile's box (its xz
+    rectangle, and y range when known; else the eye's height counts 0)."""
+    x0, z0, x1, z1 = bounds[:4]
+    dx = max(x0 - eye[0], 0.0, eye[0] - x1)
+    dz = max(z0 - eye[2], 0.0, eye[2] - z1)
+    dy = max(bounds[4] - eye[1], 0.0, eye[1] - bounds[5]) if len(bounds) == 6 else 0.0
+    return float(math.sqrt(dx * dx + dy * dy + dz * dz))
+
+
+def choose(ladder: list[tuple[float, str]], cull_m: float, distance: float, crown_m: float = math.inf) -> str | None:
+    """The variant used at this distance, CROWN, or None: left out."""
+    if distance > cull_m:
+        return None
+    if distance > crown_m:
+        return CROWN
+    pick = ladder[0][1]
+    for d, v in ladder:
+        if distance >= d:
+            pick = v
+    return pick
+
+
+def selections(tiles, ladders: dict[str, dict], eye: np.ndarray) -> dict[str, str | None]:
+    """instancer path -> its variant (None: deactivated)."""
+    out = {}
+    for path, bounds, names in tiles:
+        if len(bounds) < 4:
+            continue
+        d = tile_distance(bounds, eye)
+        for species in names:
+            if species in ladders:
+                lad = ladders[species]
+                out[f"{path}/{species}"] = choose(lad["ladder"], lad["cull_m"], d, lad.get("crown_m", math.inf))
+    return out
+
+
+def _author(layer, prefix: str, chosen: dict[str, str | None]) -> None:
+    """The overs under prefix (a prim path, a variant's included)."""
+    from pxr import Sdf
+
+    for inst, variant in chosen.items():
+        rel = Sdf.Path(inst).MakeRelativePath(Sdf.Path("/World"))
+        target = Sdf.Path(prefix).AppendPath(rel)
+        spec = Sdf.CreatePrimInLayer(layer, target)
+        if variant is None or variant == CROWN:
+            spec.active = False
+            continue
+        species = Sdf.Path(inst).name
+        proto = Sdf.CreatePrimInLayer(layer, target.AppendChild("Prototypes").AppendChild(species))
+        proto.variantSelections["lod"] = variant
+
+
+def crown_points(tiles, chosen: dict[str, str | None], ladders: dict[str, dict], vegetation_layer: Path,
+                 eye: np.ndarray) -> dict:
+    """species -> (centres (n, 3), radii (n,)) of the plants drawn as crowns."""
+    from pxr import Sdf
+
+    parts: dict[str, list] = {}
+    distances = {f"{path}/{s}": tile_distance(bounds, eye) for path, bounds, names in tiles for s in names}
+    veg = Sdf.Layer.FindOrOpen(str(vegetation_layer))  # held: its specs live as long as it does
+    base = Path(veg.realPath).parent
+    for inst, variant in chosen.items():
+        if variant != CROWN:
+            continue
+        tile_path, species = inst.rsplit("/", 1)
+        spec = veg.GetPrimAtPath(tile_path)
+        payload = (list(spec.payloadList.prependedItems) + list(spec.payloadList.explicitItems))[0]
+        tile = Sdf.Layer.FindOrOpen(str(base / payload.assetPath))
+        root = payload.primPath if not payload.primPath.isEmpty else Sdf.Path("/" + tile.defaultPrim)
+        prim = tile.GetPrimAtPath(root.AppendChild(species))
+        attrs = prim.attributes
+        pos = np.asarray(attrs["positions"].default, np.float64)
+        scale = np.asarray(attrs["scales"].default, np.float64) if "scales" in attrs else np.ones_like(pos)
+        lad = ladders[species]
+        # thinned with distance: 1 in k plants kept (by the instance's own random number), k times the area,
+        # so a far tile's forest keeps its cover with fewer, larger crowns
+        k = max(1.0, (distances[inst] / lad["crown_m"]) ** 2)
+        rnd = np.asarray(attrs["primvars:random"].default, np.float64) if "primvars:random" in attrs else \
+            (np.arange(len(pos)) * 0.6180339887) % 1.0
+        keep = rnd < 1.0 / k
+        centre = pos[keep] + np.asarray(lad["centre"]) * scale[keep]  # the crown's offset, scaled (turns about y ignored)
+        radius = lad["radius"] * np.sqrt(lad["look"][1] * k) * scale[keep].max(1)  # the area the slices cover, k times
+        parts.setdefault(species, []).append((centre, radius))
+    return {s: (np.concatenate([c for c, _ in v]), np.concatenate([r for _, r in v])) for s, v in parts.items()}
+
+
+def crown_mesh(centre: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points, face counts, indices): per crown a three-sided pyramid
+    (4 points, 3 triangles) around its sphere, seen from the side and from
+    above with about the sphere's area. Not points: Blender 5.0 imports a
+    UsdGeom.Points without its material."""
+    n = len(centre)
+    a = np.radians([90.0, 210.0, 330.0])
+    ring = np.stack([np.cos(a), np.full(3, -0.8), np.sin(a)], 1) * np.array([1.2, 1.0, 1.2])
+    unit = np.concatenate([ring, [[0.0, 1.6, 0.0]]]).astype(np.float64)
+    pts = (centre[:, None, :] + radius[:, None, None] * unit[None]).reshape(-1, 3).astype(np.float32)
+    faces = np.array([[0, 3, 1], [1, 3, 2], [2, 3, 0]], np.int32)  # outward, counter-clockwise from outside
+    idx = (np.arange(n, dtype=np.int32)[:, None, None] * 4 + faces[None]).reshape(-1)
+    return pts, np.full(3 * n, 3, np.int32), idx
+
+
+def _author_crowns(layer, crowns: dict, ladders: dict[str, dict], where: str = CROWNS) -> None:
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
+
+    stage = Usd.Stage.Open(layer)
+    group = UsdGeom.Scope.Define(stage, where)
+    for species, (centre, radius) in sorted(crowns.items()):
+        pts, counts, idx = crown_mesh(centre, radius)
+        mesh = UsdGeom.Mesh.Define(stage, f"{where}/{species}")
+        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
+        mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(counts))
+        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(idx))
+        lo, hi = pts.min(0), pts.max(0)
+        mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
+        colour = ladders[species]["look"][0]
+        mesh.CreateDisplayColorAttr(Vt.Vec3fArray([Gf.Vec3f(*colour)]))
+        mat = UsdShade.Material.Define(stage, f"{where}/{species}Look")
+        surf = UsdShade.Shader.Define(stage, f"{where}/{species}Look/Surface")
+        surf.CreateIdAttr("UsdPreviewSurface")
+        surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*colour))
+        surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.9)
+        mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
+        UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
+    group.GetPrim().SetCustomDataByKey("worldbake:crowns", "plants drawn as spheres where they span less than "
+                                       f"{CROWN_PX:g} px (stages/world/dcc_layer.py)")
+
+
+def summary(chosen: dict[str, str | None]) -> dict:
+    counts: dict[str, int] = {}
+    for v in chosen.values():
+        counts[v or "off"] = counts.get(v or "off", 0) + 1
+    return dict(sorted(counts.items()))
+
+
+def default_eye(tiles) -> np.ndarray:
+    """The tiles' centre, at their median lowest height (ground level)."""
+    b = np.array([t[1][:4] for t in tiles if len(t[1]) >= 4])
+    y = [t[1][4] for t in tiles if len(t[1]) == 6]
+    return np.array([0.5 * (b[:, 0].min() + b[:, 2].max()), float(np.median(y)) if y else 0.0,
+                     0.5 * (b[:, 1].min() + b[:, 3].max())])
+
+
+def write_dcc_layer(root_path: Path, vegetation_layer: Path, impostors_layer: Path, species: list[str],
+                    provenance: dict) -> dict:
+    """dcc.usdc beside the root layer, made its strongest sublayer; returns
+    the eye and the tiles per variant (empty, and nothing written, without
+    tiles or switch distances)."""
+    from pxr import Sdf
+
+    from pipeline import usdio
+
+    from worldlib.plant_asset import plant_asset_prim
+
+    tiles = leaf_tiles(vegetation_layer)
+    ladders = species_ladders(impostors_layer, {s: plant_asset_prim(s) for s in species})
+    if not tiles or not ladders:
+        return {}
+    eye = default_eye(tiles)
+    chosen = selections(tiles, ladders, eye)
+    path = root_path.with_name(LAYER)
+    layer = Sdf.Layer.CreateNew(str(path))
+    usdio.set_provenance(layer, provenance)
+    _author(layer, "/World", chosen)
+    crowns = crown_points(tiles, chosen, ladders, vegetation_layer, eye)
+    if crowns:
+        _author_crowns(layer, crowns, ladders)
+    layer.Save()
+    root = Sdf.Layer.FindOrOpen(str(root_path))
+    root.subLayerPaths.insert(0, "./" + LAYER)
+    root.Save()
+    return {"eye_m": [round(float(v), 2) for v in eye], "tiles": summary(chosen),
+            "crowns": {s: int(len(r)) for s, (_, r) in crowns.items()}}
+
+
+def vegetation_source(veg):
+    """The layer that defines the vegetation's tiles (dcc.usdc only overs them), or None."""
+    from pxr import Sdf
+
+    for spec in veg.GetPrimStack() if veg else []:
+        q = spec.layer.GetPrimAtPath("/World/Vegetation/q")
+        if q and q.specifier == Sdf.SpecifierDef:
+            return spec.layer
+    return None
+
+
+def write_shot_layer(world_usda: Path, out: Path, eye: np.ndarray | None = None, lod: str | None = None) -> dict:
+    """OUT: a root layer over world_usda selecting for a camera at eye, or
+    `lod` on every tile (the plants that dcc.usdc leaves out put back)."""
+    from pxr import Sdf, Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(world_usda), Usd.Stage.LoadNone)
+    veg = stage.GetPrimAtPath("/World/Vegetation")
+    protos = {p.GetName(): str(p.GetPath()) for p in veg.GetChild("Prototypes").GetAllChildren()} if veg else {}
+    source = vegetation_source(veg)
+    if source is None:
+        raise SystemExit(f"{world_usda}: no vegetation tiles to select for")
+    tiles = leaf_tiles(Path(source.realPath))
+    ladders = species_ladders(world_usda, protos)
+    if lod is not None:  # the species whose prototype has that variant (a placeholder has none)
+        has = {s for s, path in protos.items() if lod in stage.GetPrimAtPath(path).GetVariantSets()
+               .GetVariantSet("lod").GetVariantNames()}
+        chosen = {f"{path}/{s}": lod for path, _, names in tiles for s in names if s in has}
+    else:
+        chosen = selections(tiles, ladders, np.asarray(eye, np.float64))
+    layer = Sdf.Layer.CreateNew(str(out))
+    layer.subLayerPaths.append(str(Path(world_usda).resolve()))
+    layer.defaultPrim = "World"
+    layer.pseudoRoot.SetInfo(UsdGeom.Tokens.upAxis, UsdGeom.Tokens.y)
+    layer.pseudoRoot.SetInfo(UsdGeom.Tokens.metersPerUnit, 1.0)
+    for inst, variant in chosen.items():
+        if variant is not None:  # the world's dcc.usdc may have left it out
+            Sdf.CreatePrimInLayer(layer, Sdf.Path(inst)).active = True
+    _author(layer, "/World", chosen)
+    Sdf.CreatePrimInLayer(layer, CROWNS).active = False  # the world's crowns, for its own eye
+    crowns = crown_points(tiles, chosen, ladders, Path(source.realPath), np.asarray(eye, np.float64)) if eye is not None else {}
+    if crowns:
+        _author_crowns(layer, crowns, ladders, CROWNS + "ForShot")
+    layer.Save()
+    return {"eye_m": None if eye is None else [float(v) for v in eye], "tiles": summary(chosen),
+            "crowns": {s: int(len(r)) for s, (_, r) in crowns.items()}}
+
+
+def main(argv=None) -> None:
+    import argparse
+
+    ap = argparse.ArgumentParser(description="a root layer over a world selecting each tile's LOD for one camera")
+    ap.add_argument("world")
+    ap.add_argument("out")
+    ap.add_argument("--eye", type=float, nargs=3, metavar=("X", "Y", "Z"), help="the camera (m, y up)")
+    ap.add_argument("--lod", help="this variant on every tile instead (LOD0: full detail)")
+    a = ap.parse_args(argv)
+    if (a.eye is None) == (a.lod is None):
+        ap.error("give --eye or --lod")
+    print(json.dumps(write_shot_layer(Path(a.world), Path(a.out), None if a.eye is None else np.asarray(a.eye), a.lod)))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,100 @@
+"""The DCC selection (stages/world/dcc_layer.py): the `lod` variant per
+vegetation tile by distance, crowns beyond, and the layer a shot writes;
+with usd-core only (no Blender)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.world import dcc_layer
+
+LADDER = [(0.0, "LOD0"), (5.0, "LOD1"), (80.0, "LOD2"), (170.0, "impostor")]
+
+
+def test_choose_follows_the_ladder_then_crowns_then_nothing():
+    pick = [dcc_layer.choose(LADDER, 1000.0, d, 400.0) for d in (0.0, 4.9, 5.0, 100.0, 170.0, 399.0, 401.0, 1001.0)]
+    assert pick == ["LOD0", "LOD0", "LOD1", "LOD2", "impostor", "impostor", dcc_layer.CROWN, None]
+
+
+@pytest.mark.parametrize("eye,want", [((5.0, 0.0, 5.0), 0.0), ((-3.0, 0.0, 5.0), 3.0), ((13.0, 0.0, 14.0), 5.0),
+                                      ((5.0, 30.0, 5.0), 10.0)])
+def test_tile_distance_is_to_the_nearest_point_of_the_tile_box(eye, want):
+    bounds = np.array([0.0, 0.0, 10.0, 10.0, 0.0, 20.0])
+    assert dcc_layer.tile_distance(bounds, np.asarray(eye)) == pytest.approx(want)
+
+
+def test_crown_pyramids_enclose_their_centres_and_face_outward():
+    centre = np.array([[0.0, 0.0, 0.0], [100.0, 5.0, -3.0]])
+    radius = np.array([1.0, 2.0])
+    pts, counts, idx = dcc_layer.crown_mesh(centre, radius)
+    assert pts.shape == (8, 3) and list(counts) == [3] * 6 and len(idx) == 18
+    tri = pts[idx.reshape(-1, 3)].astype(np.float64)
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    owner = np.repeat(centre, 3, axis=0)
+    assert (np.einsum("ij,ij->i", normal, tri.mean(1) - owner) > 0).all(), "a crown face points inward"
+    for k in range(2):  # the pyramid reaches about its sphere: not a speck, not a giant
+        p = pts[4 * k:4 * k + 4]
+        assert 1.0 * radius[k] <= np.linalg.norm(p - centre[k], axis=1).max() <= 2.0 * radius[k]
+
+
+def test_the_world_selects_each_tile_by_its_distance(small_world):
+    """The published world composes dcc.usdc first; every instancer tile's
+    prototype selects what choose() gives for its distance from the eye
+    the layer names, tiles beyond the crown distance are inactive and their
+    plants are crowns."""
+    from pathlib import Path
+
+    from pxr import Sdf, Usd, UsdGeom
+
+    world = small_world["folder"]
+    root = Sdf.Layer.FindOrOpen(str(world.parent / "world" / "world.usda"))
+    assert root.subLayerPaths[0] == "./" + dcc_layer.LAYER
+    stage = Usd.Stage.Open(str(world))
+    veg_layer = dcc_layer.vegetation_source(stage.GetPrimAtPath("/World/Vegetation"))
+    tiles = dcc_layer.leaf_tiles(Path(veg_layer.realPath))
+    protos = {p.GetName(): str(p.GetPath())  # class prims: GetChildren() passes over them
+              for p in stage.GetPrimAtPath("/World/Vegetation/Prototypes").GetAllChildren()}
+    muted = Usd.Stage.Open(str(world))
+    muted.MuteLayer(str(world.parent / "world" / dcc_layer.LAYER))
+    ladders = dcc_layer.species_ladders(world, protos)
+    assert ladders, "no species carries the impostors' switch distances"
+    eye = dcc_layer.default_eye(tiles)
+    want = dcc_layer.selections(tiles, ladders, eye)
+    assert want
+    seen = set()
+    for inst, variant in want.items():
+        prim = stage.GetPrimAtPath(inst)
+        if variant in (None, dcc_layer.CROWN):
+            assert prim and not prim.IsActive(), f"{inst} should be off ({variant})"
+            continue
+        proto = prim.GetChild("Prototypes").GetChild(prim.GetName())
+        assert proto.GetVariantSets().GetVariantSet("lod").GetVariantSelection() == variant, inst
+        assert muted.GetPrimAtPath(inst).GetChild("Prototypes").GetChild(prim.GetName()).GetVariantSets() \
+            .GetVariantSet("lod").GetVariantSelection() == "LOD0", "muting dcc.usdc gives the assets' own LOD0"
+        seen.add(variant)
+    assert seen, "no tile draws its plants as instances"
+    crowns = {p.GetName(): p for p in stage.GetPrimAtPath(dcc_layer.CROWNS).GetChildren()
+              if p.IsA(UsdGeom.Mesh)} if stage.GetPrimAtPath(dcc_layer.CROWNS) else {}
+    far = {inst.rsplit("/", 1)[1] for inst, v in want.items() if v == dcc_layer.CROWN}
+    assert set(crowns) == far
+    for name, mesh in crowns.items():
+        from pxr import UsdShade
+
+        assert UsdShade.MaterialBindingAPI(mesh).ComputeBoundMaterial()[0], f"crowns of {name} have no material"
+
+
+def test_a_shot_layer_puts_every_plant_back_at_lod0(small_world, tmp_path):
+    from pxr import Usd, UsdGeom
+
+    out = tmp_path / "full.usda"
+    info = dcc_layer.write_shot_layer(small_world["folder"], out, lod="LOD0")
+    assert list(info["tiles"]) == ["LOD0"]
+    stage = Usd.Stage.Open(str(out))
+    instancers = [p for p in stage.Traverse() if p.IsA(UsdGeom.PointInstancer) and  # placeholders have no LODs
+                  p.GetChild("Prototypes").GetChild(p.GetName()).GetVariantSets().HasVariantSet("lod")]
+    assert sum(info["tiles"].values()) == len(instancers), "an instancer dcc.usdc switched off stays off"
+    for p in instancers:
+        sel = p.GetChild("Prototypes").GetChild(p.GetName()).GetVariantSets().GetVariantSet("lod").GetVariantSelection()
+        assert sel == "LOD0", p.GetPath()
+    crowns = stage.GetPrimAtPath(dcc_layer.CROWNS)
+    assert not crowns or not crowns.IsActive(), "the world's crowns still drawn beside the plants they stand for"
