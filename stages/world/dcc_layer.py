@@ -40,7 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
-LAYER = "dcc.usdc"
+from worldlib.render.world_view import DCC_SELECTION_LAYER
+
+LAYER = DCC_SELECTION_LAYER  # the name our own renderer mutes
 CROWNS = "/World/Vegetation/Crowns"
 CROWN = "crowns"  # the selection that draws a tile's plants as crowns
 CROWN_PX = 4.0  # a plant narrower than this on the switch distances' screen is drawn as a crown

@@ -162,7 +162,7 @@ def test_rain_map_is_checked_at_validation_naming_the_key(project, capsys, value
 @pytest.mark.parametrize("assignment, pattern", [
     ("heightmap.resolution=16384", r"the run would hold about [\d.]+ GiB \(the terrain's 268,435,456 cells.*"
      r"its input height is 16384 x 16384 cells, set by heightmap.resolution"),
-    ("world.texture_size=16384", r"--set: world: the run would hold about 64.5 GiB \(world.texture_size = 16384"),
+    ("world.texture_size=16384", r"--set: world: the run would hold about 64.8 GiB \(world.texture_size = 16384"),
     ("heightmap.size_m=1000000", r"vegetation: the run would hold about [\d.]+ GiB .*15,625,000,000 simulation cells"),
     ("vegetation.sim_cell_m=0.01", r"vegetation: the run would hold .*vegetation.sim_cell_m = 0.01"),
     ("vegetation.horizon_step_growth=1.0001", r"--set: vegetation.horizon_step_growth: 1.0001 takes 52,341 samples"),
@@ -302,7 +302,7 @@ def test_fine_ground_texels_are_estimated_at_the_real_udim_tile_size(project, ca
     # 8192 m at 0.05 m: the UDIM row limit of 10 columns makes each tile 16384^2 texels, not the configured 2048^2
     monkeypatch.setenv("WORLDBAKE_MAX_MEMORY_GB", "16")
     err = refused(project, capsys, "--set", "world.ground_texel_m=0.05", config="configs/default.toml")
-    assert re.search(r"^worldbake: error: --set: world: the run would hold about 32.3 GiB \(2 ground tiles of "
+    assert re.search(r"^worldbake: error: --set: world: the run would hold about 32.6 GiB \(2 ground tiles of "
                      r"16384\^2 texels x 64 B \(world.ground_texel_m = 0.05: 10 x 10 UDIM tiles\)", err), err
     bad(project, 'extends = "default.toml"\n[world]\nground_texel_m = 0.05\n')
     assert re.search(r"^worldbake: error: configs/bad.toml: world: the run would hold", refused(project, capsys))

@@ -141,6 +141,19 @@ def default_camera(lo: np.ndarray, hi: np.ndarray, azimuth_deg: float = 200.0, e
     return Camera(tuple(eye), tuple(-back), (0.0, 1.0, 0.0), fov_y_deg=fov_y_deg)
 
 
+# The sublayer a DCC renders with (stages/world/dcc_layer.py): a fixed `lod` per tile and far plants as crowns. This
+# renderer draws every instance as a billboard at any distance, so it composes the world without it.
+DCC_SELECTION_LAYER = "dcc.usdc"
+
+
+def mute_dcc_selection(stage) -> None:
+    """Mutes the root layer's DCC selection sublayer, if it has one."""
+    root = stage.GetRootLayer()
+    for sub in root.subLayerPaths:
+        if sub.rsplit("/", 1)[-1] == DCC_SELECTION_LAYER:
+            stage.MuteLayer(root.ComputeAbsolutePath(sub))
+
+
 def build_world_scene(env, world_usda: str | Path, min_instance_height_m: float = 0.8, max_instances: int | None = None,
                       progress=print) -> tuple[Scene, dict]:
     """The world as one render Scene (meshes + billboard instances) and a
@@ -150,6 +163,7 @@ def build_world_scene(env, world_usda: str | Path, min_instance_height_m: float 
     stage = Usd.Stage.Open(str(world_usda))
     if not stage:
         raise FileNotFoundError(f"cannot open {world_usda}")
+    mute_dcc_selection(stage)
     textures: dict = {}
     meshes = subtree_scene(stage.GetPseudoRoot(), None, textures)
     lo = np.min([s.positions.min(0) for s in meshes], 0) if meshes else np.zeros(3)
