@@ -40,7 +40,6 @@ volumes are unchanged reuses them (the key hashes both).
 from __future__ import annotations
 
 import json
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,7 +49,7 @@ import numpy as np
 
 from pipeline import usdio
 from worldlib.volumes import dense as volume, sparse as sparse_volume
-from pipeline.contract import Artifact, Check, CheckContext, Input, Param, ParamError, Params, RunContext, Stage
+from pipeline.contract import Artifact, Check, CheckContext, Input, Param, Params, RunContext, Stage
 from pipeline.errors import InputError, StageError
 from pipeline.limits import leading_key
 
@@ -492,13 +491,9 @@ def check(params: ForestVolumesParams, ctx: CheckContext) -> Check:
     its mips, plus the error_sectors sectors' columns measured against their
     instances (each up to max_voxels), at most MAX_SECTOR_VOXELS."""
     if params.vdb:
-        from worldlib.volumes.vdb import available
+        from worldlib.volumes.vdb import require_writer
 
-        why = available()
-        if why is not None:
-            raise ParamError("vdb", f"no OpenVDB writer: {why}; install Debian's python3-openvdb "
-                             "(apt-get install python3-openvdb) or set WORLDBAKE_VDB_PYTHON, or set vdb = false "
-                             "(sectors without .vdb files: no DCC renders them)")
+        require_writer("sectors without .vdb files: no DCC renders them")
     levels = 8 / 7 * (1 - 8.0 ** -params.mip_levels)  # a sector's levels, each 1/8 of the one before
     work = params.max_voxels * (levels + params.error_sectors)
     return Check(memory_bytes=90.0 * params.max_voxels + 40.0 * MAX_DEPOSITS,

@@ -28,7 +28,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from worldlib.flow import reference as ref
 
 PARABOLA_DEPTH = 1.5  # centre depth / mean depth of a parabolic section
 FLOOR_GRADE = 0.05  # the floor beside the channel rises 5 cm per metre: it drains into the channel

@@ -37,7 +37,6 @@ from typing import Any
 
 import numpy as np
 
-from pipeline import exr
 from pipeline.contract import (Artifact, Check, CheckContext, Input, ParamError, Relief, ReportMap, ReportTable,
                                ReportWarning, RunContext, Stage, ValueRange)
 from pipeline.errors import InputError, StageError

@@ -239,13 +239,9 @@ def check(params: VolumesParams, ctx: CheckContext) -> Check:
         raise ParamError("voxels", f"{params.voxels} voxels cannot halve {params.mip_levels - 1} times; use a multiple "
                          f"of {step} or fewer mip_levels")
     if params.vdb:
-        from worldlib.volumes.vdb import available
+        from worldlib.volumes.vdb import require_writer
 
-        why = available()
-        if why is not None:
-            raise ParamError("vdb", f"no OpenVDB writer: {why}; install Debian's python3-openvdb "
-                             "(apt-get install python3-openvdb) or set WORLDBAKE_VDB_PYTHON, or set vdb = false "
-                             "(a world without .vdb volumes: no DCC renders them)")
+        require_writer("a world without .vdb volumes: no DCC renders them")
     n = params.voxels ** 3
     solid = n * params.solid_columns ** 2
     views = params.error_views * params.error_view_pixels ** 2 if params.error_view_pixels else 0

@@ -117,6 +117,17 @@ def available() -> str | None:
     return None
 
 
+def require_writer(without: str) -> None:
+    """Refuses (ParamError on `vdb`) a bake that asks for .vdb files where no
+    writer runs; `without` says what the world would lack."""
+    from pipeline.contract import ParamError
+
+    why = available()
+    if why is not None:
+        raise ParamError("vdb", f"no OpenVDB writer: {why}; install Debian's python3-openvdb "
+                         f"(apt-get install python3-openvdb) or set WORLDBAKE_VDB_PYTHON, or set vdb = false ({without})")
+
+
 def _run(script: str, *args: str) -> None:
     proc = subprocess.run([_python(), "-c", script, *args], capture_output=True, text=True, timeout=3600)
     if proc.returncode:

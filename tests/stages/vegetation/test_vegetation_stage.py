@@ -10,7 +10,7 @@ import pydantic
 import pytest
 from scipy.spatial import cKDTree
 
-from pipeline import exr, usdio
+from pipeline import usdio
 from pipeline.contract import Params, RunContext, Stage
 from pipeline.grid import Grid
 from stages.vegetation import STAGE, VegetationParams
