@@ -111,7 +111,7 @@ class HydrologyParams(Params):
         2000.0, units="m^2", description="smallest lake written to USD (all lakes are in the maps); 2000 m^2: a pond "
         "about 45 m across, a few pixels in a view of the whole default world", ge=0.0, le=1e12)
     mesh_max_vertices: int = Param(
-        513, units="vertices", description="terrain mesh vertices per side (the world's): stats.json reports "
+        1025, units="vertices", description="terrain mesh vertices per side (the world's): stats.json reports "
         "the share of the river surface that shows above this mesh of the carved ground", ge=2, le=8193)
     wetness_min_slope: float = Param(1e-3, units="m/m", description="slope floor in ln(a / tan b)", gt=0.0, le=1.0)
     wetness_dry: float = Param(3.0, units="ln(m)", description="wetness index mapped to moisture 0", ge=-50.0, le=50.0)

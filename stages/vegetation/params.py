@@ -343,7 +343,7 @@ class VegetationParams(Params):
         "by the sum of its weights)", ge=0.0, le=1e4)
     # output
     mesh_max_vertices: int = Param(
-        513, units="vertices", description="terrain mesh vertices per side the instances sit on: the world's "
+        1025, units="vertices", description="terrain mesh vertices per side the instances sit on: the world's "
         "mesh_max_vertices", ge=2, le=8193)
     tile_max_instances: int = Param(
         20000, units="instances", description="quadtree tiles are split until each holds at most this many instances",

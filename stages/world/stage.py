@@ -49,7 +49,7 @@ ASSET_INPUTS = (
 
 
 class WorldParams(Params):
-    mesh_max_vertices: int = Param(513, ge=2, le=8193, units="vertices",
+    mesh_max_vertices: int = Param(1025, ge=2, le=8193, units="vertices",
                                    description="largest number of terrain mesh vertices along the longer side (the shorter side keeps "
                                    "the same spacing); the height grid is resampled down to it")
     texture_size: int = Param(1024, ge=16, le=16384, units="texels",

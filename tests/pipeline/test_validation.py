@@ -162,7 +162,7 @@ def test_rain_map_is_checked_at_validation_naming_the_key(project, capsys, value
 @pytest.mark.parametrize("assignment, pattern", [
     ("heightmap.resolution=16384", r"the run would hold about [\d.]+ GiB \(the terrain's 268,435,456 cells.*"
      r"its input height is 16384 x 16384 cells, set by heightmap.resolution"),
-    ("world.texture_size=16384", r"--set: world: the run would hold about 64.8 GiB \(world.texture_size = 16384"),
+    ("world.texture_size=16384", r"--set: world: the run would hold about 64.9 GiB \(world.texture_size = 16384"),
     ("heightmap.size_m=1000000", r"vegetation: the run would hold about [\d.]+ GiB .*15,625,000,000 simulation cells"),
     ("vegetation.sim_cell_m=0.01", r"vegetation: the run would hold .*vegetation.sim_cell_m = 0.01"),
     ("vegetation.horizon_step_growth=1.0001", r"--set: vegetation.horizon_step_growth: 1.0001 takes 52,341 samples"),

@@ -39,7 +39,7 @@ def test_contract():
     assert STAGE.output("vegetation.species").kind == "json"
     assert issubclass(STAGE.params, Params)
     p = VegetationParams()
-    assert {"conifer", "broadleaf", "shrub", "grass"} <= set(p.species) and p.mesh_max_vertices == 513
+    assert {"conifer", "broadleaf", "shrub", "grass"} <= set(p.species) and p.mesh_max_vertices == 1025
 
 
 def test_params_from_toml():
