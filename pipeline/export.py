@@ -11,8 +11,9 @@ opens wherever it is moved and after build/ is deleted.
 A .usdz is made from such a folder in a temporary place, after replacing
 each EXR texture the layers reference by an 8-bit PNG (USDZ viewers such as
 ARKit and Quick Look read PNG and JPEG only): colour textures are encoded
-sRGB (the shader's sourceColorSpace set to sRGB), data textures (normal maps,
-which carry scale and bias) keep their 0..1 values as raw. UDIM patterns
+sRGB (the shader's sourceColorSpace set to sRGB); data textures (normal maps
+with their scale and bias, and whatever the layer marks sourceColorSpace
+raw: translucency, thickness) keep their values, linear. UDIM patterns
 (`ground.<UDIM>.exr`) are converted tile by tile; USD resolves each tile.
 Only what the layers reference goes into the package.
 
@@ -29,9 +30,12 @@ PNG/JPEG/EXR/AVIF images and M4A/MP3/WAV audio, and OpenUSD's validator
 reports any other file in a package (UnsupportedFileExtensionInPackage);
 the package still carries the .vdb files (a volume whose grids are left out
 is a world missing a part), and `export_problems` reports that validator's
-finding for them as a note, not an error. Blender 5.0 reads a volume's
-grids only from a file on disk (it hands `world.usdz[x.vdb]` to OpenVDB,
-which cannot open it): for volumes in Blender, use the folder export.
+finding for them as a note, not an error. Blender (5.0) imports every
+Volume prim of a .usdz but no grids: its USD importer copies a packaged
+file out only for textures, and gives the volume the package path
+`world.usdz[x.vdb]`, which it then looks for on disk ("x.vdb] not found").
+The package is a plain zip whose root is world.usda: unzipped, it is a
+folder export (PNG textures) whose volumes Blender reads; the note says so.
 """
 from __future__ import annotations
 
@@ -226,7 +230,10 @@ def _textures_to_png(folder: Path) -> None:
             scaled = "inputs:scale" in shader.attributes or "inputs:bias" in shader.attributes
             # a normal map stored -1..1 (float EXR) becomes 0..1 in 8 bits, read back with scale 2 and bias -1
             signed_normal = not scaled and shader.path in normal_inputs
-            colour = not scaled and not signed_normal
+            # data the shader reads as it is stored (translucency, thickness, roughness: sourceColorSpace raw) stays
+            # linear in the PNG; only colour is encoded sRGB
+            space = shader.attributes.get("inputs:sourceColorSpace")
+            colour = not scaled and not signed_normal and (space is None or space.default != "raw")
             full = Path(os.path.normpath(layer_path.parent / path))
             pattern = re.escape(full.name).replace(re.escape("<UDIM>"), r"\d{4}")
             files = sorted(p for p in full.parent.glob("*.exr") if re.fullmatch(pattern, p.name))
@@ -239,7 +246,6 @@ def _textures_to_png(folder: Path) -> None:
             spec.default = Sdf.AssetPath(path[: -len(".exr")] + ".png")
             if signed_normal:
                 _scale_and_bias(layer, shader)
-            space = shader.attributes.get("inputs:sourceColorSpace")
             if colour and space is not None:
                 space.default = "sRGB"
             changed = True
@@ -298,8 +304,9 @@ def export_problems(root: Path, within: Path | None = None) -> tuple[list[str], 
             volumes.append(e)
         else:
             errors.append(e)
-    notes = [f"the package carries OpenVDB volume files ({', '.join(PACKAGED_VOLUME_SUFFIXES)}), which the USDZ "
-             f"specification's file list does not name (OpenUSD's validator: {volumes[0]}); Blender reads volumes "
-             "only from a folder export"] if volumes else []
+    notes = [f"the package carries {len(volumes)} OpenVDB volume files ({', '.join(PACKAGED_VOLUME_SUFFIXES)}), "
+             f"which the USDZ specification's file list does not name (OpenUSD's validator: {volumes[0]}); "
+             f"Blender 5.0 reads no volume grids inside a .usdz: unzip it (`unzip {Path(root).name} -d DIR`) and "
+             "import DIR/world.usda, or export a folder"] if volumes else []
     return errors + missing_files(root, within), notes
 

@@ -159,6 +159,28 @@ def test_validate_names_the_file_an_export_folder_leaves_out(world, tmp_path, ca
     assert [m for m in missing_files(copy / "world.usda") if "tex.<UDIM>.exr" in m], "a UDIM set without a tile"
 
 
+def test_the_usdz_unzipped_is_a_folder_export_with_its_volumes(world, tmp_path, capsys):
+    """The way the note gives to a DCC that reads no volume inside a package
+    (Blender 5.0): unzip the .usdz, open world.usda."""
+    _, _, usdz = world
+    _, notes = export_problems(usdz)
+    assert "unzip w.usdz -d DIR" in notes[0] and "DIR/world.usda" in notes[0], notes
+    with zipfile.ZipFile(usdz) as z:
+        assert z.namelist()[0] == "world.usda"  # the package's root layer
+        z.extractall(tmp_path / "w")
+    root = tmp_path / "w" / "world.usda"
+    assert export_problems(root, root.parent) == ([], [])
+    from pxr import Usd, UsdVol
+
+    stage = Usd.Stage.Open(str(root))
+    stage.SetEditTarget(stage.GetSessionLayer())
+    stage.GetPrimAtPath("/World/Part").GetVariantSet("look").SetVariantSelection("cloudy")
+    (field,) = [p for p in stage.Traverse() if p.IsA(UsdVol.OpenVDBAsset)]
+    resolved = Path(field.GetAttribute("filePath").Get().resolvedPath)  # a file on disk, as a DCC's OpenVDB wants
+    assert resolved.is_file() and resolved.resolve().is_relative_to(root.parent.resolve()), resolved
+    assert resolved.read_bytes() == b"toy volume: export copies it, nothing here reads it"
+
+
 def test_validate_names_the_file_a_usdz_leaves_out(world, tmp_path, capsys):
     _, _, usdz = world
     with zipfile.ZipFile(usdz) as z:
@@ -190,3 +212,28 @@ def test_a_folder_export_naming_a_file_outside_it_fails(world, tmp_path, capsys)
     layer.Save()
     code, out = _validate(copy, capsys)
     assert code == 1 and f"outside {copy.resolve()}: {outside}" in out, out
+
+
+def test_usdz_png_keeps_raw_textures_linear_and_encodes_colour_srgb(tmp_path):
+    """A .usdz's PNG of a texture the shader reads raw (translucency,
+    thickness) holds its linear values; a colour texture's is sRGB."""
+    import OpenImageIO as oiio
+    from pxr import Sdf, Usd, UsdShade
+
+    from pipeline import export
+    from pipeline.exr import srgb8
+
+    value = np.full((4, 4, 3), 0.25, np.float32)
+    for name in ("colour", "data"):
+        assert oiio.ImageBuf(value).write(str(tmp_path / f"{name}.exr"), oiio.HALF)
+    stage = Usd.Stage.CreateNew(str(tmp_path / "world.usda"))
+    for name, space in (("colour", "sRGB"), ("data", "raw")):
+        tex = UsdShade.Shader.Define(stage, f"/M/{name}")
+        tex.CreateIdAttr("UsdUVTexture")
+        tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(f"./{name}.exr")
+        tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set(space)
+    stage.Save()
+    export._textures_to_png(tmp_path)
+    read = lambda name: np.asarray(oiio.ImageBuf(str(tmp_path / f"{name}.png")).get_pixels(oiio.UINT8))
+    assert (read("data")[..., :3] == round(0.25 * 255)).all()
+    assert (read("colour")[..., :3] == srgb8(value)).all()
