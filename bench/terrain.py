@@ -10,7 +10,8 @@ The default world's heightmap at n^2 over 8192 m (bench.hydrology.dem), eroded
 by stages/erosion/stream_power.run with configs/default.toml's [erosion]
 parameters of geological time (read from the file, so the bench follows it);
 each variant changes one knob: the channel-initiation area A_c, the critical
-slope Sc of the landslides, the deposition coefficient G, the routing.
+slope Sc of the landslides, the deposition coefficient G, the width the
+incision's flow per metre is taken over, the routing.
 The statistics are worldlib.terrain.stats.terrain_statistics on the result,
 with the hydrology stage's routing (complete breaching, Priority-Flood+epsilon,
 D8) and its default channel threshold (1e5 m^2): the numbers the bake writes
@@ -39,7 +40,8 @@ RUN_ARGS = {"geological_years": "years", "geological_step_years": "dt_years", "s
             "hillslope_diffusivity_m2_per_year": "diffusivity_m2_per_year", "geological_breach": "breach",
             "geological_mfd_exponent": "mfd_exponent", "geological_flat_routing": "flat_routing",
             "geological_lake_fill": "fill_lakes", "geological_mfd_isotropic": "mfd_isotropic",
-            "critical_slope_deg": "critical_slope", "deposition_g": "deposition_g"}
+            "critical_slope_deg": "critical_slope", "deposition_g": "deposition_g",
+            "incision_width_m": "incision_width_m"}
 
 
 def run_kwargs(overrides: dict | None = None, dx: float = 8.0) -> dict:
@@ -68,8 +70,8 @@ VARIANTS = {
     "no-landslide": dict(critical_slope_deg=0.0),
     "Sc-40deg": dict(critical_slope_deg=40.0),
     "Sc-51deg": dict(critical_slope_deg=51.3),  # Roering's 1.25
-    "no-deposition": dict(deposition_g=0.0),
-    "G-x4": "deposition_g*4",
+    "G-0.5": dict(deposition_g=0.5),  # Yuan et al. 2019 deposition on
+    "no-incision-width": dict(incision_width_m=0.0),  # incision by the cell's own A: the world changes with dx
     "strata-40m": dict(strata_thickness_m=40.0),  # lithology: 12 m hard beds (60 degrees, K / 2) every 40 m
     "old-default": dict(channel_area_m2=0.0, channel_specific_area_m=0.0, critical_slope_deg=0.0, deposition_g=0.0, geological_years=2.0e6,
                         geological_step_years=2.0e5, stream_power_k=2.0e-5, uplift_mm_per_year=0.5,
@@ -115,6 +117,7 @@ def main() -> None:
     ap.add_argument("--variants", nargs="*", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--seed", type=int, default=20261123, help="the heightmap's seed (the default world's by default)")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="[erosion] keys changed for every variant")
+    ap.add_argument("--save", default=None, metavar="DIR", help="write each eroded height to DIR/<n>_<seed>_<variant>.npy")
     args = ap.parse_args()
     import tomllib
 
@@ -137,6 +140,9 @@ def main() -> None:
                 h = res.height
             seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
             st = statistics(h, dx)
+            if args.save:
+                Path(args.save).mkdir(parents=True, exist_ok=True)
+                np.save(Path(args.save) / f"{n}_{args.seed}_{name}.npy", h.astype(np.float32))
             rows.append((n, name, seconds, cpu, st, res.stats if res else {}))
             print(f"{n}^2 {name}: {seconds:.1f} s wall, {cpu:.1f} s CPU", flush=True)
     print()

@@ -136,6 +136,12 @@ class ErosionParams(Params):
         "(Yuan et al. 2019; Qs the sediment flux from upstream, landslide material included): rivers lay down "
         "sediment where they slow (fans, transport-limited trunk valleys); about 1 is a mixed bedrock-alluvial "
         "river, 0 detachment-limited (all eroded material leaves)", ge=0.0, le=100.0)
+    incision_width_m: float = Param(
+        0.0, units="m", description="mfd: rivers incise by their flow per metre of width, K (w A / dx)^m S with "
+        "w this width and A / dx the cell's drainage area per metre of contour. A valley's flow spreads over more, "
+        "narrower cells on a finer grid, so the cell's own A falls with the cell size and the same valley would cut "
+        "less and stand higher; per metre of width it does not, so the world is the same at any resolution (at "
+        "dx = w this is K A^m S). 0: the cell's own A", ge=0.0, le=1e5)
     hillslope_diffusivity_m2_per_year: float = Param(
         0.0, units="m^2/year", description="hillslope transport during geological time: linear diffusion, implicit "
         "and isotropic (9-point Laplacian), the map edge fixed; 0 turns it off", ge=0.0, le=1e4)
@@ -369,7 +375,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[
                                flat_routing=params.geological_flat_routing, fill_lakes=params.geological_lake_fill,
                                mfd_isotropic=params.geological_mfd_isotropic,
                                critical_slope=math.tan(math.radians(params.critical_slope_deg)),
-                               deposition_g=params.deposition_g, strata=strata_for(params))
+                               deposition_g=params.deposition_g, strata=strata_for(params),
+                               incision_width_m=params.incision_width_m)
         if res.budget_relative_error > 1e-9:
             raise StageError(f"erosion: stream power lost {res.budget_relative_error:.2e} of the eroded volume "
                              f"on its way to base level")

@@ -541,7 +541,7 @@ def run(env, height: np.ndarray, dx: float, years: float, dt_years: float, k: fl
         diffusivity_m2_per_year: float = 0.0, breach: bool = False, mfd_exponent: float = 1.1,
         mfd_step_fn: Callable | None = None, flat_routing: str = "epsilon",
         fill_lakes: bool = False, mfd_isotropic: bool = True, critical_slope: float = 0.0,
-        deposition_g: float = 0.0, strata: Strata | None = None) -> StreamPowerResult:
+        deposition_g: float = 0.0, strata: Strata | None = None, incision_width_m: float = 0.0) -> StreamPowerResult:
     """Erode `height` (m, finite) for `years` on the OpenCL device `env`
     (pipeline.opencl.CL); k in m^(1-2m)/year, uplift in m/year. step_fn
     replaces the device solve (tests pass reference_step).
@@ -555,7 +555,9 @@ def run(env, height: np.ndarray, dx: float, years: float, dt_years: float, k: fl
     landsliding, no slope steeper (hillslope.landslide) after each step's
     diffusion and once at the end; deposition_g (mfd only, dimensionless):
     sediment settles at (G / A) Qs (Yuan et al. 2019; deposit_solve), the
-    landslides' material included in Qs; strata: bands of hard rock (Strata).
+    landslides' material included in Qs; strata: bands of hard rock (Strata);
+    incision_width_m (mfd only, 0 off): incise by the flow per metre of
+    contour, K (w A / dx)^m S (incision_k).
 
     Steps: check and breach the start (_start); per step, uplift, then the
     mfd step (_mfd_step) or the single-receiver one (_tree_step); the
@@ -565,6 +567,7 @@ def run(env, height: np.ndarray, dx: float, years: float, dt_years: float, k: fl
     dt = years / steps if steps else 0.0
     if deposition_g > 0 and routing != "mfd":
         raise StageError(f"erosion: deposition (G = {deposition_g:g}) needs mfd routing, got {routing}")
+    k = incision_k(k, m, dx, incision_width_m) if routing == "mfd" else k
     options = _Options(routing, channel_area_m2, diffusivity_m2_per_year, mfd_exponent, flat_routing, fill_lakes,
                        mfd_isotropic, critical_slope, deposition_g, strata, uplift_m_per_year)
     solver = _Solver(env, kind, dx, _Law(k, m, n_exp, dt), options,
@@ -584,6 +587,18 @@ def run(env, height: np.ndarray, dx: float, years: float, dt_years: float, k: fl
         h, slid = _landslide(solver, h, uplift_m_per_year * dt * steps)
         volumes.add_direct_landslide(float(slid.sum()))
     return _result(h, height_start, solver, steps, volumes, breached_m3)
+
+
+def incision_k(k: float, m: float, dx: float, width_m: float) -> float:
+    """K of K A^m S on cells of dx metres when rivers incise by the flow per
+    metre of contour: K (w A / dx)^m S = K (w / dx)^m A^m S. Multiple flow
+    directions spread a valley's flow over the cells across its floor, so a
+    cell's own A falls as the cells get finer (the floor holds more of them)
+    while A / dx, the flow per metre of width, stays the same; w (a channel
+    width, m) turns it back into an area. At dx = w this is K itself; width_m
+    0 keeps the cell's own A (incision then weakens at finer cells: a finer
+    grid's valleys cut less, stand higher and have less floor)."""
+    return k * (width_m / dx) ** m if width_m > 0 else k
 
 
 def _start(env, height: np.ndarray, dx: float, years: float, breach: bool) -> tuple[np.ndarray, np.ndarray, float]:
@@ -827,6 +842,7 @@ def _result(h: np.ndarray, height_start: np.ndarray, solver: _Solver, steps: int
                               "stream_power_out_m3": v.out, "stream_power_budget_relative_error": err,
                               "stream_power_newton_iterations_max": v.worst_newton,
                               "stream_power_routing": solver.options.routing, "stream_power_breached_m3": breached_m3,
+                              "stream_power_k_used": solver.law.k,
                               "hillslope_diffusion_out_m3": v.diffusion_out, "lake_fill_m3": v.lake_fill,
                               "landslide_m3": v.landslide, "deposited_m3": v.deposited,
                               "deposition_iterations_max": v.deposit_iterations,

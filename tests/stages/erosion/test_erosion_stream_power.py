@@ -113,3 +113,33 @@ def test_equals_fastscapelib_on_a_draining_surface(cl_env, n_exp):
     ours = sp.run(cl_env, h0, dx, years=5 * dt, dt_years=dt, k=k, m=m, n_exp=n_exp, uplift_m_per_year=u)
     assert np.abs(ours.height - h).max() <= 1e-9
     assert (h0 + 5 * dt * uplift - h).max() > 10.0  # real incision happened
+
+
+
+def test_incision_by_flow_per_metre_of_width_is_the_same_at_any_cell_size(cl_env):
+    """incision_width_m: K (w A / dx)^m S. On a tilted plane the mfd area per
+    metre of contour A / dx is the upslope length L whatever the cells, so
+    one short step lowers the plane by K (w L)^m S dt on 20 m and on 10 m
+    cells alike (with the cell's own A the finer grid cuts 2^-m as deep); at
+    dx = w the width changes nothing; d8 ignores it (one cell carries all the flow)."""
+    k, m, slope, dt = 2e-5, 0.45, 0.05, 1e3
+    assert sp.incision_k(k, m, 8.0, 0.0) == k and sp.incision_k(k, m, 8.0, 8.0) == k
+    assert sp.incision_k(k, m, 4.0, 8.0) == pytest.approx(k * 2.0 ** m, rel=1e-15)
+    at = np.array([200.0, 400.0, 600.0])  # m east of the base-level edge at x = 0 (the plane's foot)
+
+    def lowering(dx: float, width: float) -> np.ndarray:
+        rows, cols = int(400 / dx), int(800 / dx)
+        x = (np.arange(cols) + 0.5) * dx
+        h = np.tile(slope * x, (rows, 1)) + 1.0  # rising east from the base-level edge
+        res = sp.run(cl_env, h, dx, dt, dt, k, m, 1.0, 0.0, routing="mfd", incision_width_m=width)
+        assert res.stats["stream_power_k_used"] == pytest.approx(sp.incision_k(k, m, dx, width), rel=1e-15)
+        return np.interp(at, x, (h - res.height)[rows // 2])
+
+    coarse, fine = lowering(20.0, 20.0), lowering(10.0, 20.0)
+    np.testing.assert_allclose(fine, coarse, rtol=0.05)
+    np.testing.assert_allclose(fine, k * (20.0 * (800.0 - at)) ** m * slope * dt, rtol=0.1)  # L from the east edge
+    own = lowering(10.0, 0.0)  # the cell's own A on the finer grid: shallower
+    np.testing.assert_allclose(own / fine, 2.0 ** -m, rtol=0.05)
+    d8 = sp.run(cl_env, np.tile(np.arange(8.0), (6, 1)) + 1.0, 10.0, 1e5, 1e5, k, m, 1.0, 1e-3, routing="d8",
+                incision_width_m=20.0)
+    assert d8.stats["stream_power_k_used"] == k
