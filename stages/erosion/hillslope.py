@@ -156,7 +156,7 @@ def landslide(h: np.ndarray, dx: float, critical_slope) -> np.ndarray:
     mean of their limits times its length."""
     sc = np.asarray(critical_slope, np.float64)
     if not np.isfinite(sc).all() or (sc <= 0).any() or (sc.ndim and sc.shape != np.shape(h)):
-        raise ValueError(f"landslide: the critical slope must be positive and finite (a number or one per cell)")
+        raise ValueError("landslide: the critical slope must be positive and finite (a number or one per cell)")
     z = np.array(h, np.float64)
     rows, cols = z.shape
     flat = z.ravel()
