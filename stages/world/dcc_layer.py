@@ -45,6 +45,7 @@ from worldlib.render.world_view import DCC_SELECTION_LAYER
 LAYER = DCC_SELECTION_LAYER  # the name our own renderer mutes
 CROWNS = "/World/Vegetation/Crowns"
 CROWN = "crowns"  # the selection that draws a tile's plants as crowns
+RING = math.sqrt(4.0 * math.pi / (3.0 * math.sqrt(3.0)))  # a crown pyramid's base circle, in sphere radii
 CROWN_PX = 4.0  # a plant narrower than this on the switch distances' screen is drawn as a crown
 MIN_PX = 1.0  # a plant narrower than this is left out
 
@@ -221,12 +222,14 @@ def crown_points(tiles, chosen: dict[str, str | None], ladders: dict[str, dict],
 
 def crown_mesh(centre: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(points, face counts, indices): per crown a three-sided pyramid
-    (4 points, 3 triangles) around its sphere, seen from the side and from
-    above with about the sphere's area. Not points: Blender 5.0 imports a
-    UsdGeom.Points without its material."""
+    (4 points, 3 triangles) around its sphere, seen from above and from the
+    side with the area of the sphere's disc, pi r^2: its base triangle, on a
+    circle of RING r, has 3 sqrt(3) / 4 RING^2 r^2 = pi r^2, its side about
+    half its width (sqrt(3) RING r) times its height (2.4 r). Not points:
+    Blender 5.0 imports a UsdGeom.Points without its material."""
     n = len(centre)
     a = np.radians([90.0, 210.0, 330.0])
-    ring = np.stack([np.cos(a), np.full(3, -0.8), np.sin(a)], 1) * np.array([1.2, 1.0, 1.2])
+    ring = np.stack([np.cos(a), np.full(3, -0.8), np.sin(a)], 1) * np.array([RING, 1.0, RING])
     unit = np.concatenate([ring, [[0.0, 1.6, 0.0]]]).astype(np.float64)
     pts = (centre[:, None, :] + radius[:, None, None] * unit[None]).reshape(-1, 3).astype(np.float32)
     faces = np.array([[0, 3, 1], [1, 3, 2], [2, 3, 0]], np.int32)  # outward, counter-clockwise from outside
@@ -257,7 +260,7 @@ def _author_crowns(layer, crowns: dict, ladders: dict[str, dict], where: str = C
         surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.9)
         mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
         UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
-    group.GetPrim().SetCustomDataByKey("worldbake:crowns", "plants drawn as spheres where they span less than "
+    group.GetPrim().SetCustomDataByKey("worldbake:crowns", "plants drawn as three-sided pyramids where they span less than "
                                        f"{CROWN_PX:g} px (stages/world/dcc_layer.py)")
 
 

@@ -35,6 +35,9 @@ def test_crown_pyramids_enclose_their_centres_and_face_outward():
     for k in range(2):  # the pyramid reaches about its sphere: not a speck, not a giant
         p = pts[4 * k:4 * k + 4]
         assert 1.0 * radius[k] <= np.linalg.norm(p - centre[k], axis=1).max() <= 2.0 * radius[k]
+        base = p[:3, [0, 2]]  # seen from above: the base triangle covers the sphere's disc (the plant's cover)
+        plan = 0.5 * abs(np.cross(base[1] - base[0], base[2] - base[0]))
+        assert plan == pytest.approx(np.pi * radius[k] ** 2, rel=1e-5)
 
 
 def test_the_world_selects_each_tile_by_its_distance(small_world):
