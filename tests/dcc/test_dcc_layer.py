@@ -101,3 +101,20 @@ def test_a_shot_layer_puts_every_plant_back_at_lod0(small_world, tmp_path):
         assert sel == "LOD0", p.GetPath()
     crowns = stage.GetPrimAtPath(dcc_layer.CROWNS)
     assert not crowns or not crowns.IsActive(), "the world's crowns still drawn beside the plants they stand for"
+
+
+def test_our_renderer_composes_the_world_without_the_dcc_selection(small_world):
+    """dcc.usdc sits two layers down (world.usda > the world stage's root >
+    dcc.usdc); our renderer draws every instance itself and mutes it
+    wherever it is: no crowns, every tile's instancer active."""
+    from pxr import Usd, UsdGeom
+
+    from worldlib.render.world_view import mute_dcc_selection
+
+    stage = Usd.Stage.Open(str(small_world["folder"]))
+    assert stage.GetPrimAtPath(dcc_layer.CROWNS).IsValid(), "the small world has no crowns to mute"
+    mute_dcc_selection(stage)
+    assert [layer for layer in stage.GetMutedLayers() if layer.endswith(dcc_layer.LAYER)]
+    assert not stage.GetPrimAtPath(dcc_layer.CROWNS).IsValid()
+    inactive = [p.GetPath() for p in stage.TraverseAll() if p.IsA(UsdGeom.PointInstancer) and not p.IsActive()]
+    assert not inactive, inactive[:3]

@@ -147,11 +147,11 @@ DCC_SELECTION_LAYER = "dcc.usdc"
 
 
 def mute_dcc_selection(stage) -> None:
-    """Mutes the root layer's DCC selection sublayer, if it has one."""
-    root = stage.GetRootLayer()
-    for sub in root.subLayerPaths:
-        if sub.rsplit("/", 1)[-1] == DCC_SELECTION_LAYER:
-            stage.MuteLayer(root.ComputeAbsolutePath(sub))
+    """Mutes the DCC selection layer wherever it is in the layer stack (the
+    world stage's root layer, itself a sublayer of a world's world.usda)."""
+    for layer in stage.GetLayerStack(includeSessionLayers=False):
+        if Path(layer.realPath or layer.identifier).name == DCC_SELECTION_LAYER:
+            stage.MuteLayer(layer.identifier)
 
 
 def build_world_scene(env, world_usda: str | Path, min_instance_height_m: float = 0.8, max_instances: int | None = None,
