@@ -29,6 +29,7 @@ BLENDER_PY = REPO / ".venv-blender" / "bin" / "python"
 SCRIPT = REPO / "tests" / "dcc" / "blender_scripts" / "render_view.py"
 SKY_RGB = (0.55, 0.68, 0.85)  # world_view's background
 SUN = (-0.45, 0.75, 0.5)  # world_view's sun
+TRANSPARENT_BOUNCES = 64  # as the README advises: Blender's default 8 ends paths inside a canopy of leaf cards
 
 
 def terrain_bounds(world: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -97,7 +98,8 @@ def cameras(world: Path, width: int, height: int, views: list[str]) -> dict:
 def blender_render(world: Path, prefix: Path, cam, width: int, height: int, samples: int) -> dict:
     spec = {"camera": {"eye": list(map(float, cam.eye)), "forward": list(map(float, cam.forward)),
                        "up": list(map(float, cam.up)), "fov_y_deg": cam.fov_y_deg, "clip_start": 0.1},
-            "width": width, "height": height, "samples": samples, "sun": list(SUN), "sky": 0.5}
+            "width": width, "height": height, "samples": samples, "sun": list(SUN), "sky": 0.5,
+            "transparent_bounces": TRANSPARENT_BOUNCES}
     spec_path = prefix.with_suffix(".spec.json")
     spec_path.write_text(json.dumps(spec))
     t = time.perf_counter()

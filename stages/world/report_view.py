@@ -43,7 +43,10 @@ def _ground_scenes(world_usda: Path) -> list:
 
     from worldlib.render import Scene
 
+    from worldlib.render.world_view import mute_dcc_selection
+
     stage = Usd.Stage.Open(str(world_usda))
+    mute_dcc_selection(stage)  # the ground as it is, without the crowns a DCC draws for far plants
     scenes = []
     it = iter(Usd.PrimRange(stage.GetPseudoRoot()))
     for prim in it:
