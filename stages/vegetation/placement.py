@@ -293,6 +293,48 @@ def keep_allowed(inst: Instances, allowed: np.ndarray, dom: Domain) -> tuple[Ins
     return (inst if keep.all() else inst.subset(keep)), int((~keep).sum())
 
 
+def keep_out_of_water(inst: Instances, water: np.ndarray, half_m: np.ndarray, dom: Domain,
+                      margin_m: float) -> tuple[Instances, int]:
+    """Drop the instances standing in a river: a cell of a wide river's bank
+    is allowed, but the river's ribbon covers part of it. The ribbon is
+    taken as half_m (a water cell's half bankfull width, the hydrology
+    stage's) either side of the segments joining the centres of 8-adjacent
+    water cells (the larger half width of the two ends); an instance within
+    it plus margin_m goes."""
+    if not len(inst) or not water.any():
+        return inst, 0
+    from scipy import ndimage
+
+    rows, cols = water.shape
+    reach = int(np.ceil((float(half_m.max()) + margin_m) / dom.dx)) + 1
+    near = ndimage.binary_dilation(water, np.ones((2 * reach + 1, 2 * reach + 1), bool))
+    tr, tc = dom.world_cell(inst.positions)
+    cand = np.nonzero(near[tr, tc])[0]
+    # positions in cells from the candidate's own cell centre: exact segment distances on a small lattice
+    fx = (inst.positions[cand, 0].astype(np.float64) - dom.origin_m[0]) / dom.dx - (tc[cand] + 0.5)
+    fz = (inst.positions[cand, 2].astype(np.float64) - dom.origin_m[1]) / dom.dx - (tr[cand] + 0.5)
+    wet = np.zeros(len(cand), bool)
+    at = lambda r, c: (np.clip(r, 0, rows - 1), np.clip(c, 0, cols - 1), (r >= 0) & (r < rows) & (c >= 0) & (c < cols))
+    for dr in range(-reach, reach + 1):
+        for dc in range(-reach, reach + 1):
+            r, c, inside = at(tr[cand] + dr, tc[cand] + dc)
+            start = inside & water[r, c]
+            for sr, sc in ((0, 0), (0, 1), (1, 1), (1, 0), (1, -1)):  # the cell itself, then its segments
+                r2, c2, inside2 = at(r + sr, c + sc)
+                seg = start & inside2 & water[r2, c2]
+                if not seg.any():
+                    continue
+                # distance (cells) from the instance to the segment from (dc, dr) to (dc + sc, dr + sr)
+                t = np.clip(((fx - dc) * sc + (fz - dr) * sr) / max(sc * sc + sr * sr, 1), 0.0, 1.0)
+                d = np.hypot(fx - dc - t * sc, fz - dr - t * sr) * dom.dx
+                wet |= seg & (d < np.maximum(half_m[r, c], half_m[r2, c2]) + margin_m)
+    if not wet.any():
+        return inst, 0
+    keep = np.ones(len(inst), bool)
+    keep[cand[wet]] = False
+    return inst.subset(keep), int(wet.sum())
+
+
 def world_positions(x: np.ndarray, z: np.ndarray, dom: Domain, mesh) -> np.ndarray:
     """float32 world positions on the terrain mesh: x, z rounded to float32
     first, then the height of the mesh triangle under that exact point."""

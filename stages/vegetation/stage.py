@@ -59,6 +59,7 @@ SITE_CHANNELS = sites_mod.CHANNELS
 SITE_COLOURS = (("other", (120, 150, 90)), ("riparian", (60, 120, 200)), ("avalanche", (235, 235, 245)),
                 ("clearing", (230, 190, 80)))
 F = np.float32
+BANK_MARGIN_M = 0.5  # a stem stands this far clear of the water's edge
 
 
 def backend_modules(env):
@@ -252,6 +253,7 @@ class _Land:
     moisture: np.ndarray  # float32 0..1
     moisture_source: str
     water: np.ndarray  # bool: lakes or rivers
+    water_half_m: np.ndarray  # per river cell half its bankfull width (0 elsewhere and on lakes)
     sites: sites_mod.Sites  # effective altitude, riparian index, avalanche tracks, clearings
 
     @property
@@ -349,7 +351,7 @@ def _land(ctx: RunContext, inputs: dict[str, Any], terrain: tuple, params: Veget
     with clock.lap("sites_s"):
         level, half = _water_levels(inputs, h, water)
         sites = sites_mod.compute(h, a, water, water | nodata, level, half, params, dx, origin, int(ctx.seed))
-    return _Land(h, nodata, dx, origin, a, moist, source, water, sites)
+    return _Land(h, nodata, dx, origin, a, moist, source, water, half, sites)
 
 
 def _splat(land: _Land, params: VegetationParams, seed: int, be) -> _Splat:
@@ -431,7 +433,8 @@ def _grass(land: _Land, growth: _Growth, splat: _Splat, params: VegetationParams
 
 
 def _instances(land: _Land, growth: _Growth, grass_layer: _Grass, params: VegetationParams, seed: int):
-    """Instances on the terrain mesh, those outside the allowed cells dropped,
+    """Instances on the terrain mesh, those outside the allowed cells or in a
+    river's ribbon dropped ({"cell_edges", "in_rivers"}: counts per species),
     and per-instance colour variation (tint.py)."""
     from worldlib.terrain.mesh import build_terrain_mesh
 
@@ -445,6 +448,11 @@ def _instances(land: _Land, growth: _Growth, grass_layer: _Grass, params: Vegeta
     if grass_layer.tufts is not None:
         inst = grass.tuft_instances(grass_layer.tufts, params, grass_layer.height, dom, mesh, seed)
         sets[gname], dropped[gname] = placement.keep_allowed(inst, grass_layer.density > 0, dom)
+    in_rivers = {}
+    for name in sets:  # a river's ribbon is wider than its cells: nothing stands in it
+        sets[name], in_rivers[name] = placement.keep_out_of_water(sets[name], land.water, land.water_half_m, dom,
+                                                                  BANK_MARGIN_M)
+    dropped = {"cell_edges": dropped, "in_rivers": in_rivers}
     tints = {}
     for name, inst in sets.items():
         e = params.species[name]
@@ -541,7 +549,7 @@ def _stats(land: _Land, splat: _Splat, growth: _Growth, grass_layer: _Grass, set
         "grass": grass_layer.stats,
         "usd": ustats,
         "instances": {n: int(len(s)) for n, s in sets.items()},
-        "dropped_at_cell_edges": dropped,
+        "dropped_at_cell_edges": dropped["cell_edges"], "dropped_in_rivers": dropped["in_rivers"],
         "tint": {n: {"mean": [round(float(v), 4) for v in t.mean(axis=0)],
                      "std": [round(float(v), 4) for v in t.std(axis=0)]} for n, t in tints.items() if len(t)},
     }

@@ -144,3 +144,35 @@ def test_instances_lie_on_the_terrain_mesh(placed):
         np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=2e-3)
         s0, s1 = p.species[name].scale_range
         assert (inst.scales > 0.9 * s0).all() and (inst.scales < 1.1 * s1).all()
+
+
+def test_nothing_stands_in_a_river_wider_than_its_cells():
+    """A river one cell wide but 12 m across (half width 6 m) on 8 m cells,
+    straight then diagonal: every instance within 6 m + the margin of its
+    centre line goes, wherever along the line, and every other stays."""
+    from stages.vegetation.placement import Domain, Instances, keep_out_of_water
+
+    rows = cols = 9
+    dom = Domain(rows, cols, 8.0, (0.0, 0.0))
+    water = np.zeros((rows, cols), bool)
+    water[:5, 4] = True  # the centre line at x = 36 m down to z = 36 m, then south-east at 45 degrees
+    for k in range(1, 4):
+        water[4 + k, 4 + k] = True
+    half = np.where(water, 6.0, 0.0)
+    rng = np.random.default_rng(3)
+    z = rng.uniform(8.0, 64.0, 400)
+    off = rng.uniform(-20.0, 20.0, 400)
+    pos = np.stack([36.0 + off, np.zeros_like(z), z], 1).astype(np.float32)
+    n = len(z)
+    inst = Instances("tree", pos, np.zeros((n, 4), np.float16), np.ones((n, 3), np.float32), np.ones(n, np.float32),
+                     np.zeros(n, np.float32), np.arange(n), np.ones(n, np.float32))
+    kept, dropped = keep_out_of_water(inst, water, half, dom, margin_m=0.5)
+    def from_line(p):
+        x, z = p[:, 0].astype(np.float64), p[:, 2].astype(np.float64)
+        straight = np.where(z <= 36.0, np.abs(x - 36.0), np.hypot(x - 36.0, z - 36.0))
+        t = np.clip(((x - 36.0) + (z - 36.0)) / 2.0, 0.0, 24.0)  # along the diagonal to (60, 60)
+        return np.minimum(straight, np.hypot(x - 36.0 - t, z - 36.0 - t))
+
+    assert from_line(kept.positions).min() >= 6.5, "an instance stands in the river"
+    assert len(kept) == (from_line(pos) >= 6.5).sum(), "an instance off the river was dropped"
+    assert dropped == n - len(kept) and len(inst) == n  # the input is not modified
