@@ -212,8 +212,9 @@ def _exr_to_png(src: Path, dst: Path, colour: bool, signed: bool = False) -> Non
     else:
         data = pixels * 0.5 + 0.5 if signed else pixels
         out = np.round(np.clip(data, 0.0, 1.0) * 255.0).astype(np.uint8)
-    out = np.ascontiguousarray(out)
-    if not oiio.ImageBuf(out).write(str(dst), oiio.UINT8):
+    buf = oiio.ImageBuf(np.ascontiguousarray(out))
+    buf.specmod().attribute("oiio:UnassociatedAlpha", 1)  # PNG alpha is straight: OIIO would divide rgb by it
+    if not buf.write(str(dst), oiio.UINT8):
         raise OSError(f"cannot write {dst}: {oiio.geterror()}")
 
 

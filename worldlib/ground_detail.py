@@ -214,19 +214,6 @@ def detail_textures(seed: int, n: int = DETAIL_TEXELS) -> dict[str, tuple[np.nda
     return {t: detail_texture(t, seed, n) for t in GROUND_TYPES}
 
 
-def write_png(path, rgb: np.ndarray, srgb: bool) -> None:
-    """8-bit PNG: sRGB-encoded when srgb (albedo, as DCCs expect), else the
-    values as they are (normal maps, 0..1)."""
-    import OpenImageIO as oiio
-
-    from pipeline.exr import srgb8
-
-    a = np.asarray(rgb, np.float32)
-    data = srgb8(a) if srgb else np.round(np.clip(a, 0, 1) * 255).astype(np.uint8)
-    if not oiio.ImageBuf(np.ascontiguousarray(data)).write(str(path)):
-        raise OSError(f"cannot write {path}: {oiio.geterror()}")
-
-
 # --- sampling and the blend ----------------------------------------------------------------------------------------
 
 class MipTexture:

@@ -19,6 +19,27 @@ def _oiio():
 
 
 
+def write_png(path: Path | str, rgb_linear: np.ndarray, alpha: np.ndarray | None = None, srgb: bool = True) -> None:
+    """An 8-bit PNG texture (what a DCC's UsdUVTexture reads): colour through
+    the sRGB curve (srgb) or stored as it is (data: normal maps, 0..1);
+    alpha linear and straight, as PNG defines it (OpenImageIO takes pixels
+    as premultiplied and would divide the colour by alpha on writing, which
+    every other reader then sees too bright); no timestamp, so a rebake
+    writes the same bytes."""
+    from pipeline.exr import srgb8
+
+    oiio = _oiio()
+    a = np.asarray(rgb_linear, np.float32)
+    data = srgb8(a) if srgb else np.round(np.clip(a, 0, 1) * 255).astype(np.uint8)
+    if alpha is not None:
+        data = np.concatenate([data, np.round(np.clip(alpha, 0, 1) * 255).astype(np.uint8)[..., None]], -1)
+    buf = oiio.ImageBuf(np.ascontiguousarray(data))
+    buf.specmod().attribute("DateTime", "")
+    buf.specmod().attribute("oiio:UnassociatedAlpha", 1)
+    if not buf.write(str(path), oiio.UINT8):
+        raise OSError(f"cannot write {path}: {buf.geterror()}")
+
+
 def write_texture(path: Path | str, rgb: np.ndarray, provenance: dict[str, Any] | None = None) -> None:
     """A colour texture for a material: half-float RGB EXR, tiled and
     mip-mapped (ImageBufAlgo.make_texture), zip compressed."""

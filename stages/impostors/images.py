@@ -1,15 +1,13 @@
 """Writing the impostor textures: multi-layer EXR (`layer.channel` names,
 half for colours, normals and occlusion, float for depth, zip, tiled, with
-the mip levels we built per frame) and 8-bit sRGB PNG copies of albedo
-(straight alpha, padded colour) that DCC materials read."""
+the mip levels we built per frame); the 8-bit sRGB PNG copies of albedo
+that DCC materials read are worldlib.images.write_png's."""
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
 import numpy as np
-
-from worldlib.render import srgb8
 
 TILE = 64
 
@@ -68,13 +66,3 @@ def read_exr_levels(path: Path) -> tuple[list[np.ndarray], tuple[str, ...], dict
         level += 1
     inp.close()
     return levels, names, attrs
-
-
-def write_png(path: Path, straight_rgb: np.ndarray, alpha: np.ndarray | None) -> None:
-    """sRGB 8-bit PNG, straight (unassociated) alpha as PNG defines it."""
-    from pipeline import exr
-
-    rgb = srgb8(straight_rgb)
-    if alpha is not None:
-        rgb = np.concatenate([rgb, np.round(np.clip(alpha, 0, 1) * 255.0).astype(np.uint8)[..., None]], -1)
-    exr.write_png(path, rgb)

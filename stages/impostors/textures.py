@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from worldlib import images as worldlib_images
 from worldlib import materials
 
 from . import atlas, images
@@ -36,12 +37,12 @@ def write(tex_dir: Path, name: str, provenance: dict, info: dict, at: atlas.Atla
     files = {"atlas": f"{name}_atlas.exr", "atlas_png": f"{name}_atlas_albedo.png"}
     attrs = {**provenance, "species": name, "impostor": info}
     images.write_exr(tex_dir / files["atlas"], at.levels, atlas.CHANNELS, attrs, float_channels=("depth.Z",))
-    images.write_png(tex_dir / files["atlas_png"], at.straight_rgb, at.levels[0][..., 3])
+    worldlib_images.write_png(tex_dir / files["atlas_png"], at.straight_rgb, at.levels[0][..., 3])
     sheet_files = {sheet.name: _write_sheet(tex_dir, name, provenance, sheet) for sheet in sheets}
     card_files = {}
     for axis, (rgb, alpha) in cards.items():
         card_files[axis] = f"{name}_card_{axis}.png"
-        images.write_png(tex_dir / card_files[axis], rgb, alpha)
+        worldlib_images.write_png(tex_dir / card_files[axis], rgb, alpha)
     return Written(files, sheet_files, card_files)
 
 
@@ -51,7 +52,7 @@ def _write_sheet(tex_dir: Path, name: str, provenance: dict, sheet) -> dict[str,
                      ("albedo.R", "albedo.G", "albedo.B", "albedo.A", "normal.X", "normal.Y", "normal.Z"),
                      {**provenance, "species": name, "tiles": {"rows": sheet.rows, "cols": sheet.cols,
                                                                "tile_px": sheet.tile_px}})
-    images.write_png(tex_dir / f"{stem}.png", sheet.rgba[..., :3], sheet.rgba[..., 3])
+    worldlib_images.write_png(tex_dir / f"{stem}.png", sheet.rgba[..., :3], sheet.rgba[..., 3])
     # the material's normal input reads R, G, B: the normal alone, not the layered file's first channels, stored
     # 0..1 as the spec's normal maps are (its UsdUVTexture decodes with scale 2, bias -1)
     images.write_exr(tex_dir / f"{stem}_normal.exr", [materials.encode_normal(sheet.normal)], ("R", "G", "B"),

@@ -30,7 +30,7 @@ from pipeline import usdio
 from pipeline.contract import (Artifact, Check, CheckContext, Input, Param, ParamError, Params, ReportTable, RunContext,
                                Stage)
 from pipeline.errors import InputError, StageError
-from worldlib import materials
+from worldlib import images, materials
 
 from . import measure, textures
 from .asset import write_species, write_top
@@ -109,7 +109,7 @@ def _write_textures(out_dir: Path, layer: Path, name: str, spec, res: PlantResul
     def colour(stem: str, rgb, alpha=None) -> Path:
         rgba = rgb if alpha is None else np.concatenate([rgb, alpha[..., None]], -1)
         textures.write_exr(tex_dir / f"{stem}.exr", rgba, ("R", "G", "B", "A")[: rgba.shape[-1]], provenance)
-        textures.write_png(tex_dir / f"{stem}.png", rgb, alpha)
+        images.write_png(tex_dir / f"{stem}.png", rgb, alpha)
         return tex_dir / f"{stem}.png"
 
     def normal(stem: str, n) -> Path:

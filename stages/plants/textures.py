@@ -122,22 +122,6 @@ def write_exr(path: Path, pixels: np.ndarray, channels: tuple[str, ...], provena
         raise OSError(f"cannot write texture {path}: {oiio.geterror()}")
 
 
-def write_png(path: Path, rgb_linear: np.ndarray, alpha: np.ndarray | None = None, srgb: bool = True) -> None:
-    """An 8-bit PNG: colour through the sRGB curve (srgb=True) or stored as
-    it is (data such as normals), alpha linear and straight (not premultiplied)."""
-    import OpenImageIO as oiio
-
-    from worldlib.render import srgb8
-
-    rgb = srgb8(rgb_linear) if srgb else np.round(np.clip(rgb_linear, 0, 1) * 255).astype(np.uint8)
-    if alpha is not None:
-        rgb = np.concatenate([rgb, np.round(np.clip(alpha, 0, 1) * 255).astype(np.uint8)[..., None]], -1)
-    buf = oiio.ImageBuf(np.ascontiguousarray(rgb))
-    buf.specmod().attribute("DateTime", "")
-    if not buf.write(str(path), oiio.UINT8):
-        raise OSError(f"cannot write {path}: {buf.geterror()}")
-
-
 def blade_texture(size: int, base, tip, seed: int) -> np.ndarray:
     """A grass blade's albedo (size, size, 3) linear over uv (u across, v
     root to tip): colour from base to tip, parallel veins along the blade,

@@ -41,8 +41,8 @@ def write_detail_files(folder: Path, textures: dict, splat: np.ndarray, provenan
     (folder / "detail").mkdir(exist_ok=True)
     names = []
     for t, (albedo, normal) in textures.items():
-        ground_detail.write_png(folder / "detail" / f"{t}_albedo.png", albedo, srgb=True)
-        ground_detail.write_png(folder / "detail" / f"{t}_normal.png", normal, srgb=False)
+        images.write_png(folder / "detail" / f"{t}_albedo.png", albedo, srgb=True)
+        images.write_png(folder / "detail" / f"{t}_normal.png", normal, srgb=False)
         names += [f"detail/{t}_albedo.png", f"detail/{t}_normal.png"]
     for i, (name, _) in enumerate(SPLAT_FILES):
         images.write_mipmapped_texture(folder / name, splat[..., 3 * i:3 * i + 3], provenance)
@@ -234,8 +234,8 @@ def write_near(folder: Path, layer, splat, height, cell_m, origin_m, mesh, size_
     square = near_square(mesh, size_m, offset_m)
     texels = int(min(max_texels, math.ceil(max(square[1] - square[0], square[3] - square[2]) / texel_m - 1e-9)))
     albedo, normal = bake_near(layer, splat, height, cell_m, origin_m, mesh, square, texels)
-    ground_detail.write_png(folder / "near_albedo.png", albedo, srgb=True)
-    ground_detail.write_png(folder / "near_normal.png", normal, srgb=False)
+    images.write_png(folder / "near_albedo.png", albedo, srgb=True)
+    images.write_png(folder / "near_normal.png", normal, srgb=False)
     return {"square": [float(v) for v in square], "albedo": "near_albedo.png", "normal": "near_normal.png",
             "texel_m": near_texels_m(square, texels)}
 

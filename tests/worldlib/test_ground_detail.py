@@ -195,17 +195,3 @@ def test_mip_level_follows_the_footprint():
     far, _ = gd.blend(layer, one, pos, up, np.full(400, 100.0))
     assert near.std(0).mean() > 5 * far.std(0).mean()  # far away: the texture's mean, no sparkle
     np.testing.assert_allclose(far, np.broadcast_to(tex["grass"][0].reshape(-1, 3).mean(0), far.shape), atol=2e-3)
-
-
-def test_png_writer_srgb_and_raw(tmp_path):
-    import OpenImageIO as oiio
-
-    from pipeline.exr import srgb8
-
-    a = np.linspace(0, 1, 48, dtype=np.float32).reshape(4, 4, 3)
-    gd.write_png(tmp_path / "a.png", a, srgb=True)
-    gd.write_png(tmp_path / "n.png", a, srgb=False)
-    got_a = np.asarray(oiio.ImageBuf(str(tmp_path / "a.png")).get_pixels(oiio.UINT8))
-    got_n = np.asarray(oiio.ImageBuf(str(tmp_path / "n.png")).get_pixels(oiio.UINT8))
-    np.testing.assert_array_equal(got_a, srgb8(a))
-    np.testing.assert_array_equal(got_n, np.round(a * 255).astype(np.uint8))

@@ -108,7 +108,9 @@ def read_image(path: str, colour_space: str) -> np.ndarray:
     """(H, W, 4) linear RGBA; rows top first."""
     import OpenImageIO as oiio
 
-    buf = oiio.ImageBuf(str(path))
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)  # the colour as stored (straight, as PNG defines it), not times alpha
+    buf = oiio.ImageBuf(str(path), 0, 0, config)
     if buf.has_error:
         raise FileNotFoundError(f"cannot read texture {path}: {buf.geterror()}")
     px = np.asarray(buf.get_pixels(oiio.FLOAT), np.float32)

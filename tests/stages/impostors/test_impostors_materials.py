@@ -133,11 +133,12 @@ def test_the_checker_finds_a_signed_normal_map(tmp_path):
     from pxr import Sdf, Usd
 
     from stages.impostors import images
+    from worldlib import images as worldlib_images
 
     n = np.zeros((8, 8, 3), np.float32)
     n[..., 0], n[..., 2] = -0.6, 0.8
     images.write_exr(tmp_path / "n.exr", [n], ("R", "G", "B"), {})
-    images.write_png(tmp_path / "a.png", np.full((8, 8, 3), 0.3, np.float32), np.ones((8, 8), np.float32))
+    worldlib_images.write_png(tmp_path / "a.png", np.full((8, 8, 3), 0.3, np.float32), np.ones((8, 8), np.float32))
     stage = Usd.Stage.CreateInMemory()
     _, surf, texture = materials.textured_preview_surface(stage, "/M", 0.5)
     nmap = texture("NormalTexture", str(tmp_path / "n.exr"), "raw", "clamp")
