@@ -34,7 +34,7 @@ plan: setup
 
 # One worker per core (pytest-xdist): the suite is mostly Python and many small bakes.
 test: setup
-	$(PY) -m pytest -q -n auto
+	$(PY) -m pytest -q -n auto --dist loadgroup
 
 # Every benchmark in bench/, one after the other (minutes; not part of `make test`).
 bench: setup

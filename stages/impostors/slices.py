@@ -10,7 +10,7 @@ orientation k with direction d_k, the plant's extent along d_k (its
 vertices' projections) is cut into N equal slabs of space (a card crossing
 a slab's face is cut by it). Each slab is rendered orthographically from
 the front (viewer on the +d_k side) and from the back (a real render, not
-a mirror) onto a quad at the slab's middle plane, spanning the plant's
+a mirror) onto a quad at the mean depth of the slab's content, spanning the plant's
 extent across and up; the front quad faces +d_k, the back quad -d_k, 1 mm
 apart, so a viewer with back-face culling sees the render made from its
 side. Sheet layout: rows 2k (front) and 2k + 1 (back), column i for slab
@@ -63,8 +63,10 @@ class Sheet:
 
 def _render_slab(prepared: Prepared, eye, forward, up, width: float, height: float, tile_px: int, samples: int,
                  thickness: float = math.inf):
-    """(straight RGB + alpha, normal) of the part of the plant within
-    `thickness` of the eye's plane, seen orthographically along `forward`.
+    """(straight RGB + alpha, normal, mean depth) of the part of the plant
+    within `thickness` of the eye's plane, seen orthographically along
+    `forward` (mean depth: of its covered samples from the eye's plane,
+    half the thickness when none).
     One BVH serves every slab: the rays start on the slab's near face (so
     nothing in front of it is seen) and a sample whose nearest hit lies
     beyond the far face counts as uncovered. Samples are rendered one per
@@ -82,7 +84,8 @@ def _render_slab(prepared: Prepared, eye, forward, up, width: float, height: flo
     albedo = box(img.albedo * keep[..., None])
     normal = box(img.normal * keep[..., None]) / np.maximum(alpha, 1e-6)[..., None]
     rgb = albedo / np.maximum(alpha, 1e-6)[..., None]
-    return np.concatenate([rgb, alpha[..., None]], -1).astype(np.float32), normal.astype(np.float32)
+    depth = float(img.depth[keep > 0].mean()) if keep.any() else (0.5 * thickness if math.isfinite(thickness) else 0.0)
+    return np.concatenate([rgb, alpha[..., None]], -1).astype(np.float32), normal.astype(np.float32), depth
 
 
 def _pad(rgba: np.ndarray, normal: np.ndarray) -> None:
@@ -161,25 +164,37 @@ HORIZONTAL_FROM_DEG, HORIZONTAL_TO_DEG = 30.0, 60.0
 
 
 def tree_slices(prepared: Prepared, slabs: int, tile_px: int, samples: int, orientations=ORIENTATIONS) -> Sheet:
+    """Each slab's two quads lie at the mean depth of what its two renders
+    see (the midpoint of the front and the back render's mean along d),
+    not at the slab's middle: a viewer off the slicing's axis sees a
+    slab's content shifted sideways by its distance from the quad, so a
+    trunk or a dense part of the crown off the middle would show twice
+    (held-out IoU as drawn, 36 views, 3 slabs: conifer 0.72 -> 0.78,
+    broadleaf 0.75 -> 0.78)."""
     scene = prepared.scene
     sheet = _sheet("slices", 2 * len(orientations) + 2, slabs, tile_px)
     p = scene.positions.astype(np.float64)
     directions = [octahedral.view_direction(theta, 0.0) for theta in orientations] + [np.array([0.0, 1.0, 0.0])]
     for k, d in enumerate(directions):
         edges = _slab_edges(scene, d, slabs)
-        for side, sign in ((0, 1.0), (1, -1.0)):
+        frames = []
+        for sign in (1.0, -1.0):
             view = sign * d  # toward this side's viewer
             right, up = octahedral.frame_basis(view)
             a, b = p @ right, p @ up
-            a0, a1, b0, b1 = float(a.min()), float(a.max()), float(b.min()), float(b.max())
-            mid_a, mid_b = 0.5 * (a0 + a1), 0.5 * (b0 + b1)
-            for i in range(slabs):
+            frames.append((sign, view, right, up, float(a.min()), float(a.max()), float(b.min()), float(b.max())))
+        for i in range(slabs):
+            rendered, at = [], []
+            for sign, view, right, up, a0, a1, b0, b1 in frames:
                 near = edges[i + 1] if sign > 0 else edges[i]  # the slab's face toward this side's viewer
-                eye = near * d + mid_a * right + mid_b * up
-                rgba, nrm = _render_slab(prepared, eye, -view, up, a1 - a0, b1 - b0, tile_px, samples,
-                                         edges[i + 1] - edges[i])
-                plane = 0.5 * (edges[i] + edges[i + 1]) + sign * 0.5 * GAP_M
-                corners = _quad(plane, d, right, up, a0, a1, b0, b1)
+                eye = near * d + 0.5 * (a0 + a1) * right + 0.5 * (b0 + b1) * up
+                rgba, nrm, depth = _render_slab(prepared, eye, -view, up, a1 - a0, b1 - b0, tile_px, samples,
+                                                edges[i + 1] - edges[i])
+                rendered.append((rgba, nrm))
+                at.append(near - sign * depth)
+            middle = float(np.clip(0.5 * (at[0] + at[1]), edges[i] + GAP_M, edges[i + 1] - GAP_M))
+            for side, ((sign, view, right, up, a0, a1, b0, b1), (rgba, nrm)) in enumerate(zip(frames, rendered)):
+                corners = _quad(middle + sign * 0.5 * GAP_M, d, right, up, a0, a1, b0, b1)
                 _place(sheet, 2 * k + side, i, rgba, nrm, corners, right, up, view)
     return sheet
 
@@ -198,7 +213,8 @@ def grass_slices(prepared: Prepared, tile_px: int, samples: int) -> tuple[Sheet,
         a0, a1, b0, b1 = float(a.min()), float(a.max()), float(b.min()), float(b.max())
         for i in (1, 0):  # the front plate (nearer the viewer) first
             eye = edges[i + 1] * d + 0.5 * (a0 + a1) * right + 0.5 * (b0 + b1) * up
-            rgba, nrm = _render_slab(prepared, eye, -d, up, a1 - a0, b1 - b0, tile_px, samples, edges[i + 1] - edges[i])
+            rgba, nrm, _ = _render_slab(prepared, eye, -d, up, a1 - a0, b1 - b0, tile_px, samples,
+                                        edges[i + 1] - edges[i])
             _place(strip, 0, col, rgba, nrm, _quad(0.5 * (edges[i] + edges[i + 1]), d, right, up, a0, a1, b0, b1), right, up, d)
             col += 1
     top = _sheet("tuft_top", 1, 1, tile_px)
@@ -208,7 +224,7 @@ def grass_slices(prepared: Prepared, tile_px: int, samples: int) -> tuple[Sheet,
     a0, a1, b0, b1 = float(a.min()), float(a.max()), float(b.min()), float(b.max())
     half = 0.5 * (float(p[:, 1].min()) + float(p[:, 1].max()))
     eye = (float(p[:, 1].max()) + 1.0) * d + 0.5 * (a0 + a1) * right + 0.5 * (b0 + b1) * up
-    rgba, nrm = _render_slab(prepared, eye, -d, up, a1 - a0, b1 - b0, tile_px, samples)
+    rgba, nrm, _ = _render_slab(prepared, eye, -d, up, a1 - a0, b1 - b0, tile_px, samples)
     _place(top, 0, 0, rgba, nrm, _quad(half, d, right, up, a0, a1, b0, b1), right, up, d)
     return strip, top
 

@@ -6,13 +6,20 @@ write their inputs here and run Blender as a subprocess
 (blender_scripts/*.py), which writes JSON and images back. Without that
 environment every test here skips and says why.
 
-One small world is baked and exported (folder and .usdz) per session: the
-SMALL settings of tests/pipeline/test_cli.py with the tree species built."""
+One small world is baked and exported (folder and .usdz) per test run: the
+SMALL settings of tests/pipeline/test_cli.py with the tree species built.
+The xdist workers share it (the first bakes under a file lock, the others
+wait and read it), and the bake's store is the content-keyed build folder
+build_dcc_tests/ (WORLDBAKE_DCC_BUILD), so a rerun bakes only the stages
+whose code or inputs changed. `make test` keeps these tests on one worker
+(xdist_group "dcc", --dist loadgroup): the others go on with the rest."""
 from __future__ import annotations
 
+import fcntl
 import functools
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -60,37 +67,70 @@ def blender():
     return run_blender
 
 
-@pytest.fixture(scope="session")
-def small_world(tmp_path_factory) -> dict:
-    """The small world baked, exported as a folder and as a .usdz (moved
-    to another folder): {folder, usdz, build, root}."""
-    reuse = os.environ.get("WORLDBAKE_DCC_WORLD")  # a folder this fixture filled before: no bake (for work on the tests)
-    if reuse:
-        root = Path(reuse)
-        return {"folder": root / "export" / "world.usda", "usdz": root / "elsewhere" / "world.usdz",
-                "build": root / "build", "root": root}
-    root = tmp_path_factory.mktemp("dcc_world")
-    build = root / "build"
+def pytest_collection_modifyitems(items):
+    """Every test here on one xdist worker (with --dist loadgroup): one bake, and no worker idles waiting for it."""
+    here = Path(__file__).resolve().parent
+    for item in items:
+        if here in Path(str(item.fspath)).resolve().parents:
+            item.add_marker(pytest.mark.xdist_group("dcc"))
+
+
+def _run_root(tmp_path_factory) -> Path:
+    """A folder of this test run that every xdist worker sees."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+def _once(tmp_path_factory, name: str, make) -> Path:
+    """run_root/name, made by make(folder) by the first process of this test run to ask (the others wait)."""
+    root = _run_root(tmp_path_factory)
+    folder, done = root / name, root / f"{name}.done"
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            if not done.exists():
+                shutil.rmtree(folder, ignore_errors=True)  # what a process that failed here left
+                folder.mkdir()
+                make(folder)
+                done.touch()
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+    return folder
+
+
+def _bake_and_export(root: Path) -> None:
+    build = Path(os.environ.get("WORLDBAKE_DCC_BUILD") or REPO / "build_dcc_tests")
     base = [sys.executable, "-m", "pipeline.cli", "--build", str(build)]
     for args in (["bake", "configs/default.toml", *SMALL], ["export", "default", str(root / "export")],
                  ["export", "default", str(root / "packed" / "world.usdz")]):
         proc = subprocess.run(base + args, capture_output=True, text=True, cwd=REPO, timeout=900)
         assert proc.returncode == 0, f"worldbake {' '.join(args)}:\n{proc.stderr[-3000:]}"
+    (root / "build").symlink_to(build.resolve(), target_is_directory=True)
     elsewhere = root / "elsewhere"
     elsewhere.mkdir()
-    usdz = elsewhere / "world.usdz"
-    (root / "packed" / "world.usdz").rename(usdz)
+    (root / "packed" / "world.usdz").rename(elsewhere / "world.usdz")
     (root / "packed").rmdir()
-    return {"folder": root / "export" / "world.usda", "usdz": usdz, "build": build, "root": root}
 
 
 @pytest.fixture(scope="session")
-def dcc_world(small_world, blender) -> dict:
+def small_world(tmp_path_factory) -> dict:
+    """The small world baked, exported as a folder and as a .usdz (moved
+    to another folder): {folder, usdz, build, root}."""
+    reuse = os.environ.get("WORLDBAKE_DCC_WORLD")  # a folder this fixture filled before: no bake (for work on the tests)
+    root = Path(reuse) if reuse else _once(tmp_path_factory, "dcc_world", _bake_and_export)
+    return {"folder": root / "export" / "world.usda", "usdz": root / "elsewhere" / "world.usdz",
+            "build": root / "build", "root": root}
+
+
+@pytest.fixture(scope="session")
+def dcc_world(small_world, blender, tmp_path_factory) -> dict:
     """small_world and what Blender imports (import_report.py) from the
     folder and from the .usdz: {..., report, usdz_report}."""
-    reports = {}
-    for name, src in (("report", small_world["folder"]), ("usdz_report", small_world["usdz"])):
-        out = small_world["root"] / f"{name}.json"
-        blender("import_report", src, out)
-        reports[name] = json.loads(out.read_text())
-    return {**small_world, **reports}
+    sources = (("report", small_world["folder"]), ("usdz_report", small_world["usdz"]))
+
+    def imports(folder: Path) -> None:
+        for name, src in sources:
+            blender("import_report", src, folder / f"{name}.json")
+
+    folder = _once(tmp_path_factory, "dcc_imports", imports)
+    return {**small_world, **{name: json.loads((folder / f"{name}.json").read_text()) for name, _ in sources}}

@@ -36,7 +36,8 @@ def test_crown_pyramids_enclose_their_centres_and_face_outward():
         p = pts[4 * k:4 * k + 4]
         assert 1.0 * radius[k] <= np.linalg.norm(p - centre[k], axis=1).max() <= 2.0 * radius[k]
         base = p[:3, [0, 2]]  # seen from above: the base triangle covers the sphere's disc (the plant's cover)
-        plan = 0.5 * abs(np.cross(base[1] - base[0], base[2] - base[0]))
+        (ax, az), (bx, bz) = base[1] - base[0], base[2] - base[0]
+        plan = 0.5 * abs(ax * bz - az * bx)
         assert plan == pytest.approx(np.pi * radius[k] ** 2, rel=1e-5)
 
 
