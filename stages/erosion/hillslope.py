@@ -86,13 +86,15 @@ CONE_DIRECTIONS = ((0, 1), (1, 0), (1, 1), (1, -1), (1, 2), (2, 1), (1, -2), (2,
                    (1, 3), (3, 1), (1, -3), (3, -1), (2, 3), (3, 2), (2, -3), (3, -2))
 CONE_ROUNDS_MAX = 64
 CONE_TOLERANCE_M = 1e-9  # a step this far over the limit is round-off, not a slope to cut
+CONE_CHUNK_CELLS = 1 << 15  # padded line cells per chunk of the envelope sweep (a few 256 kB temporaries)
 _LINES: dict = {}
 
 
 def _lines(rows: int, cols: int, dr: int, dc: int) -> tuple[np.ndarray, np.ndarray]:
     """(lines, line_of): the flat cell indices of the grid's lines along
     (dr, dc), each from the grid's edge onward, padded with -1, shape
-    (lines, length); and each cell's line (cached per shape)."""
+    (lines, length), int32 while the cells fit (half the cache's memory);
+    and each cell's line (cached per shape)."""
     key = (rows, cols, dr, dc)
     if key in _LINES:
         return _LINES[key]
@@ -105,8 +107,10 @@ def _lines(rows: int, cols: int, dr: int, dc: int) -> tuple[np.ndarray, np.ndarr
     elif dc < 0:
         back = np.minimum(back, (cols - 1 - c) // -dc)
     start = (r - back * dr) * cols + (c - back * dc)
-    line = np.unique(start, return_inverse=True)[1]
-    out = np.full((int(line.max()) + 1, int(back.max()) + 1), -1, np.int64)
+    first = np.zeros(r.size + 1, np.int64)  # the line of each start cell in the order of the starts, O(cells)
+    first[1:] = np.cumsum(np.bincount(start, minlength=r.size) > 0)
+    line = first[start + 1] - 1
+    out = np.full((int(line.max()) + 1, int(back.max()) + 1), -1, np.int32 if r.size < 2 ** 31 else np.int64)
     out[line, back] = np.arange(r.size)
     _LINES[key] = (out, line.reshape(rows, cols))
     return _LINES[key]
@@ -127,10 +131,20 @@ def _too_steep(z: np.ndarray, dr: int, dc: int, rise) -> np.ndarray:
     return bad
 
 
-def _cone_along(z: np.ndarray, lines: np.ndarray, rise) -> None:
-    """z <- min over the cells y on the same line of z(y) + the summed rise
+def _cone_along(z: np.ndarray, lines: np.ndarray, hit: np.ndarray, rise) -> None:
+    """On the lines `hit` of `lines`: z <- min over the cells y on the same line of z(y) + the summed rise
     of the steps between x and y, in place; z flat; rise a number, or per
-    cell (flat; a step's rise is the mean of its two cells')."""
+    cell (flat; a step's rise is the mean of its two cells'). Lines are
+    independent: they go in chunks of about CONE_CHUNK_CELLS, so the sweep's
+    temporaries stay in the cache on any grid (one pass over every line would
+    run from memory on big grids, its cost per cell growing with the grid)."""
+    step = max(1, CONE_CHUNK_CELLS // max(lines.shape[1], 1))
+    for i in range(0, hit.size, step):
+        _cone_chunk(z, lines[hit[i:i + step]], rise)
+
+
+def _cone_chunk(z: np.ndarray, lines: np.ndarray, rise) -> None:
+    """_cone_along on one chunk of lines."""
     valid = lines >= 0
     zl = np.where(valid, z[np.maximum(lines, 0)], np.inf)
     if np.ndim(rise):
@@ -170,7 +184,8 @@ def landslide(h: np.ndarray, dx: float, critical_slope) -> np.ndarray:
             if not bad.any():
                 continue
             lines, line_of = _lines(rows, cols, dr, dc)
-            _cone_along(flat, lines[np.unique(line_of[bad])], rise.ravel() if rise.ndim else float(rise))
+            hit = np.flatnonzero(np.bincount(line_of[bad], minlength=lines.shape[0]))  # sorted, O(cells)
+            _cone_along(flat, lines, hit, rise.ravel() if rise.ndim else float(rise))
             changed = True
         if not changed:
             break

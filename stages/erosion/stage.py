@@ -51,6 +51,13 @@ class ErosionParams(Params):
     # the storm
     storm_hours: float = Param(
         0.35, units="h", description="duration of the hydraulic erosion storm (simulated time); 0 skips it", ge=0.0, le=1000.0)
+    storm_cell_m: float = Param(
+        0.0, units="m", description="the storm's own cell size: on finer terrain cells the shallow-water storm runs "
+        "on blocks of f x f cells (f the largest whole factor with f dx <= this that divides both sides) and its "
+        "terrain change, water and sediment come back to the fine cells conserving each block's volume, so the "
+        "storm's CFL step (dt ~ dx) and cells stay those of this size at any resolution: its cost per cell does not "
+        "grow on finer grids. Gullies narrower than this are not resolved. 0: the storm runs on the terrain's cells",
+        ge=0.0, le=1e4)
     rain_mm_per_hour: float = Param(
         100.0, units="mm/h", description="uniform rain rate during the storm", ge=0.0, le=1e5)
     evaporation_mm_per_hour: float = Param(
@@ -351,9 +358,50 @@ def slope_excess(h: np.ndarray, dx: float, talus_deg: float, periodic: bool) -> 
     return {"max_excess_deg": worst, "fraction_above_tolerance": above / max(pairs, 1)}
 
 
-def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[str, Any]:
-    from .device import DeviceSim
+THERMAL_METRICS = ("thermal_iterations", "thermal_c", "thermal_seconds", "thermal_mass_residual_rel")
 
+
+def _thermal_and_storm(cl, h: np.ndarray, params: ErosionParams, ph: Physics, plan: simulate.Plan,
+                       progress, after_thermal) -> tuple[Any, dict[str, np.ndarray], dict]:
+    """Thermal weathering on the terrain's cells, then the storm: on the same
+    cells, or on the storm's own grid (storm_grid.py) when the cells are finer
+    than storm_cell_m. Returns the simulator of the storm (its OpenCL settings
+    go to the metrics), the final fields on the terrain's cells (dT the change
+    since h) and the metrics."""
+    import dataclasses
+
+    from .device import DeviceSim
+    from .storm_grid import block_mean, prolong_conserving, prolong_linear, storm_factor
+
+    dx = ph.dx
+    fac = storm_factor(h.shape[0], h.shape[1], dx, params.storm_cell_m)
+    sim = DeviceSim(cl, h, ph)
+    if fac == 1:
+        metrics = simulate.run(sim, ph, plan, progress=progress, after_thermal=after_thermal)
+        progress(0.96, "reading the maps back")
+        return sim, sim.fields(), metrics
+    fine = simulate.run(sim, ph, dataclasses.replace(plan, duration_s=0.0), progress=progress,
+                        after_thermal=after_thermal)
+    dT_thermal = sim.fields()["dT"].astype(np.float64)
+    sim.finish()
+    del sim
+    phc = physics_for(params, dx * fac)
+    planc = dataclasses.replace(plan_for(params, dx * fac, phc), thermal_iterations=0)
+    simc = DeviceSim(cl, block_mean(h + dT_thermal, fac).astype(np.float32), phc)
+    metrics = simulate.run(simc, phc, planc, progress=progress)
+    metrics.update({k: fine[k] for k in THERMAL_METRICS if k in fine})
+    metrics["total_seconds"] += fine["total_seconds"]
+    metrics.update(storm_cell_factor=fac, storm_cell_size_m=dx * fac)
+    progress(0.96, "reading the maps back")
+    fc = simc.fields()
+    fields = {"dT": dT_thermal + prolong_conserving(fc["dT"], fac),
+              "W": prolong_conserving(fc["W"], fac, positive=True).astype(np.float32),
+              "S": prolong_conserving(fc["S"], fac, positive=True).astype(np.float32)}
+    fields.update({k: prolong_linear(fc[k], fac).astype(np.float32) for k in ("vx", "vz", "M")})
+    return simc, fields, metrics
+
+
+def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[str, Any]:
     grid: Grid = inputs["height"]
     h = check_input(grid)
     dx = float(grid.cell_size_m)
@@ -385,16 +433,13 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[
         progress = lambda f, m: ctx.progress(share + (1 - share) * f, m)  # noqa: E731
     progress(0.0, f"erosion {h.shape[1]}x{h.shape[0]} cells of {dx:g} m: {plan.thermal_iterations} talus "
                   f"iterations, {params.storm_hours:g} h storm")
-    sim = DeviceSim(ctx.cl, h, ph)
     after_thermal = {}
 
     def on_thermal_done(fields: dict[str, np.ndarray]) -> None:
         after_thermal.update(slope_excess(h + fields["dT"], dx, params.talus_angle_deg, params.boundary == "periodic"))
 
-    metrics = simulate.run(sim, ph, plan, progress=progress, after_thermal=on_thermal_done)
+    sim, f, metrics = _thermal_and_storm(ctx.cl, h, params, ph, plan, progress, on_thermal_done)
     metrics.update(geology)
-    progress(0.96, "reading the maps back")
-    f = sim.fields()
     height = (h + f["dT"]).astype(np.float32)
     for name, arr in (("height", height), ("water", f["W"]), ("sediment", f["S"])):
         if not np.isfinite(arr).all():
@@ -458,7 +503,11 @@ def check(params: ErosionParams, ctx: CheckContext) -> Check:
         raise ParamError("", str(e).removeprefix("erosion: ")) from None
     cells = height.shape[0] * height.shape[1]
     if params.dt_s is None and params.storm_hours > 0:
-        least, wave = storm_steps_least(params, ph, height.shape)
+        from .storm_grid import storm_factor
+
+        fac = storm_factor(height.shape[0], height.shape[1], dx, params.storm_cell_m)  # the storm's own grid
+        dx, ph = dx * fac, physics_for(params, dx * fac)
+        least, wave = storm_steps_least(params, ph, (height.shape[0] // fac, height.shape[1] // fac))
         limit, limit_how = max_steps()
         if least > limit:
             net = (params.rain_mm_per_hour - params.evaporation_mm_per_hour)

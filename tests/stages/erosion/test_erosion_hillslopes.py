@@ -257,3 +257,18 @@ def test_strata_stand_steeper_than_the_soft_rock_and_keep_the_budget(cl_env):
     assert steepest(plain.height) <= soft + 1e-9  # the uniform rock stops at its limit
     assert steepest(res.height).max() > soft * 1.3  # hard beds stand as cliffs
     assert steepest(res.height).max() <= hard * 1.05
+
+
+def test_landslide_chunks_of_lines_change_nothing(monkeypatch):
+    """The envelope sweep in chunks of lines (any chunk size) equals one pass over all of them, bitwise."""
+    from stages.erosion import hillslope as hs
+
+    rng = np.random.default_rng(11)
+    h = np.cumsum(rng.normal(size=(61, 47)), axis=0) * 4.0 + rng.normal(size=(61, 47)) * 6.0
+    limits = (0.7, 0.5 + 0.4 * rng.random(h.shape))
+    monkeypatch.setattr(hs, "CONE_CHUNK_CELLS", 1 << 40)
+    whole = [hs.landslide(h, 3.0, sc) for sc in limits]
+    monkeypatch.setattr(hs, "CONE_CHUNK_CELLS", 1)
+    for sc, ref in zip(limits, whole):
+        assert np.array_equal(hs.landslide(h, 3.0, sc), ref)
+        assert (h - ref).max() > 1.0  # the limit bites
