@@ -37,7 +37,7 @@ from .units import Units
 
 # Bump when the engine changes how artifacts are written (file formats,
 # provenance layout), so that old keys stop matching.
-ENGINE_FORMAT = 1
+ENGINE_FORMAT = 2  # 2: grids are tiled EXR (pipeline.exr.GridWriter)
 KEY_LENGTH = 20  # hex digits of sha256 kept in folder names (80 bits)
 
 

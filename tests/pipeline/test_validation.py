@@ -179,7 +179,7 @@ def test_runs_too_large_are_refused_with_the_estimate(project, capsys, monkeypat
 def test_a_storm_of_too_many_steps_is_refused_before_work(project, capsys):
     err = refused(project, capsys, "--set", "erosion.storm_hours=1000", "--set", "heightmap.size_m=1000",
                   config="configs/default.toml")
-    assert re.search(r"--set: erosion.storm_hours: 1000 hours on 0.976562 m cells needs at least about 8.57e\+07 "
+    assert re.search(r"--set: erosion.storm_hours: 1000 hours on 7.8125 m cells needs at least about 5.58e\+06 "
                      r"adaptive steps", err), err
 
 
