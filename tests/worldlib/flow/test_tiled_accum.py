@@ -8,11 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from tests.worldlib.flow.test_tiled_fill import fractal
 from worldlib.flow import device as dev
 from worldlib.flow import reference as ref
 from worldlib.flow import tiled_accum as ta
 from worldlib.flow import tiled_fill as tf
+
+from .worlds import fractal, random_small_worlds
 
 DX = 8.0
 
@@ -254,20 +255,11 @@ def test_a_numpy_total_across_the_scale_step():
 
 def test_random_worlds_and_tilings():
     """Many small worlds and tile sizes, the numpy reference on both sides."""
-    rng = np.random.default_rng(77)
-    for trial in range(40):
-        rows, cols = (int(x) for x in rng.integers(1, 24, 2))
-        h = (rng.random((rows, cols)) * 10).astype(np.float32)
-        if trial % 3 == 0:
-            h = np.round(h)
-        if trial % 4 == 0:
-            h[rng.random(h.shape) < 0.1] = np.nan
-        h = ref.canonical(h)
+    for trial, h, tile in random_small_worlds(77, 40, 24):
         kind = ref.cell_kinds(h)
         R = ref.priority_flood(h, True, kind)
         code = ref.d8(R, kind, DX)
-        tile = int(rng.integers(1, 12))
-        msg = f"trial {trial}: {rows}x{cols}, tile {tile}"
+        msg = f"trial {trial}: {h.shape}, tile {tile}"
         np.testing.assert_array_equal(ta.tiled_d8(R, DX, tile), code, err_msg=msg)
         np.testing.assert_array_equal(ta.tiled_accumulate(code, tile), ref.accumulate(code).astype(np.uint32),
                                       err_msg=msg)

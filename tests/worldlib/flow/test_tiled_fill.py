@@ -8,15 +8,7 @@ from worldlib.flow import device as dev
 from worldlib.flow import reference as ref
 from worldlib.flow import tiled_fill as tf
 
-
-def fractal(n: int, seed: int, beta: float = 2.2) -> np.ndarray:
-    """Spectral-synthesis fractal terrain (power ~ k^-beta), 0..1000 m."""
-    rng = np.random.default_rng(seed)
-    k2 = np.fft.fftfreq(n)[:, None] ** 2 + np.fft.fftfreq(n)[None, :] ** 2
-    k2[0, 0] = 1.0
-    spec = (rng.normal(size=(n, n)) + 1j * rng.normal(size=(n, n))) / k2 ** (beta / 4)
-    h = np.real(np.fft.ifft2(spec))
-    return ((h - h.min()) / (h.max() - h.min()) * 1000).astype(np.float32)
+from .worlds import fractal, random_small_worlds
 
 
 def terrains():
@@ -81,18 +73,9 @@ def test_tiny_tiles_with_the_reference_fill(tile):
 
 def test_random_worlds_and_tilings():
     """Many small worlds and tile sizes, the numpy reference on both sides."""
-    rng = np.random.default_rng(99)
-    for trial in range(60):
-        rows, cols = (int(x) for x in rng.integers(1, 26, 2))
-        h = (rng.random((rows, cols)) * 10).astype(np.float32)
-        if trial % 3 == 0:
-            h = np.round(h)
-        if trial % 4 == 0:
-            h[rng.random(h.shape) < 0.1] = np.nan
-        h = ref.canonical(h)
-        tile = int(rng.integers(1, 12))
+    for trial, h, tile in random_small_worlds(99, 60, 26):
         np.testing.assert_array_equal(bits(tf.tiled_fill(h, tile)), bits(ref.priority_flood(h, False)),
-                                      err_msg=f"trial {trial}: {rows}x{cols}, tile {tile}")
+                                      err_msg=f"trial {trial}: {h.shape}, tile {tile}")
 
 
 def test_the_global_pass_is_needed(cl_env):
