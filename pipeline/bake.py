@@ -16,6 +16,7 @@ import json
 import math
 import os
 import re
+import shutil
 import sys
 import time
 from dataclasses import dataclass, field
@@ -24,7 +25,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from . import exr, usdio
+from . import exr, tiles, usdio
 from .config import WorldConfig, canonical_params
 from .contract import Artifact, Check, CheckContext, GridInfo, ParamError, RunContext, Stage
 from .errors import InputError, StageError
@@ -305,13 +306,17 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
              progress: Callable[[float, str], None]) -> dict:
     """Run one stage into a temporary folder and rename it into place."""
     stage = ps.stage
+    tiled = bool(config.tile_cells) and stage.run_tiled is not None
     inputs = {}
     terrain_shape = None
     for role, (art_name, producer, key) in ps.inputs.items():
         art = graph.producers[art_name][1]
         if art.optional and store.manifest(producer, key)["outputs"].get(art_name, {}).get("absent"):
             continue  # the producer wrote nothing for it (its consumers take it as optional)
-        inputs[role] = _load_input(store, art, producer, key)
+        if tiled and art.kind == "grid":  # read by window, never whole
+            inputs[role] = tiles.GridFile(store.folder(producer, key) / art.file)
+        else:
+            inputs[role] = _load_input(store, art, producer, key)
         if art.kind == "grid" and art.shape == "terrain":
             terrain_shape = inputs[role].shape
     provenance = {"stage": stage.name, "version": stage.version, "key": ps.key,
@@ -330,11 +335,23 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
                          final_dir=store.folder(stage.name, ps.key),
                          input_artifacts={role: art for role, (art, _, _) in ps.inputs.items() if role in inputs},
                          units=Units(store.units, store.tmp, stage.name, code_material), cl=device)
+        tile_work = store.tmp / f"tiles-{stage.name}-{ps.key}-{os.getpid()}"
+        if tiled:
+            ctx.tiles = tiles.TileRunner(config.tile_cells, stage=stage, run_key=ps.key, seed=config.seed,
+                                         project_root=config.project_root, units=ctx.units, work=tile_work,
+                                         progress=progress)
         t0 = time.perf_counter()
         try:
-            outputs = stage.run(ctx, inputs, config.params[stage.name])
+            run = stage.run_tiled if tiled else stage.run
+            outputs = run(ctx, inputs, config.params[stage.name])
         except FloatingPointError as e:
+            shutil.rmtree(tile_work, ignore_errors=True)
             raise StageError(f"stage {stage.name}: numerical failure: {e}") from e
+        except BaseException:
+            shutil.rmtree(tile_work, ignore_errors=True)
+            raise
+        if tiled:
+            ctx.metrics["tiling"] = {"tile_cells": config.tile_cells, "passes": ctx.tiles.passes}
         t_run = time.perf_counter() - t0
         missing = [a.name for a in stage.outputs if a.name not in outputs and not a.optional]
         extra = [n for n in outputs if n not in {a.name for a in stage.outputs}]
@@ -351,7 +368,13 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
                     raise StageError(f"stage {stage.name}: output {art.name} is None but not declared optional")
                 out_meta[art.name] = {**meta, "absent": True}
                 continue
-            if art.kind == "grid":
+            if art.kind == "grid" and isinstance(value, tiles.TileArrays):
+                units = art.channel_units(tuple(value.channels))
+                content = _write_tiled_grid(stage, art, value, terrain_shape, target, {**provenance, "units": units})
+                terrain_shape = terrain_shape or (value.shape if art.shape == "terrain" else None)
+                meta.update(channels=exr.channel_names(target), channel_units=units, shape=list(value.shape),
+                            cell_size_m=value.cell_size_m, content=content)
+            elif art.kind == "grid":
                 grid = _check_grid(stage, art, value, terrain_shape)
                 terrain_shape = terrain_shape or (grid.shape if art.shape == "terrain" else None)
                 units = art.channel_units(tuple(grid.channels))
@@ -359,6 +382,8 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
                 # the file's order (OpenEXR sorts channels by name), not the order the stage made them in
                 meta.update(channels=exr.channel_names(target), channel_units=units, shape=list(grid.shape),
                             cell_size_m=grid.cell_size_m, content=grid.content_hash())
+            elif art.kind == "image" and isinstance(value, tiles.TileArrays):
+                exr.write_png_rows(target, value.shape, _tile_rows(value))
             elif art.kind == "image":
                 exr.write_png(target, value)
             elif art.kind == "json":
@@ -389,7 +414,40 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
             "key_material": ps.key_material,
         }
         write_json(work / MANIFEST, manifest)  # last: its presence means the folder is whole
+    shutil.rmtree(tile_work, ignore_errors=True)  # the tiles' arrays live on in their units
     return manifest
+
+
+def _tile_rows(arrays: tiles.TileArrays):
+    """The rows of tiles of a tiled grid, each as one array, north to south."""
+    by_row: dict[int, list[tiles.Tile]] = {}
+    for t in arrays.tiles():
+        by_row.setdefault(t.row, []).append(t)
+    for row in sorted(by_row):
+        yield np.concatenate([arrays.tile_array(t) for t in by_row[row]], axis=1)
+
+
+def _write_tiled_grid(stage: Stage, art: Artifact, value: tiles.TileArrays, terrain_shape: tuple[int, int] | None,
+                      target: Path, provenance: dict) -> str:
+    """A grid output held per tile, written into its EXR tile by tile (the
+    bytes of write_grid of the whole map); returns its content hash."""
+    wrong = art.channel_sets(tuple(value.channels))
+    if wrong:
+        raise StageError(f"stage {stage.name}: output {art.name} {wrong}")
+    if art.shape == "terrain" and terrain_shape is not None and value.shape != terrain_shape:
+        raise StageError(f"stage {stage.name}: output {art.name} has shape {value.shape}, the terrain is {terrain_shape}")
+    with exr.GridWriter(target, value.shape, value.channels, value.cell_size_m, value.origin_m, provenance) as out:
+        for t in value.tiles():
+            block = value.tile_array(t)
+            if block.dtype != np.dtype(art.dtype):
+                raise StageError(f"stage {stage.name}: output {art.name} is {block.dtype}, declared {art.dtype}")
+            bad = np.isinf(block) if art.nodata_nan else ~np.isfinite(block)
+            if bad.any():
+                r, c = np.argwhere(bad)[0][:2]
+                raise StageError(f"stage {stage.name}: output {art.name} has {int(bad.sum())} non-finite values in "
+                                 f"tile {t.name} (first at row {t.row0 + r}, col {t.col0 + c}); not written")
+            out.write_window(t.row0, t.col0, block)
+    return out.content_hash()
 
 
 # --------------------------------------------------------------------------- publishing

@@ -40,7 +40,10 @@ TOP_LEVEL_KEYS = {
     "variants": "tables of overrides baked side by side",
     "description": "free text",
     "shared": "values of params several stages share (e.g. mesh_max_vertices), set once for all of them",
+    "tiling": "how the world's cells are split into tiles for the work: tile_cells (0: one tile)",
 }
+
+TILE_CELLS_MULTIPLE = 256  # a world tile is whole grid file tiles (pipeline.exr.TILE)
 
 
 # Names that become file or prim names (worlds, variants, species, every
@@ -112,6 +115,8 @@ class WorldConfig:
     outputs: tuple[str, ...]
     params: dict[str, Params]  # per stage, validated
     file_hashes: dict[str, str]  # "stage.param" -> sha256 of the file a ProjectPath names
+    # [tiling] tile_cells: cells per side of a world tile (0: one tile); how the work is split, so in no key
+    tile_cells: int = 0
     origin: dict[str, str] = dataclasses.field(default_factory=dict, compare=False)  # key -> the file (or --set) it came from
     overrides: dict[str, Any] = dataclasses.field(default_factory=dict)  # --set KEY=VALUE, in order (the world's history)
 
@@ -351,6 +356,8 @@ def load_config(path: Path | str, stages: dict[str, Stage], *, project_root: Pat
     if not isinstance(outputs, list) or not outputs or not all(isinstance(o, str) for o in outputs):
         raise InputError(f"{origin.get('outputs', shown)}: outputs: must be a non-empty list of stage or artifact names, got {outputs!r}")
 
+    tile_cells = _tile_cells(tree.get("tiling", {}), origin, shown)
+
     shared = tree.get("shared", {})
     shareable = {p for s in stages.values() for p in s.shared_params}
     if not isinstance(shared, dict):
@@ -389,8 +396,23 @@ def load_config(path: Path | str, stages: dict[str, Stage], *, project_root: Pat
         for other in variants:
             load_config(path, stages, project_root=root, variant=other, sets=sets)
     return WorldConfig(path=path, project_root=root, name=name, variant=variant, seed=seed,
-                       outputs=tuple(outputs), params=params, file_hashes=file_hashes, origin=dict(origin),
-                       overrides=overrides)
+                       outputs=tuple(outputs), params=params, file_hashes=file_hashes, tile_cells=tile_cells,
+                       origin=dict(origin), overrides=overrides)
+
+
+def _tile_cells(tiling: Any, origin: dict[str, str], shown: str) -> int:
+    """[tiling] tile_cells: 0 (one tile) or a positive multiple of TILE_CELLS_MULTIPLE."""
+    if not isinstance(tiling, dict):
+        raise InputError(f"{origin.get('tiling', shown)}: tiling: must be a table, e.g. [tiling] tile_cells = 1024")
+    for key in tiling:
+        if key != "tile_cells":
+            raise InputError(f"{origin.get('tiling.' + key, shown)}: tiling.{key}: unknown key (allowed: tile_cells)")
+    value = tiling.get("tile_cells", 0)
+    if (not isinstance(value, int) or isinstance(value, bool) or value < 0 or value % TILE_CELLS_MULTIPLE
+            or value > 1 << 20):
+        raise InputError(f"{origin.get('tiling.tile_cells', shown)}: tiling.tile_cells: must be 0 (one tile) or a "
+                         f"positive multiple of {TILE_CELLS_MULTIPLE} up to {1 << 20}, got {value!r}")
+    return value
 
 
 def canonical_params(model: Params) -> str:

@@ -295,6 +295,12 @@ class Stage:
     # stage table (pipeline.report lays it out): maps of its grids, pictures
     # and tables of the composed world, warnings.
     report: tuple["ReportItem", ...] = ()
+    # The run on a tiled world ([tiling] tile_cells; pipeline.tiles): the
+    # same signature as run, its grid inputs handles read by window
+    # (pipeline.tiles.GridFile), ctx.tiles the TileRunner that maps its
+    # per-tile functions; grid outputs may be TileArrays. Its artifacts are
+    # the same bytes as run's. None: the stage runs whole on tiled worlds too.
+    run_tiled: Callable[["RunContext", dict[str, Any], Any], dict[str, Any]] | None = None
 
     def output(self, name: str) -> Artifact:
         for a in self.outputs:
@@ -389,6 +395,7 @@ class RunContext:
     # engine chose, for a stage declaring uses_opencl (None otherwise): the
     # device its key names. The stage passes it to the code that runs kernels.
     cl: Any = None
+    tiles: Any = None  # pipeline.tiles.TileRunner of a tiled run (run_tiled); None otherwise
 
     def path(self, artifact_name: str) -> Path:
         """Where an output artifact's file goes."""

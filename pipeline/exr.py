@@ -344,6 +344,36 @@ def write_png(path: Path | str, rgb: np.ndarray) -> None:
         raise OSError(f"cannot write {path}: {buf.geterror()}")
 
 
+def write_png_rows(path: Path | str, shape: tuple[int, int], bands) -> None:
+    """A uint8 RGB(A) preview written band by band (`bands`: arrays of whole
+    rows, north to south, covering `shape`): the bytes of write_png of the
+    whole picture, without holding it."""
+    oiio = _oiio()
+    out, y, spec = None, 0, None
+    try:
+        for band in bands:
+            band = np.ascontiguousarray(band)
+            if band.dtype != np.uint8 or band.ndim != 3 or band.shape[2] not in (3, 4) or band.shape[1] != shape[1]:
+                raise ValueError(f"a preview band must be uint8 (rows, {shape[1]}, 3|4), got {band.dtype} {band.shape}")
+            if out is None:
+                spec = oiio.ImageSpec(int(shape[1]), int(shape[0]), band.shape[2], oiio.UINT8)
+                out = oiio.ImageOutput.create(str(path))
+                if out is None or not out.open(str(path), spec):
+                    raise OSError(f"cannot write {path}: {out.geterror() if out else oiio.geterror()}")
+            if not out.write_scanlines(y, y + band.shape[0], 0, band):
+                raise OSError(f"cannot write {path}: {out.geterror()}")
+            y += band.shape[0]
+        if y != shape[0]:
+            raise ValueError(f"{path}: the bands cover {y} of {shape[0]} rows")
+    except BaseException:
+        if out is not None:
+            out.close()
+        Path(path).unlink(missing_ok=True)
+        raise
+    if not out.close():
+        raise OSError(f"cannot write {path}: {out.geterror()}")
+
+
 def linear_from_srgb(srgb: np.ndarray) -> np.ndarray:
     """sRGB-encoded [0, 1] colour to linear (the standard piecewise curve), in the input's precision."""
     return np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)

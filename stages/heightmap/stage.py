@@ -221,6 +221,59 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HeightmapParams) -> dic
     return {"heightmap.height": grid, "heightmap.hillshade": shade}
 
 
+def world_shape(params: HeightmapParams, project_root: Path) -> tuple[int, int]:
+    """rows x cols of the whole world: the resolution's square, or a DEM's own cells."""
+    if params.generator == "dem":
+        path = project_root / params.dem_path
+        if params.dem_cell_size_m or dem.dem_cell_size(path):
+            return tuple(dem.scan_raster(path).shape)
+    return params.resolution, params.resolution
+
+
+def height_tile(tctx, inputs: dict[str, Any], params: HeightmapParams, shared: Any):
+    """One world tile's heights and hillshade (pipeline.tiles): the heights
+    of the tile and a one-cell halo (the hillshade's gradient), both
+    bit-identical to the same cells of the whole map."""
+    from pipeline.tiles import TileOutput
+
+    r0, c0, rows, cols = tctx.tile.window(1)
+    window = params.model_copy(update={"window": [c0, r0, cols, rows]})
+    dem_file = tctx.project_root / params.dem_path if params.dem_path else None
+    h, info = heights(tctx.cl, window, tctx.seed, dem_file=dem_file)
+    if not np.isfinite(h).all():
+        raise StageError(f"heightmap: generator {params.generator!r} produced {int((~np.isfinite(h)).sum())} "
+                         f"non-finite heights in tile {tctx.tile.name}")
+    dx = info.get("dem_cell_size_m", params.cell_size_m)
+    inner = tctx.tile.inner(1)
+    shade = hillshade(Grid(h, cell_size_m=dx, channels=("height",)))[inner]
+    own = h[inner].astype(np.float64)
+    info = {k: v for k, v in info.items() if isinstance(v, (int, float, str)) and not k.endswith("_seconds")}
+    return TileOutput({"height": np.ascontiguousarray(h[inner]), "hillshade": shade},
+                      {"min": float(own.min()), "max": float(own.max()), "sum": float(own.sum()),
+                       "sum_sq": float(np.square(own).sum()), "cells": int(own.size), "cell_size_m": dx, "info": info})
+
+
+def run_tiled(ctx: RunContext, inputs: dict[str, Any], params: HeightmapParams) -> dict[str, Any]:
+    """run on a tiled world: each tile a task (height_tile); the same files."""
+    if params.window is not None:  # one window of the world: not split further
+        return run(ctx, inputs, params)
+    shape = world_shape(params, ctx.project_root)
+    ctx.progress(0.0, f"{params.generator} {shape[1]}x{shape[0]} cells in tiles of {ctx.tiles.tile_cells}")
+    dx = params.cell_size_m
+    if params.generator == "dem" and shape != (params.resolution, params.resolution):
+        dx = float(params.dem_cell_size_m or dem.dem_cell_size(ctx.resolve(params.dem_path)))
+    grids, parts = ctx.tiles.map(height_tile, "height", shape, {}, params,
+                                 grids={"height": ("height",), "hillshade": ("r", "g", "b")}, cell_size_m=dx)
+    cells = sum(p["cells"] for p in parts)
+    mean = sum(p["sum"] for p in parts) / cells
+    ctx.metrics.update(
+        height_min_m=min(p["min"] for p in parts), height_max_m=max(p["max"] for p in parts), height_mean_m=mean,
+        height_std_m=float(np.sqrt(max(0.0, sum(p["sum_sq"] for p in parts) / cells - mean * mean))), cells=cells,
+        cell_size_m=dx, **parts[0]["info"])
+    ctx.progress(1.0, "done")
+    return {"heightmap.height": grids["height"], "heightmap.hillshade": grids["hillshade"]}
+
+
 BYTES_PER_CELL = 48  # float32 height, float64 DEM resampling rows, hillshade RGB, the device band, the EXR write
 
 
@@ -276,6 +329,7 @@ STAGE = Stage(
     ),
     params=HeightmapParams,
     run=run,
+    run_tiled=run_tiled,
     check=check,
     report=(ReportMap("heightmap.height", "height", name="height", title="Height ({artifact})",
                       relief=Relief(hillshade, ("heightmap.height",), "height")),),

@@ -1,0 +1,316 @@
+"""Tiled runs: a stage's work on a world split into square tiles, each tile
+a task (on a Dask worker when the bake runs on Dask) and a unit in the store.
+
+A world's tiling is set by the config (`[tiling] tile_cells`), not by a
+stage: it is how the work is done, not what it makes, so it is in no key and
+a tiled bake writes the same files as an untiled one (a stage that runs
+tiled promises that; tests/pipeline/test_tiled_bake.py checks it).
+
+A stage that can run tiled declares `run_tiled` beside `run`. It gets its
+grid inputs as handles (GridFile: an input artifact's EXR, read by window)
+and a TileRunner (ctx.tiles) whose `map` runs one function on every tile:
+
+    height, summaries = ctx.tiles.map(height_tile, "height", shape, {}, params,
+                                      grids={"height": ("height",)})
+
+The function (a module-level function, so a Dask worker can import it) gets
+a TileContext (the tile, the seed, the OpenCL device), its inputs as
+handles it reads windows from (with whatever halo it needs), the params and
+a `shared` value (what an earlier global pass computed), and returns a
+TileOutput: tile-sized arrays and a small summary. The arrays stay in the
+tile's unit folder (build/units/<stage>/<unit key>/, .npy); map returns
+them as TileArrays handles, which later passes read windows of and the
+engine writes into the artifact's EXR tile by tile (pipeline.exr.GridWriter).
+The summaries (perimeter data, partial sums) come back to the stage's
+process, which holds only those: no process holds the whole world.
+
+A tile's unit key is the run's key, the pass name and the tile: a bake
+that stopped part way (a killed worker, a full disk) resumes from the tiles
+it finished.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from . import exr
+from .errors import StageError
+
+SUMMARY_ARRAYS = "summary.npz"  # a tile's summary arrays in its unit (the rest is the unit's JSON result)
+
+
+@dataclass(frozen=True)
+class Tile:
+    """One tile of a world grid: cells [row0, row0 + rows) x [col0, col0 + cols)."""
+
+    row: int  # the tile's place in the grid of tiles
+    col: int
+    row0: int
+    col0: int
+    rows: int
+    cols: int
+    world_shape: tuple[int, int]
+
+    @property
+    def name(self) -> str:
+        return f"y{self.row}x{self.col}"
+
+    def window(self, halo: int = 0) -> tuple[int, int, int, int]:
+        """(row0, col0, rows, cols) of the tile grown by `halo` cells on each
+        side, clipped to the world."""
+        r0, c0 = max(0, self.row0 - halo), max(0, self.col0 - halo)
+        r1 = min(self.world_shape[0], self.row0 + self.rows + halo)
+        c1 = min(self.world_shape[1], self.col0 + self.cols + halo)
+        return r0, c0, r1 - r0, c1 - c0
+
+    def inner(self, halo: int = 0) -> tuple[slice, slice]:
+        """Where the tile's own cells sit in an array of window(halo)."""
+        r0, c0, _, _ = self.window(halo)
+        return slice(self.row0 - r0, self.row0 - r0 + self.rows), slice(self.col0 - c0, self.col0 - c0 + self.cols)
+
+
+def tiles_of(shape: tuple[int, int], tile_cells: int) -> list[Tile]:
+    """The tiles of a rows x cols world, row by row (the last row and column
+    of tiles take what is left); tile_cells 0: one tile."""
+    rows, cols = int(shape[0]), int(shape[1])
+    t = int(tile_cells) or max(rows, cols)
+    return [Tile(i, j, r0, c0, min(t, rows - r0), min(t, cols - c0), (rows, cols))
+            for i, r0 in enumerate(range(0, rows, t)) for j, c0 in enumerate(range(0, cols, t))]
+
+
+class GridFile:
+    """An input grid artifact read by window (pipeline.exr.read_window), not whole."""
+
+    def __init__(self, path: Path | str):
+        self.path = Path(path)
+        info = exr.grid_info(self.path)
+        self.shape, self.channels = info.shape, info.channels
+        self.cell_size_m, self.origin_m = info.cell_size_m, info.origin_m
+
+    def read(self, row0: int, col0: int, rows: int, cols: int, channel: str | None = None) -> np.ndarray:
+        data = exr.read_window(self.path, row0, col0, rows, cols)
+        return data.channel(channel) if channel is not None else data.data
+
+    def read_tile(self, tile: Tile, halo: int = 0, channel: str | None = None) -> np.ndarray:
+        return self.read(*tile.window(halo), channel=channel)
+
+
+class TileArrays:
+    """A grid held as one .npy per tile (the output of a TileRunner.map pass),
+    read by window across tiles without loading the others."""
+
+    def __init__(self, name: str, shape: tuple[int, int], channels: tuple[str, ...], cell_size_m: float,
+                 origin_m: tuple[float, float], tile_cells: int, files: dict[tuple[int, int], str]):
+        self.name, self.shape, self.channels = name, tuple(shape), tuple(channels)
+        self.cell_size_m, self.origin_m = cell_size_m, tuple(origin_m)
+        self.tile_cells, self.files = int(tile_cells) or max(shape), dict(files)
+
+    def tiles(self) -> list[Tile]:
+        return tiles_of(self.shape, self.tile_cells)
+
+    def tile_array(self, tile: Tile) -> np.ndarray:
+        return np.load(self.files[(tile.row, tile.col)], mmap_mode="r")
+
+    def read(self, row0: int, col0: int, rows: int, cols: int, channel: str | None = None) -> np.ndarray:
+        t = self.tile_cells
+        out = None
+        for i in range(row0 // t, (row0 + rows - 1) // t + 1):
+            for j in range(col0 // t, (col0 + cols - 1) // t + 1):
+                part = np.load(self.files[(i, j)], mmap_mode="r")
+                r0, c0 = max(row0, i * t), max(col0, j * t)
+                r1, c1 = min(row0 + rows, i * t + part.shape[0]), min(col0 + cols, j * t + part.shape[1])
+                if out is None:
+                    out = np.empty((rows, cols) + part.shape[2:], part.dtype)
+                out[r0 - row0:r1 - row0, c0 - col0:c1 - col0] = part[r0 - i * t:r1 - i * t, c0 - j * t:c1 - j * t]
+        if channel is not None and out.ndim == 3:
+            return out[:, :, self.channels.index(channel)]
+        return out
+
+    def read_tile(self, tile: Tile, halo: int = 0, channel: str | None = None) -> np.ndarray:
+        return self.read(*tile.window(halo), channel=channel)
+
+
+@dataclass
+class TileContext:
+    """What a per-tile function may use besides its inputs and params."""
+
+    tile: Tile
+    seed: int
+    stage: str
+    project_root: Path
+    cl: Any = None  # the OpenCL device of the process running the tile (each Dask worker its own)
+
+
+@dataclass
+class TileOutput:
+    """A tile's result: arrays of the tile's own cells (no halo) and a small
+    summary for the stage's process (JSON values, and numpy arrays)."""
+
+    grids: dict[str, np.ndarray] = field(default_factory=dict)
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+def _in_dask_worker() -> bool:
+    try:
+        from distributed import get_worker
+
+        get_worker()
+        return True
+    except (ImportError, ValueError):
+        return False
+
+
+@dataclass(frozen=True)
+class _TileJob:
+    """Everything one tile task needs, picklable: no open files, no device."""
+
+    fn: Callable
+    pass_name: str
+    tile: Tile
+    inputs: dict[str, Any]
+    params: Any
+    shared: Any
+    seed: int
+    stage: str
+    uses_opencl: bool
+    project_root: str
+    unit_root: str | None
+    unit_tmp: str | None
+    work: str
+    code_material: dict
+    run_key: str
+
+
+def _split_summary(summary: dict[str, Any]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    arrays = {k: v for k, v in summary.items() if isinstance(v, np.ndarray)}
+    return arrays, {k: v for k, v in summary.items() if k not in arrays}
+
+
+def _run_tile(job: _TileJob) -> tuple[dict[str, str], dict[str, Any], float]:
+    """One tile: restored from its unit, or run and kept as a unit. Returns
+    the files of its grids, its summary and the seconds it took (0 reused)."""
+    from .units import Units
+
+    units = Units(Path(job.unit_root) if job.unit_root else None, Path(job.unit_tmp) if job.unit_tmp else None,
+                  job.stage, job.code_material)
+    unit = units.unit(f"{job.pass_name}-{job.tile.name}",
+                      {"run": job.run_key, "pass": job.pass_name, "tile": [job.tile.row0, job.tile.col0,
+                                                                           job.tile.rows, job.tile.cols]})
+    work = Path(job.work) / job.pass_name / job.tile.name
+    saved = unit.restore(work) if unit.folder is not None else None
+    if saved is not None:
+        return _files_and_summary(unit.folder, saved)
+    t0 = time.perf_counter()
+    cl = None
+    if job.uses_opencl:
+        from .opencl import get_cl
+
+        cl = get_cl()
+    tctx = TileContext(job.tile, job.seed, job.stage, Path(job.project_root), cl)
+    out = job.fn(tctx, job.inputs, job.params, job.shared)
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    files = []
+    for name, arr in out.grids.items():
+        arr = np.asarray(arr)
+        if arr.shape[:2] != (job.tile.rows, job.tile.cols):
+            raise StageError(f"stage {job.stage}: pass {job.pass_name} tile {job.tile.name}: grid {name} has shape "
+                             f"{arr.shape}, the tile is {job.tile.rows} x {job.tile.cols}")
+        np.save(work / f"{name}.npy", np.ascontiguousarray(arr), allow_pickle=False)
+        files.append(f"{name}.npy")
+    arrays, values = _split_summary(out.summary)
+    if arrays:
+        np.savez(work / SUMMARY_ARRAYS, **arrays)
+        files.append(SUMMARY_ARRAYS)
+    result = {"grids": sorted(out.grids), "summary": values}
+    seconds = time.perf_counter() - t0
+    unit.save(work, files, result, {"seconds": round(seconds, 4)})
+    folder = unit.folder if unit.folder is not None and unit.folder.is_dir() else work
+    files_out, summary, _ = _files_and_summary(folder, result)
+    return files_out, summary, seconds
+
+
+def _files_and_summary(folder: Path, result: dict) -> tuple[dict[str, str], dict[str, Any], float]:
+    files = {name: str(folder / f"{name}.npy") for name in result["grids"]}
+    summary = dict(result["summary"])
+    if (folder / SUMMARY_ARRAYS).is_file():
+        with np.load(folder / SUMMARY_ARRAYS, allow_pickle=False) as z:
+            summary.update({k: z[k] for k in z.files})
+    return files, summary, 0.0
+
+
+class TileRunner:
+    """Runs a per-tile function on every tile of a world (ctx.tiles of a
+    tiled run): in this process one tile after another, or, inside a Dask
+    worker, as Dask tasks of the same cluster."""
+
+    def __init__(self, tile_cells: int, *, stage: Any, run_key: str, seed: int, project_root: Path,
+                 units: Any, work: Path, progress: Callable[[float, str], None] = lambda f, m: None):
+        self.tile_cells = int(tile_cells)
+        self.stage, self.run_key, self.seed, self.project_root = stage, run_key, seed, Path(project_root)
+        self.units, self.work, self.progress = units, Path(work), progress
+        self.passes: list[dict[str, Any]] = []  # per pass: tiles, reused, seconds (the run's metrics)
+
+    def tiles(self, shape: tuple[int, int]) -> list[Tile]:
+        return tiles_of(shape, self.tile_cells)
+
+    def map(self, fn: Callable, pass_name: str, shape: tuple[int, int], inputs: dict[str, Any], params: Any,
+            shared: Any = None, *, grids: dict[str, tuple[str, ...]] | None = None, cell_size_m: float = 1.0,
+            origin_m: tuple[float, float] = (0.0, 0.0)) -> tuple[dict[str, TileArrays], list[dict[str, Any]]]:
+        """fn(TileContext, inputs, params, shared) -> TileOutput on every tile
+        of a `shape` world. grids: the arrays fn returns, name -> channels.
+        Returns the grids as TileArrays and the tiles' summaries in tile order."""
+        tiles = self.tiles(shape)
+        root = self.units.root if self.units is not None else None
+        tmp = self.units.tmp if self.units is not None else None
+        code = self.units.code_material if self.units is not None else {"stage": self.stage.name}
+        jobs = [_TileJob(fn, pass_name, t, inputs, params, shared, self.seed, self.stage.name,
+                         self.stage.uses_opencl, str(self.project_root), str(root) if root else None,
+                         str(tmp) if tmp else None, str(self.work), code, self.run_key) for t in tiles]
+        t0 = time.perf_counter()
+        results = self._dask(jobs) if _in_dask_worker() else self._local(jobs, pass_name)
+        for job in jobs:  # the unit keys the run used (its manifest keeps them from gc)
+            if self.units is not None:
+                self.units.unit(f"{pass_name}-{job.tile.name}", {"run": self.run_key, "pass": pass_name, "tile": [
+                    job.tile.row0, job.tile.col0, job.tile.rows, job.tile.cols]})
+        self.passes.append({"pass": pass_name, "tiles": len(tiles),
+                            "reused": sum(1 for _, _, s in results if s == 0.0),
+                            "tile_seconds": round(sum(s for _, _, s in results), 3),
+                            "wall_s": round(time.perf_counter() - t0, 3)})
+        out = {name: TileArrays(name, shape, chans, cell_size_m, origin_m, self.tile_cells,
+                                {(t.row, t.col): files[name] for t, (files, _, _) in zip(tiles, results)})
+               for name, chans in (grids or {}).items()}
+        return out, [summary for _, summary, _ in results]
+
+    def _local(self, jobs: list[_TileJob], pass_name: str) -> list:
+        results = []
+        for i, job in enumerate(jobs):
+            self.progress(i / len(jobs), f"{pass_name}: tile {job.tile.name} ({i + 1} of {len(jobs)})")
+            results.append(_run_tile(job))
+        return results
+
+    def _dask(self, jobs: list[_TileJob]) -> list:
+        from distributed import worker_client
+
+        with worker_client() as client:  # this task leaves its slot to the tiles while it waits
+            futures = client.map(_run_tile, jobs, pure=False,
+                                 key=[f"{self.stage.name}-{self.run_key}-{j.pass_name}-{j.tile.name}" for j in jobs])
+            return client.gather(futures)
+
+
+def tiled_metrics(runner: TileRunner) -> dict[str, Any]:
+    """What a tiled run reports of its tiling (the run's metrics)."""
+    return {"tile_cells": runner.tile_cells, "passes": runner.passes, "pid": os.getpid()}
+
+
+def summary_json(summary: dict[str, Any]) -> str:
+    """A summary as canonical text (for tests and diagnostics)."""
+    return json.dumps({k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in summary.items()},
+                      sort_keys=True)
