@@ -219,7 +219,8 @@ def check_world(graph: Graph, config: WorldConfig) -> dict[str, Check]:
     for ps in plan_bake(graph, config):
         stage = ps.stage
         inputs = {role: sizes[art] for role, (art, _) in ps.inputs.items() if art in sizes}
-        ctx = CheckContext(seed=config.seed, project_root=config.project_root, inputs=inputs)
+        ctx = CheckContext(seed=config.seed, project_root=config.project_root, inputs=inputs,
+                           tile_cells=config.tile_cells if stage.run_tiled is not None else 0)
         params = config.params[stage.name]
         result = Check()
         if stage.check is not None:

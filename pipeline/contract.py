@@ -371,6 +371,7 @@ class CheckContext:
     seed: int
     project_root: Path
     inputs: dict[str, GridInfo]  # role -> size of each grid input the plan gives it
+    tile_cells: int = 0  # the world tile a run_tiled stage holds at once ([tiling]); 0: it runs whole
 
     def resolve(self, project_path: str) -> Path:
         return self.project_root / project_path

@@ -277,14 +277,24 @@ def run_tiled(ctx: RunContext, inputs: dict[str, Any], params: HeightmapParams) 
 BYTES_PER_CELL = 48  # float32 height, float64 DEM resampling rows, hillshade RGB, the device band, the EXR write
 
 
+def _held(rows: int, cols: int, tile_cells: int) -> tuple[int, int]:
+    """The cells a run holds at once: the world, or a tile and its halo."""
+    return (min(rows, tile_cells + 2), min(cols, tile_cells + 2)) if tile_cells else (rows, cols)
+
+
+def _tiled(ctx: CheckContext) -> str:
+    return f" (a tile of tiling.tile_cells = {ctx.tile_cells} and its halo)" if ctx.tile_cells else ""
+
+
 def check(params: HeightmapParams, ctx: CheckContext) -> Check:
     """The grid it will write; an imported DEM checked now from its header
     and a bounded read (dem.scan_raster: its size, shape, cell size, NaN and
     the range of its heights), so a bad file is named before any stage runs."""
     res = params.resolution
     cols, rows = (params.window[2], params.window[3]) if params.window else (res, res)
-    memory = BYTES_PER_CELL * rows * cols
-    how = f"heightmap.resolution = {res}: {rows} x {cols} cells x {BYTES_PER_CELL} B"
+    held = _held(rows, cols, ctx.tile_cells if params.window is None else 0)
+    memory = BYTES_PER_CELL * held[0] * held[1]
+    how = f"heightmap.resolution = {res}: {held[0]} x {held[1]} cells{_tiled(ctx)} x {BYTES_PER_CELL} B"
     grid = GridInfo((rows, cols), params.size_m / res, "heightmap.resolution")
     if params.generator == "dem":
         path = ctx.resolve(params.dem_path)
@@ -303,8 +313,9 @@ def check(params: HeightmapParams, ctx: CheckContext) -> Check:
                                                f"{src.shape[1]} x {src.shape[0]} cells")
             else:
                 rows, cols = src.shape
-            memory = BYTES_PER_CELL * rows * cols
-            how = f"heightmap.dem_path: {rows} x {cols} cells x {BYTES_PER_CELL} B"
+            held = _held(rows, cols, ctx.tile_cells if params.window is None else 0)
+            memory = BYTES_PER_CELL * held[0] * held[1]
+            how = f"heightmap.dem_path: {held[0]} x {held[1]} cells{_tiled(ctx)} x {BYTES_PER_CELL} B"
             grid = GridInfo((rows, cols), float(cell), "heightmap.dem_path")
         memory += 16 * src.size
         how += f" + the DEM's {src.shape[1]} x {src.shape[0]} pixels x 16 B"

@@ -1,0 +1,151 @@
+"""Tiled runs ([tiling] tile_cells, pipeline.tiles): a tiled bake writes the
+same files as the untiled bake of the same config, under the same keys, in
+this process and on Dask; its tiles are store units a later run resumes
+from; bad tilings are refused before any stage runs."""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline import exr
+from pipeline.tiles import GridFile, TileArrays, tiles_of
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture
+def project(tmp_path):
+    shutil.copytree(REPO / "configs", tmp_path / "configs")
+    return tmp_path
+
+
+def bake(project: Path, build: str, *sets: str, executor: str = "local", check: bool = True):
+    cmd = [sys.executable, "-m", "pipeline.cli", "--build", build, "bake", "configs/default.toml", "--json",
+           "--executor", executor, "--set", 'outputs=["heightmap"]', *[a for s in sets for a in ("--set", s)]]
+    proc = subprocess.run(cmd, cwd=project, capture_output=True, text=True, env={**os.environ, "WORLDBAKE_REPORT": "0"})
+    if check:
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc
+
+
+def stage_files(build: Path, stage: str) -> dict[str, str]:
+    """Every file of the stage's run but its manifest (a run record), by sha256."""
+    (folder,) = (build / "artifacts" / stage).iterdir()
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir())
+            if p.name != "manifest.json"}
+
+
+def manifest(build: Path, stage: str) -> dict:
+    (folder,) = (build / "artifacts" / stage).iterdir()
+    return json.loads((folder / "manifest.json").read_text())
+
+
+def test_tiles_cover_the_world_once():
+    for shape, t in (((640, 384), 256), ((512, 512), 256), ((100, 700), 256), ((300, 300), 0)):
+        seen = np.zeros(shape, int)
+        for tile in tiles_of(shape, t):
+            seen[tile.row0:tile.row0 + tile.rows, tile.col0:tile.col0 + tile.cols] += 1
+            r0, c0, rows, cols = tile.window(3)
+            assert r0 >= 0 and c0 >= 0 and r0 + rows <= shape[0] and c0 + cols <= shape[1]
+            inner = tile.inner(3)
+            assert (inner[0].stop - inner[0].start, inner[1].stop - inner[1].start) == (tile.rows, tile.cols)
+        assert (seen == 1).all()
+
+
+def test_tile_arrays_read_windows_across_tiles(tmp_path):
+    shape, t = (600, 520), 256
+    whole = np.random.default_rng(3).random(shape).astype(np.float32)
+    files = {}
+    for tile in tiles_of(shape, t):
+        path = tmp_path / f"{tile.name}.npy"
+        np.save(path, whole[tile.row0:tile.row0 + tile.rows, tile.col0:tile.col0 + tile.cols])
+        files[(tile.row, tile.col)] = str(path)
+    arrays = TileArrays("h", shape, ("height",), 8.0, (0.0, 0.0), t, files)
+    for window in ((0, 0, 600, 520), (250, 250, 10, 10), (255, 1, 300, 519), (599, 519, 1, 1)):
+        r0, c0, rows, cols = window
+        assert np.array_equal(arrays.read(*window), whole[r0:r0 + rows, c0:c0 + cols])
+
+
+@pytest.mark.parametrize("resolution, tile_cells", [(512, 256), (640, 256)])
+def test_a_tiled_heightmap_is_the_untiled_one_byte_for_byte(project, resolution, tile_cells):
+    """4 tiles, and 3 x 3 tiles whose last row and column are part tiles."""
+    res = f"heightmap.resolution={resolution}"
+    whole = bake(project, "b_whole", res)
+    tiled = bake(project, "b_tiled", res, f"tiling.tile_cells={tile_cells}")
+    key = lambda p: json.loads(p.stdout)[0]["steps"][0]["key"]
+    assert key(whole) == key(tiled)  # the tiling is how the work is done, not what it makes: in no key
+    assert stage_files(project / "b_whole", "heightmap") == stage_files(project / "b_tiled", "heightmap")
+    m = manifest(project / "b_tiled", "heightmap")
+    n = (-(-resolution // tile_cells)) ** 2
+    assert m["metrics"]["tiling"]["passes"][0]["tiles"] == n and len(m["units"]) == n
+    assert "tiling" not in manifest(project / "b_whole", "heightmap")["metrics"]
+    for name in ("height_min_m", "height_max_m"):
+        assert m["metrics"][name] == manifest(project / "b_whole", "heightmap")["metrics"][name]
+    info = exr.grid_info(next((project / "b_tiled" / "artifacts" / "heightmap").glob("*/height.exr")))
+    assert info.shape == (resolution, resolution) and info.tile == exr.TILE
+
+
+def test_a_tiled_bake_on_dask_is_the_local_one(project):
+    local = bake(project, "b_local", "heightmap.resolution=512")
+    dask = bake(project, "b_dask", "heightmap.resolution=512", "tiling.tile_cells=256", executor="dask")
+    assert json.loads(local.stdout)[0]["steps"][0]["key"] == json.loads(dask.stdout)[0]["steps"][0]["key"]
+    assert stage_files(project / "b_local", "heightmap") == stage_files(project / "b_dask", "heightmap")
+
+
+def test_a_stopped_tiled_bake_resumes_from_its_tiles(project):
+    """The run's tiles are units: with the run itself gone (a bake killed
+    before its rename), the next bake reuses every tile and writes the same files."""
+    bake(project, "b", "heightmap.resolution=512", "tiling.tile_cells=256")
+    before = stage_files(project / "b", "heightmap")
+    shutil.rmtree(project / "b" / "artifacts" / "heightmap")
+    bake(project, "b", "heightmap.resolution=512", "tiling.tile_cells=256")
+    assert stage_files(project / "b", "heightmap") == before
+    (p,) = manifest(project / "b", "heightmap")["metrics"]["tiling"]["passes"]
+    assert p["reused"] == p["tiles"] == 4
+
+
+def test_tiled_inputs_are_read_by_window(tmp_path):
+    grid = np.arange(700 * 300, dtype=np.float32).reshape(700, 300)
+    from pipeline.grid import Grid
+
+    exr.write_grid(tmp_path / "g.exr", Grid(grid, 2.0))
+    g = GridFile(tmp_path / "g.exr")
+    assert g.shape == (700, 300) and g.cell_size_m == 2.0
+    tile = tiles_of(g.shape, 256)[4]  # the middle of the second row of tiles
+    r0, c0, rows, cols = tile.window(2)
+    assert np.array_equal(g.read_tile(tile, 2), grid[r0:r0 + rows, c0:c0 + cols])
+
+
+@pytest.mark.parametrize("value, why", [("100", "multiple of 256"), ("-256", "multiple of 256"),
+                                        ('"big"', "multiple of 256"), ("true", "multiple of 256")])
+def test_a_bad_tiling_is_refused_before_any_stage_runs(project, value, why):
+    proc = bake(project, "b", f"tiling.tile_cells={value}", check=False)
+    assert proc.returncode == 2 and "tiling.tile_cells" in proc.stderr and why in proc.stderr
+    assert not (project / "b" / "artifacts").exists()
+
+
+def test_an_unknown_tiling_key_is_named(project):
+    proc = bake(project, "b", "tiling.tile_size=256", check=False)
+    assert proc.returncode == 2 and "tiling.tile_size: unknown key" in proc.stderr
+
+
+def test_a_tiled_run_is_checked_for_the_memory_of_a_tile(project):
+    """A world too large to hold whole is refused untiled, and baked in tiles."""
+    big = ("heightmap.resolution=2048",)
+    env_limit = {"WORLDBAKE_MAX_MEMORY_GB": "0.1"}  # 2048^2 x 48 B = 0.19 GiB; a tile of 256 and its halo: 3 MiB
+    cmd = [sys.executable, "-m", "pipeline.cli", "--build", "b", "bake", "configs/default.toml",
+           "--set", 'outputs=["heightmap"]', "--set", big[0]]
+    env = {**os.environ, "WORLDBAKE_REPORT": "0", **env_limit}
+    refused = subprocess.run(cmd, cwd=project, capture_output=True, text=True, env=env)
+    assert refused.returncode == 2 and "heightmap.resolution" in refused.stderr
+    tiled = subprocess.run(cmd + ["--set", "tiling.tile_cells=256"], cwd=project, capture_output=True, text=True,
+                           env=env)
+    assert tiled.returncode == 0, tiled.stderr[-2000:]
