@@ -85,6 +85,16 @@ def tiles_of(shape: tuple[int, int], tile_cells: int) -> list[Tile]:
             for i, r0 in enumerate(range(0, rows, t)) for j, c0 in enumerate(range(0, cols, t))]
 
 
+def _padded(source, tile: Tile, halo: int, fill: float, channel: str | None) -> np.ndarray:
+    """A tile and `halo` cells around it, `fill` beyond the world's border."""
+    r0, c0, rows, cols = tile.window(halo)
+    part = source.read(r0, c0, rows, cols, channel=channel)
+    out = np.full((tile.rows + 2 * halo, tile.cols + 2 * halo) + part.shape[2:], fill, part.dtype)
+    top, left = r0 - (tile.row0 - halo), c0 - (tile.col0 - halo)
+    out[top:top + rows, left:left + cols] = part
+    return out
+
+
 class GridFile:
     """An input grid artifact read by window (pipeline.exr.read_window), not whole."""
 
@@ -100,6 +110,10 @@ class GridFile:
 
     def read_tile(self, tile: Tile, halo: int = 0, channel: str | None = None) -> np.ndarray:
         return self.read(*tile.window(halo), channel=channel)
+
+    def read_padded(self, tile: Tile, halo: int, fill: float = np.nan, channel: str | None = None) -> np.ndarray:
+        """The tile with `halo` cells on every side, `fill` beyond the world."""
+        return _padded(self, tile, halo, fill, channel)
 
 
 class TileArrays:
@@ -135,6 +149,10 @@ class TileArrays:
 
     def read_tile(self, tile: Tile, halo: int = 0, channel: str | None = None) -> np.ndarray:
         return self.read(*tile.window(halo), channel=channel)
+
+    def read_padded(self, tile: Tile, halo: int, fill: float = np.nan, channel: str | None = None) -> np.ndarray:
+        """The tile with `halo` cells on every side, `fill` beyond the world."""
+        return _padded(self, tile, halo, fill, channel)
 
 
 @dataclass

@@ -36,7 +36,9 @@ import numpy as np
 from pipeline.contract import (Artifact, Check, CheckContext, DrawnMap, Input, Param, ParamError, Params, ProjectPath,
                                Relief, ReportMap, ReportTable, RunContext, Stage, ValueRange)
 from pipeline.errors import InputError, StageError
+from pipeline import exr
 from pipeline.grid import Grid
+from pipeline.tiles import GridFile
 from worldlib.terrain import TERRAIN_SOURCES
 from worldlib.terrain.hillshade import hillshade
 from worldlib.terrain.stats import terrain_statistics
@@ -49,8 +51,9 @@ from . import water_layer
 from .grids import output_grids
 from .moisture import wetness_and_moisture
 from .report_water import draw_water, width_tables
-from .routing import (SECONDS_PER_YEAR, Land, Timings, condition, discharge_m3_s, flow_directions, land_of,
-                      rain_m_per_year, wetness_area)
+from .routing import (SECONDS_PER_YEAR, Flow, Land, Surfaces, Timings, condition, discharge_m3_s, flow_directions,
+                      land_of, rain_m_per_year, wetness_area)
+from . import tiled
 
 __all__ = ["SECONDS_PER_YEAR", "STAGE", "HydrologyParams", "rain_from_map", "run", "check"]
 # Channel heads: 0.1 km^2. Source areas measured at channel heads in steep soil-mantled land reach 1e2 .. 1e5
@@ -146,13 +149,41 @@ def rain_from_map(path: Path, rows: int, cols: int) -> np.ndarray:
 
 
 def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dict[str, Any]:
-    t_all = time.perf_counter()
+    return _run(ctx, inputs, params)
+
+
+def run_tiled(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dict[str, Any]:
+    """run on a tiled world: with depression = fill, steps 1 to 3 per tile
+    (tiled.py, the same values); the steps after them still hold the world."""
+    whole = {role: exr.read_grid(v.path) if isinstance(v, GridFile) else v for role, v in inputs.items()}
+    if params.depression != "fill":
+        ctx.metrics["tiled_steps"] = "none: breaching (depression = breach) is serial; the stage ran whole"
+        return _run(ctx, whole, params)
     T = Timings()
+    with T.lap("tiled_flow_s"):
+        core = tiled.flow_core(ctx.tiles, inputs["terrain"], params, lambda f, m: ctx.progress(0.3 * f, m))
+    ctx.metrics["tiled_steps"] = f"fill, routing surface ({core['rounds']} rounds), directions, accumulation"
+    return _run(ctx, whole, params, core, T)
+
+
+def _surfaces_and_flow(ctx: RunContext, land: Land, params: HydrologyParams, T: Timings, core: dict | None):
+    """Steps 1 to 3 on the whole world, or the tiled run's results read whole."""
+    if core is None:
+        ctx.progress(0.0, "depressions")
+        surfaces = condition(ctx.cl, land, params.depression, T)
+        ctx.progress(0.25, "flow directions")
+        return surfaces, flow_directions(ctx.cl, land, surfaces.routing, T)
+    whole = {k: core[k].read(0, 0, *land.shape) for k in ("filled", "routing", "code", "counts")}
+    surfaces = Surfaces(whole["filled"], whole["routing"], {"tiled_routing_rounds": core["rounds"]})
+    return surfaces, Flow(whole["code"], whole["counts"].astype(np.float64) * land.cell_area, land.n_data)
+
+
+def _run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams, core: dict | None = None,
+         T: Timings | None = None) -> dict[str, Any]:
+    t_all = time.perf_counter()
+    T = T if T is not None else Timings()
     land = land_of(inputs["terrain"])
-    ctx.progress(0.0, "depressions")
-    surfaces = condition(ctx.cl, land, params.depression, T)
-    ctx.progress(0.25, "flow directions")
-    flow = flow_directions(ctx.cl, land, surfaces.routing, T)
+    surfaces, flow = _surfaces_and_flow(ctx, land, params, T, core)
     rain = _rain(ctx, land, params)
     discharge = discharge_m3_s(ctx.cl, land, flow, rain, params, T)
     twi_area = _wetness_area(ctx, land, surfaces, flow, params, T)
@@ -181,7 +212,8 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
     stats = _stats(land, surfaces, flow, discharge, lakes.stats, {**riv.stats, **water.stats}, hack, uinfo,
                    terrain_stats)
     stats.update(_climate(land, rain, params), river_width_by_area=width_table)
-    ctx.metrics.update(stats, timings=dict(T))
+    # how the fill ran (its kernel's passes, or the tiled rounds): the run's, not the content's
+    ctx.metrics.update(stats, timings=dict(T), fill_run=surfaces.fill_stats)
     out["hydrology.stats"] = stats
     ctx.progress(1.0, "done")
     return out
@@ -245,8 +277,7 @@ def _stats(land: Land, surfaces, flow, discharge: np.ndarray, lstats: dict, rive
     cell_area, n_data = land.cell_area, land.n_data
     stats = {
         "cells": int(rows * cols), "data_cells": n_data, "cell_size_m": land.dx,
-        "depression_cells": int((surfaces.filled > land.h).sum()), "fill_passes": surfaces.fill_stats.get("passes"),
-        "fill_tiles_run": surfaces.fill_stats.get("tiles_run"), "total_area_m2": float(n_data * cell_area),
+        "depression_cells": int((surfaces.filled > land.h).sum()), "total_area_m2": float(n_data * cell_area),
         "outlet_area_m2": float(flow.outlet_total * cell_area),
         "discharge_out_m3_s": float(discharge[land.kind == ref.EDGE].sum()),
         **{f"lake_{k_}" if not k_.startswith("lake") else k_: v for k_, v in lstats.items()},
@@ -324,6 +355,7 @@ STAGE = Stage(
     ),
     params=HydrologyParams,
     run=run,
+    run_tiled=run_tiled,
     check=check,
     report=(DrawnMap("water", "Rivers and lakes (as in the USD)", draw_water, Relief(hillshade, TERRAIN_SOURCES, "height")),
             ReportTable("River width against drainage area", width_tables),

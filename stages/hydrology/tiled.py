@@ -1,0 +1,148 @@
+"""The stage's steps 1 to 3 on a tiled world (pipeline.tiles), each tile a
+task: the plain fill in Barnes' (2016) three passes, the epsilon-filled
+routing surface in rounds of neighbour perimeters, D8 directions from a
+one-cell halo, and D8 accumulation in Barnes' (2017) three passes
+(worldlib.flow.tiled_fill, tiled_accum). Every result is bitwise the
+untiled one (routing.condition with depression = fill, flow_directions).
+The stage's process holds only the perimeters and the tiles' summaries.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from pipeline.errors import StageError
+from pipeline.tiles import TileOutput
+from worldlib.flow import reference as ref
+from worldlib.flow import tiled_accum as ta
+from worldlib.flow import tiled_fill as tf
+
+MAX_EPS_ROUNDS = 10_000
+
+
+def _heights(tctx, terrain) -> tuple[np.ndarray, np.ndarray]:
+    """The tile's canonical heights (NaN on no-data) and kinds."""
+    halo = ref.canonical(terrain.read_padded(tctx.tile, 1, channel=terrain.channels[0]))
+    kind = tf.tile_kind(halo)
+    h = np.ascontiguousarray(halo[1:-1, 1:-1])
+    h[kind == ref.NODATA] = np.nan
+    return h, kind
+
+
+def fill_local(tctx, inputs: dict[str, Any], params, shared) -> TileOutput:
+    """Barnes 2016 pass 1: the tile filled with its perimeter open, its watersheds and perimeter."""
+    h, kind = _heights(tctx, inputs["terrain"])
+    t = tf.fill_tile(h, kind, tctx.cl)
+    p = t.perimeter
+    summary = {f"{side}_{what}": arr for side, pair in zip(("top", "bottom", "left", "right"),
+                                                          (p.top, p.bottom, p.left, p.right))
+               for what, arr in zip(("z", "label"), pair)}
+    summary.update(n_labels=int(p.n_labels), spill_a=p.spill[0], spill_b=p.spill[1], spill_z=p.spill[2])
+    return TileOutput({"local": t.filled, "labels": t.labels.astype(np.int32)}, summary)
+
+
+def _perimeter(s: dict) -> tf.Perimeter:
+    sides = [(s[f"{side}_z"], s[f"{side}_label"]) for side in ("top", "bottom", "left", "right")]
+    return tf.Perimeter(*sides, int(s["n_labels"]), (s["spill_a"], s["spill_b"], s["spill_z"]))
+
+
+def fill_finish(tctx, inputs: dict[str, Any], params, levels: dict) -> TileOutput:
+    """Barnes 2016 pass 3: max(the tile-local fill, its watershed's level)."""
+    local = np.asarray(inputs["local"].tile_array(tctx.tile))
+    labels = np.asarray(inputs["labels"].tile_array(tctx.tile))
+    return TileOutput({"filled": tf.finish_tile(local, labels, levels[tctx.tile.name])})
+
+
+def eps_round(tctx, inputs: dict[str, Any], params, shared: dict) -> TileOutput:
+    """One round of the epsilon fill: the tile with its neighbours' values
+    of the round before as outlets (inf: not yet known). A tile whose ring
+    cannot have changed keeps its value."""
+    h, kind = _heights(tctx, inputs["terrain"])
+    before = inputs.get("routing")
+    if before is not None and tctx.tile.name not in shared["active"]:
+        return TileOutput({"routing": np.array(before.tile_array(tctx.tile))}, {"changed": False})
+    if before is None:  # round 1: every neighbour value unknown
+        ring = np.full((h.shape[0] + 2, h.shape[1] + 2), np.inf, np.float32)
+        known = inputs["terrain"].read_padded(tctx.tile, 1, channel=inputs["terrain"].channels[0])
+        ring[~np.isfinite(ref.canonical(known))] = np.nan
+        old = np.where(np.isnan(h), np.float32(np.nan), np.float32(np.inf))
+    else:
+        ring = before.read_padded(tctx.tile, 1)
+        old = ring[1:-1, 1:-1]
+    new = tf.eps_round_tile(h, kind, ring, tctx.cl)
+    changed = not np.array_equal(new, old, equal_nan=True)
+    return TileOutput({"routing": new}, {"changed": changed})
+
+
+def directions(tctx, inputs: dict[str, Any], params, dx: float) -> TileOutput:
+    """D8 on the routing surface from a one-cell halo (kinds from the terrain's)."""
+    z = inputs["routing"].read_padded(tctx.tile, 1)
+    _, kind = _heights(tctx, inputs["terrain"])
+    code = ta.tile_d8(z, kind, dx, tctx.cl)
+    return TileOutput({"code": code}, {"pits": int((code == ref.PIT).sum())})
+
+
+def accumulate_local(tctx, inputs: dict[str, Any], params, shared) -> TileOutput:
+    """Barnes 2017 pass 1: where each perimeter cell's path leaves the tile, and its local sum."""
+    code = np.asarray(inputs["code"].tile_array(tctx.tile))
+    p = ta.accumulate_tile(code, (tctx.tile.row0, tctx.tile.col0), None, tctx.cl)
+    return TileOutput({}, {"code": p.code, "exit": p.exit, "local_sum": p.local_sum})
+
+
+def accumulate_finish(tctx, inputs: dict[str, Any], params, inflow: dict) -> TileOutput:
+    """Barnes 2017 pass 3: the tile's accumulation with the inflow from other tiles."""
+    code = np.asarray(inputs["code"].tile_array(tctx.tile))
+    counts = ta.finish_tile(code, inflow[tctx.tile.name], None, tctx.cl)
+    _, kind = _heights(tctx, inputs["terrain"])
+    return TileOutput({"counts": counts}, {"outlet_cells": int(counts[kind == ref.EDGE].astype(np.int64).sum()),
+                                           "data_cells": int((kind != ref.NODATA).sum())})
+
+
+def _grid_of(tiles, values: list) -> list[list]:
+    rows = max(t.row for t in tiles) + 1
+    return [[v for t, v in zip(tiles, values) if t.row == i] for i in range(rows)]
+
+
+def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, Any]:
+    """filled, routing, code and counts of the whole world as TileArrays."""
+    shape, dx = terrain.shape, terrain.cell_size_m
+    tiles = runner.tiles(shape)
+    geo = {"cell_size_m": dx, "origin_m": terrain.origin_m}
+    progress(0.0, "fill: tiles")
+    local, parts = runner.map(fill_local, "fill", shape, {"terrain": terrain}, params,
+                              grids={"local": ("filled",), "labels": ("label",)}, **geo)
+    levels = tf.solve_levels(_grid_of(tiles, [_perimeter(s) for s in parts]))
+    by_name = {t.name: lv for t, lv in zip(tiles, [lv for row in levels for lv in row])}
+    filled, _ = runner.map(fill_finish, "filled", shape, dict(local), params, by_name,
+                           grids={"filled": ("filled",)}, **geo)
+    routing, active = None, {t.name for t in tiles}
+    for rnd in range(1, MAX_EPS_ROUNDS + 1):
+        progress(0.02, f"routing surface: round {rnd}, {len(active)} tiles")
+        ins = {"terrain": terrain, **({"routing": routing} if routing is not None else {})}
+        routing_now, parts = runner.map(eps_round, f"routing{rnd}", shape, ins, params, {"active": sorted(active)},
+                                        grids={"routing": ("routing",)}, **geo)
+        routing = routing_now["routing"]
+        changed = {t.name for t, s in zip(tiles, parts) if s["changed"]}
+        if not changed:
+            break
+        active = {t.name for t in tiles for c in tiles if c.name in changed
+                  and abs(t.row - c.row) <= 1 and abs(t.col - c.col) <= 1}
+    else:
+        raise StageError(f"hydrology: the tiled routing surface found no fixed point after {MAX_EPS_ROUNDS} rounds")
+    code, parts = runner.map(directions, "directions", shape, {"routing": routing, "terrain": terrain}, params, dx,
+                             grids={"code": ("code",)}, **geo)
+    if sum(s["pits"] for s in parts):
+        raise StageError("hydrology: a cell has no downslope path after depression handling (broken invariant)")
+    _, parts = runner.map(accumulate_local, "accumulation", shape, dict(code), params, **geo)
+    perims = [ta.Perimeter((t.row0, t.col0), (t.rows, t.cols), s["code"], s["exit"], s["local_sum"])
+              for t, s in zip(tiles, parts)]
+    inflow = ta.solve_inflow(_grid_of(tiles, perims))
+    by_name = {t.name: f for t, f in zip(tiles, [f for row in inflow for f in row])}
+    counts, parts = runner.map(accumulate_finish, "counts", shape, {**code, "terrain": terrain}, params, by_name,
+                               grids={"counts": ("counts",)}, **geo)
+    outlet, data = sum(s["outlet_cells"] for s in parts), sum(s["data_cells"] for s in parts)
+    if outlet != data:
+        raise StageError(f"hydrology: accumulation at the outlets is {outlet} cells, not {data}")
+    return {"filled": filled["filled"], "routing": routing, "code": code["code"], "counts": counts["counts"],
+            "rounds": rnd}
