@@ -91,11 +91,16 @@ def _cmd_plan(args) -> int:
 
 
 def _cmd_bake(args) -> int:
+    if not 1 <= args.workers <= 256:
+        raise InputError(f"--workers {args.workers}: must be 1 .. 256")
+    if args.worker_memory is not None and not 0.1 <= args.worker_memory <= 1e5:
+        raise InputError(f"--worker-memory {args.worker_memory:g}: must be 0.1 .. 100000 GB")
     graph = build_graph(all_stages())
     configs = _configs(args)  # every config validated before any work
     store = Store(Path(args.project) / args.build)
     check_replace(store, configs, args.replace)
-    reports = bake_worlds(store, configs, graph, executor=args.executor, checked=True, verify=args.verify)
+    reports = bake_worlds(store, configs, graph, executor=args.executor, checked=True, verify=args.verify,
+                          workers=args.workers, worker_memory_gb=args.worker_memory)
     summary = []
     for config in configs:
         world_dir = store.worlds / config.name
@@ -275,6 +280,11 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--executor", default="local", metavar="local|dask|ADDRESS",
                            help="local: in this process (default); dask: an embedded Dask LocalCluster "
                                 "(2 worker processes); tcp://HOST:PORT: a running Dask scheduler")
+            p.add_argument("--workers", type=int, default=2, metavar="N",
+                           help="--executor dask: worker processes of the embedded cluster (default 2)")
+            p.add_argument("--worker-memory", type=float, default=None, metavar="GB",
+                           help="--executor dask: each worker's memory limit in GB (default: Dask's, the machine's "
+                                "memory shared among the workers); a worker past it is restarted by Dask")
             p.add_argument("--verify", action="store_true",
                            help="re-hash every stored file before reusing it (not only those whose size or "
                                 "mtime changed): a damaged run is made again")

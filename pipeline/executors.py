@@ -92,13 +92,15 @@ def _worker_plugin():
     return ExitWithoutNativeTeardown()
 
 
-def _client(executor: str):
+def _client(executor: str, workers: int = 2, worker_memory_gb: float | None = None):
     try:
         from distributed import Client, LocalCluster
     except ImportError as e:  # pragma: no cover - distributed is a dependency
         raise InputError(f"--executor {executor}: the 'distributed' package is not installed") from e
     if executor == "dask":
-        cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
+        memory = {} if worker_memory_gb is None else {"memory_limit": f"{worker_memory_gb}GB"}
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                               **memory)
         client = Client(cluster)
         client.register_plugin(_worker_plugin())
         return client, cluster
@@ -110,19 +112,21 @@ def _client(executor: str):
 
 
 def bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, *, executor: str = "local",
-                log=sys.stderr, checked: bool = False, verify: bool = False) -> dict[str, list[StepReport]]:
+                log=sys.stderr, checked: bool = False, verify: bool = False, workers: int = 2,
+                worker_memory_gb: float | None = None) -> dict[str, list[StepReport]]:
     """Bake every config; returns the step reports per world name. Every
     planned stage's check runs first (unless the caller ran them: checked).
-    verify: every stored run is re-hashed before it is reused."""
+    verify: every stored run is re-hashed before it is reused. workers,
+    worker_memory_gb: the embedded Dask cluster's (executor "dask")."""
     if not checked:
         for config in configs:
             check_world(graph, config)
     with store.baking():
-        return _bake_worlds(store, configs, graph, executor, log, verify)
+        return _bake_worlds(store, configs, graph, executor, log, verify, (workers, worker_memory_gb))
 
 
 def _bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, executor: str, log,
-                 verify: bool = False) -> dict[str, list[StepReport]]:
+                 verify: bool = False, cluster_size: tuple[int, float | None] = (2, None)) -> dict[str, list[StepReport]]:
     store.clean_stale()
     plans = [(config, plan_bake(graph, config)) for config in configs]
     reports: dict[str, list[StepReport]] = {}
@@ -142,7 +146,7 @@ def _bake_worlds(store: Store, configs: list[WorldConfig], graph: Graph, executo
             reports[config.name] = done
         return reports
 
-    client, cluster = _client(executor)
+    client, cluster = _client(executor, *cluster_size)
     try:
         futures: dict[str, Any] = {}  # recipe -> future of its StepReport
         for config, planned in plans:

@@ -149,3 +149,12 @@ def test_a_tiled_run_is_checked_for_the_memory_of_a_tile(project):
     tiled = subprocess.run(cmd + ["--set", "tiling.tile_cells=256"], cwd=project, capture_output=True, text=True,
                            env=env)
     assert tiled.returncode == 0, tiled.stderr[-2000:]
+
+
+@pytest.mark.parametrize("args, named", [(("--workers", "0"), "--workers 0"),
+                                         (("--worker-memory", "0"), "--worker-memory 0")])
+def test_bad_cluster_sizes_are_refused_before_any_work(project, args, named):
+    cmd = [sys.executable, "-m", "pipeline.cli", "--build", "b", "bake", "configs/default.toml", "--executor", "dask",
+           *args]
+    proc = subprocess.run(cmd, cwd=project, capture_output=True, text=True)
+    assert proc.returncode == 2 and named in proc.stderr and not (project / "b").exists()
