@@ -5,6 +5,7 @@
     python -m bench.scale --full                  # and 8192^2
     python -m bench.scale --sizes 512 1024        # a quick look
     python -m bench.scale --set tiling.tile_cells=1024 --executor dask
+    python -m bench.scale --stages heightmap hydrology --set tiling.tile_cells=1024 --set hydrology.depression=fill
 
 The default world (8 km) baked at n^2 cells, so the cell shrinks as n grows.
 Each scaling stage runs alone in a fresh `worldbake bake` process (outputs =
@@ -50,10 +51,10 @@ def run_alone(build: Path, stage: str | tuple, cells: int, extra: list[str]) -> 
     return {"wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime, "rss_gb": usage.ru_maxrss / 2 ** 20}
 
 
-def table(results: dict[int, dict[str, dict]]) -> str:
+def table(results: dict[int, dict[str, dict]], stages: tuple[str, ...] = SCALING) -> str:
     rows = [f"{'stage':<11}{'cells':>7}{'wall s':>9}{'CPU s':>9}{'RSS GB':>8}{'wall s/Mc':>11}{'CPU s/Mc':>10}"
             f"{'RSS MB/Mc':>11}"]
-    for stage in SCALING:
+    for stage in stages:
         for n, per_stage in results.items():
             r, mc = per_stage[stage], n * n / 1e6
             rows.append(f"{stage:<11}{n:>6}²{r['wall_s']:>9.1f}{r['cpu_s']:>9.1f}{r['rss_gb']:>8.2f}"
@@ -62,7 +63,7 @@ def table(results: dict[int, dict[str, dict]]) -> str:
     if len(sizes) > 1:
         lo, hi = sizes[0], sizes[-1]
         rows.append(f"\ncost per cell at {hi}² / at {lo}² (issue 28: at most 1.5 from 1024² to 4096²)")
-        for stage in SCALING:
+        for stage in stages:
             a, b = results[lo][stage], results[hi][stage]
             ratio = lambda key: (b[key] / (hi * hi)) / max(a[key] / (lo * lo), 1e-12)
             rows.append(f"  {stage:<11} wall {ratio('wall_s'):5.2f}  CPU {ratio('cpu_s'):5.2f}")
@@ -76,19 +77,21 @@ def main() -> None:
     ap.add_argument("--build", type=Path, default=REPO / "build_scale")
     ap.add_argument("--set", nargs="*", default=[], help="config overrides, e.g. tiling.tile_cells=1024")
     ap.add_argument("--executor", default=None, help="passed to worldbake bake (e.g. dask)")
+    ap.add_argument("--stages", nargs="+", choices=SCALING, default=list(SCALING), help="the stages to time")
     args = ap.parse_args()
+    stages = tuple(s for s in SCALING if s in args.stages)
     sizes = sorted(set(args.sizes + ([8192] if args.full else [])))
     extra = [a for kv in args.set for a in ("--set", kv)] + (["--executor", args.executor] if args.executor else [])
     results: dict[int, dict[str, dict]] = {}
     for n in sizes:
         results[n] = {}
-        for stage in SCALING:
+        for stage in stages:
             if stage == "world":
                 run_alone(args.build, BEFORE_WORLD, n, extra)
             results[n][stage] = r = run_alone(args.build, stage, n, extra)
             print(f"{n}² {stage}: {r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU, peak RSS {r['rss_gb']:.2f} GB",
                   flush=True)
-    print(table(results))
+    print(table(results, stages))
 
 
 if __name__ == "__main__":

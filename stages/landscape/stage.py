@@ -100,10 +100,14 @@ def check(params: LandscapeParams, ctx: CheckContext) -> Check:
                          f"(more than 2^32); raise cell_size_m (the world's cell is {ground.cell_size_m:g} m)")
     cells = ground.shape[0] * ground.shape[1]
     band = min(n, max(1, BAND_VERTICES // n)) * n
+    held = f"the ground and splat {ground.shape[0]} x {ground.shape[1]} cells x 32 B"
+    if ctx.tile_cells:  # run_tiled: the windows of a band (at the world's cell, a band's cells) and a world tile
+        cells = min(cells, band + (ctx.tile_cells + 2) ** 2)
+        held = f"windows of {cells:,} cells x 32 B"
     memory = 32 * cells + 16 * n * n + 400 * band
     layers = 1 + (len(GROUND_TYPES) if params.weightmaps else 0)
     return Check(memory_bytes=memory,
-                 memory_how=f"the ground and splat {ground.shape[0]} x {ground.shape[1]} cells x 32 B + a tile of "
+                 memory_how=f"{held} + a tile of "
                  f"{n}^2 vertices x 16 B + a band of {band:,} vertices x 400 B",
                  work=float(cols * rows * layers), work_unit="vertices", work_limit=0.0,
                  work_how=f"{layout.tiles[0]} x {layout.tiles[1]} tiles of {n}^2 vertices, {layers} maps each")
@@ -178,8 +182,62 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: LandscapeParams) -> dic
     if nodata:  # cells without data (an imported DEM's holes) stand at the lowest height: Unreal has no holes
         h = np.where(finite, h, np.float32(lo))
     del finite
-    span = hi - lo if hi > lo else 1.0  # a flat world: all 0 over a 1 m range
     splat = _splat(inputs) if params.weightmaps else None
+    return _write_tiles(ctx, params, ground, h, splat, (lo, hi), nodata, t0)
+
+
+class _Window:
+    """A grid input sliced like an array (grid[r0:r1, c0:c1]) but read by
+    window from its file (pipeline.tiles.GridFile): the channels in `order`,
+    no-data cells at `fill` (what run does to the whole array)."""
+
+    def __init__(self, source, channels: tuple[str, ...] | None = None, fill: float | None = None):
+        self.source, self.fill = source, fill
+        self.order = None if channels is None else [list(source.channels).index(c) for c in channels]
+        self.shape = tuple(source.shape) + (() if channels is None else (len(channels),))
+        self.ndim = len(self.shape)
+
+    def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
+        rs, cs = key
+        data = self.source.read(rs.start, cs.start, rs.stop - rs.start, cs.stop - cs.start)
+        if self.order is not None:
+            return data[..., self.order]
+        if data.ndim == 3:
+            data = data[..., 0]
+        return np.where(np.isfinite(data), data, np.float32(self.fill)) if self.fill is not None else data
+
+
+def height_range(tctx, inputs: dict[str, Any], params: LandscapeParams, shared: Any):
+    """One world tile's lowest and highest finite height and its no-data cells."""
+    from pipeline.tiles import TileOutput
+
+    ground = inputs["ground"]
+    h = ground.read_tile(tctx.tile, channel=ground.channels[0])
+    finite = np.isfinite(h)
+    return TileOutput({}, {"lo": float(np.min(h, where=finite, initial=np.inf)),
+                           "hi": float(np.max(h, where=finite, initial=-np.inf)),
+                           "nodata": int(h.size - np.count_nonzero(finite))})
+
+
+def run_tiled(ctx: RunContext, inputs: dict[str, Any], params: LandscapeParams) -> dict[str, Any]:
+    """run on a tiled world: the height range reduced over world tiles, then
+    each landscape tile sampled from the windows of the inputs it covers."""
+    t0 = time.perf_counter()
+    ground = inputs["ground"]
+    _, parts = ctx.tiles.map(height_range, "range", ground.shape, {"ground": ground}, params)
+    lo, hi = min(p["lo"] for p in parts), max(p["hi"] for p in parts)
+    nodata = sum(p["nodata"] for p in parts)
+    h = _Window(ground, fill=lo if nodata else None)
+    splat = _Window(inputs["splat"], SPLAT_CHANNELS) if params.weightmaps and "splat" in inputs else None
+    return _write_tiles(ctx, params, ground, h, splat, (lo, hi), nodata, t0)
+
+
+def _write_tiles(ctx: RunContext, params: LandscapeParams, ground, h, splat, height: tuple[float, float],
+                 nodata: int, t0: float) -> dict[str, Any]:
+    """Every landscape tile's files and the index, from the heights h and
+    splat weights (arrays, or _Window) over the height range."""
+    lo, hi = height
+    span = hi - lo if hi > lo else 1.0  # a flat world: all 0 over a 1 m range
     layout = _layout(params, ground.shape, ground.cell_size_m, ground.origin_m)
     for sub in (files.UNREAL_DIR, files.DATA_DIR):
         (ctx.out_dir / sub).mkdir()
@@ -246,6 +304,7 @@ STAGE = Stage(
     ),
     params=LandscapeParams,
     run=run,
+    run_tiled=run_tiled,
     check=check,
     source_dir=Path(__file__).resolve().parent,
 )
