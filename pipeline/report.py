@@ -34,6 +34,7 @@ from .grid import Grid
 from .store import Store
 
 MAP_PX = 480  # pixels on the long side of a map
+MAP_READ_CELLS = 2048  # a grid larger than this a side is read for its maps as block means (read_for_map)
 
 
 # --------------------------------------------------------------------------- colour ramps
@@ -102,6 +103,25 @@ def _upscale(rgb: np.ndarray, px: int = MAP_PX) -> np.ndarray:
     return rgb[r][:, c]
 
 
+def read_for_map(path: Path, cells: int = MAP_READ_CELLS) -> Grid:
+    """The grid file at `path` with at most about `cells` cells a side: the
+    grid itself when it is that small, else the means of s x s blocks (a map
+    of MAP_PX pixels needs no more), read in bands of file tiles."""
+    from . import exr
+
+    info = exr.grid_info(path)
+    s = -(-max(info.shape) // cells)
+    if s <= 1:
+        return exr.read_grid(path)
+    rows, cols, n = info.shape[0] // s, info.shape[1] // s, len(info.channels)
+    out = np.empty((rows, cols, n), np.float32)
+    band = max(1, exr.TILE // s) * s  # rows of cells per read: whole blocks, about a row of file tiles
+    for r0 in range(0, rows * s, band):
+        part = exr.read_window(path, r0, 0, min(band, rows * s - r0), cols * s).data.reshape(-1, cols * s, n)
+        out[r0 // s:r0 // s + part.shape[0] // s] = part.reshape(-1, s, cols, s, n).mean(axis=(1, 3))
+    return Grid(out[..., 0] if n == 1 else out, info.cell_size_m * s, info.channels, info.origin_m)
+
+
 def _nice(x: float) -> float:
     """A round number (1, 2, 5 x 10^n) no larger than x."""
     if x <= 0:
@@ -164,9 +184,9 @@ class World:
                     yield stage, key, name, meta
 
     def read(self, stage: str, key: str, meta: dict):
-        from .exr import read_grid
-
-        return read_grid(self.store.folder(stage, key) / meta["file"])
+        """A grid for the maps: whole, or on a big world block means of
+        s x s cells read a band at a time, so no whole map is ever held."""
+        return read_for_map(self.store.folder(stage, key) / meta["file"])
 
     def output(self, stage: str, key: str, m: dict, artifact: str):
         """A run's grid output (meta), None when it wrote none."""

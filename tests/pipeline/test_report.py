@@ -94,3 +94,19 @@ def test_maps_are_what_the_stages_declare(tmp_path):
     assert {"report_level.png", "report_cover_moss.png", "report_cover_rock.png", "report_cover.png"} <= set(images)
     assert all((out / i).is_file() for i in images)
     assert "<h2>Warnings</h2><p class=\"ok\">none</p>" in page
+
+
+def test_a_big_grid_is_read_for_its_maps_as_block_means_band_by_band(tmp_path):
+    from pipeline import exr
+    from pipeline.grid import Grid
+    from pipeline.report import read_for_map
+
+    rng = np.random.default_rng(0)
+    data = rng.random((1030, 301, 2)).astype(np.float32)
+    exr.write_grid(tmp_path / "g.exr", Grid(data, 2.0, ("a", "b"), (10.0, 20.0)))
+    small = read_for_map(tmp_path / "g.exr", cells=256)  # s = 5: 206 x 60 blocks
+    want = data[:1030, :300].reshape(206, 5, 60, 5, 2).mean(axis=(1, 3))
+    assert small.shape == (206, 60) and small.cell_size_m == 10.0 and set(small.channels) == {"a", "b"}
+    for i, name in enumerate(("a", "b")):  # the file's channel order is not the writer's: read by name
+        assert np.allclose(small.channel(name), want[..., i], rtol=1e-6, atol=1e-6)
+        assert np.array_equal(read_for_map(tmp_path / "g.exr", cells=2048).channel(name), data[..., i])
