@@ -30,8 +30,6 @@ it finished.
 """
 from __future__ import annotations
 
-import json
-import os
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -204,6 +202,7 @@ class _TileJob:
     work: str
     code_material: dict
     run_key: str
+    keep: bool = True
 
 
 def _split_summary(summary: dict[str, Any]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -222,7 +221,7 @@ def _run_tile(job: _TileJob) -> tuple[dict[str, str], dict[str, Any], float]:
                       {"run": job.run_key, "pass": job.pass_name, "tile": [job.tile.row0, job.tile.col0,
                                                                            job.tile.rows, job.tile.cols]})
     work = Path(job.work) / job.pass_name / job.tile.name
-    saved = unit.restore(work) if unit.folder is not None else None
+    saved = unit.restore(work) if unit.folder is not None and job.keep else None
     if saved is not None:
         return _files_and_summary(unit.folder, saved)
     t0 = time.perf_counter()
@@ -249,7 +248,8 @@ def _run_tile(job: _TileJob) -> tuple[dict[str, str], dict[str, Any], float]:
         files.append(SUMMARY_ARRAYS)
     result = {"grids": sorted(out.grids), "summary": values}
     seconds = time.perf_counter() - t0
-    unit.save(work, files, result, {"seconds": round(seconds, 4)})
+    if job.keep:
+        unit.save(work, files, result, {"seconds": round(seconds, 4)})
     folder = unit.folder if unit.folder is not None and unit.folder.is_dir() else work
     files_out, summary, _ = _files_and_summary(folder, result)
     return files_out, summary, seconds
@@ -281,24 +281,27 @@ class TileRunner:
 
     def map(self, fn: Callable, pass_name: str, shape: tuple[int, int], inputs: dict[str, Any], params: Any,
             shared: Any = None, *, grids: dict[str, tuple[str, ...]] | None = None, cell_size_m: float = 1.0,
-            origin_m: tuple[float, float] = (0.0, 0.0)) -> tuple[dict[str, TileArrays], list[dict[str, Any]]]:
+            origin_m: tuple[float, float] = (0.0, 0.0), keep: bool = True
+            ) -> tuple[dict[str, TileArrays], list[dict[str, Any]]]:
         """fn(TileContext, inputs, params, shared) -> TileOutput on every tile
         of a `shape` world. grids: the arrays fn returns, name -> channels.
-        Returns the grids as TileArrays and the tiles' summaries in tile order."""
+        keep: each tile a unit in the store (False: a cheap pass whose arrays
+        only the run needs, remade on a resume). Returns the grids as
+        TileArrays and the tiles' summaries in tile order."""
         tiles = self.tiles(shape)
         root = self.units.root if self.units is not None else None
         tmp = self.units.tmp if self.units is not None else None
         code = self.units.code_material if self.units is not None else {"stage": self.stage.name}
         jobs = [_TileJob(fn, pass_name, t, inputs, params, shared, self.seed, self.stage.name,
                          self.stage.uses_opencl, str(self.project_root), str(root) if root else None,
-                         str(tmp) if tmp else None, str(self.work), code, self.run_key) for t in tiles]
+                         str(tmp) if tmp else None, str(self.work), code, self.run_key, keep) for t in tiles]
         t0 = time.perf_counter()
         results = self._dask(jobs) if _in_dask_worker() else self._local(jobs, pass_name)
         for job in jobs:  # the unit keys the run used (its manifest keeps them from gc)
-            if self.units is not None:
+            if self.units is not None and keep:
                 self.units.unit(f"{pass_name}-{job.tile.name}", {"run": self.run_key, "pass": pass_name, "tile": [
                     job.tile.row0, job.tile.col0, job.tile.rows, job.tile.cols]})
-        self.passes.append({"pass": pass_name, "tiles": len(tiles),
+        self.passes.append({"pass": pass_name, "tiles": len(tiles), "kept": keep,
                             "reused": sum(1 for _, _, s in results if s == 0.0),
                             "tile_seconds": round(sum(s for _, _, s in results), 3),
                             "wall_s": round(time.perf_counter() - t0, 3)})
@@ -321,14 +324,3 @@ class TileRunner:
             futures = client.map(_run_tile, jobs, pure=False,
                                  key=[f"{self.stage.name}-{self.run_key}-{j.pass_name}-{j.tile.name}" for j in jobs])
             return client.gather(futures)
-
-
-def tiled_metrics(runner: TileRunner) -> dict[str, Any]:
-    """What a tiled run reports of its tiling (the run's metrics)."""
-    return {"tile_cells": runner.tile_cells, "passes": runner.passes, "pid": os.getpid()}
-
-
-def summary_json(summary: dict[str, Any]) -> str:
-    """A summary as canonical text (for tests and diagnostics)."""
-    return json.dumps({k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in summary.items()},
-                      sort_keys=True)

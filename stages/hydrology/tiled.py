@@ -120,8 +120,9 @@ def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, 
     for rnd in range(1, MAX_EPS_ROUNDS + 1):
         progress(0.02, f"routing surface: round {rnd}, {len(active)} tiles")
         ins = {"terrain": terrain, **({"routing": routing} if routing is not None else {})}
+        # the rounds are not kept as units: dozens of world-sized arrays, each cheaper to remake than to store
         routing_now, parts = runner.map(eps_round, f"routing{rnd}", shape, ins, params, {"active": sorted(active)},
-                                        grids={"routing": ("routing",)}, **geo)
+                                        grids={"routing": ("routing",)}, keep=False, **geo)
         routing = routing_now["routing"]
         changed = {t.name for t, s in zip(tiles, parts) if s["changed"]}
         if not changed:
