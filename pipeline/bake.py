@@ -359,41 +359,7 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
         if missing or extra:
             raise StageError(f"stage {stage.name}: returned {sorted(outputs)}, declared {[a.name for a in stage.outputs]}")
         t1 = time.perf_counter()
-        out_meta = {}
-        for art in stage.outputs:
-            value = outputs.get(art.name)
-            target = work / art.file
-            meta: dict[str, Any] = {"file": art.file, "kind": art.kind, "units": art.units}
-            if value is None:
-                if not art.optional:
-                    raise StageError(f"stage {stage.name}: output {art.name} is None but not declared optional")
-                out_meta[art.name] = {**meta, "absent": True}
-                continue
-            if art.kind == "grid" and isinstance(value, tiles.TileArrays):
-                units = art.channel_units(tuple(value.channels))
-                content = _write_tiled_grid(stage, art, value, terrain_shape, target, {**provenance, "units": units})
-                terrain_shape = terrain_shape or (value.shape if art.shape == "terrain" else None)
-                meta.update(channels=exr.channel_names(target), channel_units=units, shape=list(value.shape),
-                            cell_size_m=value.cell_size_m, content=content)
-            elif art.kind == "grid":
-                grid = _check_grid(stage, art, value, terrain_shape)
-                terrain_shape = terrain_shape or (grid.shape if art.shape == "terrain" else None)
-                units = art.channel_units(tuple(grid.channels))
-                exr.write_grid(target, grid, {**provenance, "units": units})
-                # the file's order (OpenEXR sorts channels by name), not the order the stage made them in
-                meta.update(channels=exr.channel_names(target), channel_units=units, shape=list(grid.shape),
-                            cell_size_m=grid.cell_size_m, content=grid.content_hash())
-            elif art.kind == "image" and isinstance(value, tiles.TileArrays):
-                exr.write_png_rows(target, value.shape, _tile_rows(value))
-            elif art.kind == "image":
-                exr.write_png(target, value)
-            elif art.kind == "json":
-                write_json(target, _finite_metrics(value))
-                meta["content"] = sha256_file(target)
-            elif art.kind in ("usd", "texture"):
-                if Path(value).resolve() != target.resolve() or not target.is_file():
-                    raise StageError(f"stage {stage.name}: output {art.name} must be written to ctx.path({art.name!r})")
-            out_meta[art.name] = meta
+        out_meta = _write_outputs(stage, outputs, work, provenance, terrain_shape)
         written = [p for p in sorted(work.rglob("*")) if p.is_file()]
         files = {p.relative_to(work).as_posix(): sha256_file(p) for p in written}
         # size and mtime as written: a later bake notices a file changed since (Store.damaged) without hashing it
@@ -417,6 +383,49 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
         write_json(work / MANIFEST, manifest)  # last: its presence means the folder is whole
     shutil.rmtree(tile_work, ignore_errors=True)  # the tiles' arrays live on in their units
     return manifest
+
+
+def _write_outputs(stage: Stage, outputs: dict[str, Any], work: Path, provenance: dict,
+                   terrain_shape: tuple[int, int] | None) -> dict[str, dict]:
+    """Each declared output into its file in `work` (grids held whole or per
+    tile, previews, JSON; USD and textures the stage wrote itself, checked);
+    the manifest's entry of each."""
+    out_meta = {}
+    for art in stage.outputs:
+        value = outputs.get(art.name)
+        target = work / art.file
+        meta: dict[str, Any] = {"file": art.file, "kind": art.kind, "units": art.units}
+        if value is None:
+            if not art.optional:
+                raise StageError(f"stage {stage.name}: output {art.name} is None but not declared optional")
+            out_meta[art.name] = {**meta, "absent": True}
+            continue
+        if art.kind == "grid" and isinstance(value, tiles.TileArrays):
+            units = art.channel_units(tuple(value.channels))
+            content = _write_tiled_grid(stage, art, value, terrain_shape, target, {**provenance, "units": units})
+            terrain_shape = terrain_shape or (value.shape if art.shape == "terrain" else None)
+            meta.update(channels=exr.channel_names(target), channel_units=units, shape=list(value.shape),
+                        cell_size_m=value.cell_size_m, content=content)
+        elif art.kind == "grid":
+            grid = _check_grid(stage, art, value, terrain_shape)
+            terrain_shape = terrain_shape or (grid.shape if art.shape == "terrain" else None)
+            units = art.channel_units(tuple(grid.channels))
+            exr.write_grid(target, grid, {**provenance, "units": units})
+            # the file's order (OpenEXR sorts channels by name), not the order the stage made them in
+            meta.update(channels=exr.channel_names(target), channel_units=units, shape=list(grid.shape),
+                        cell_size_m=grid.cell_size_m, content=grid.content_hash())
+        elif art.kind == "image" and isinstance(value, tiles.TileArrays):
+            exr.write_png_rows(target, value.shape, _tile_rows(value))
+        elif art.kind == "image":
+            exr.write_png(target, value)
+        elif art.kind == "json":
+            write_json(target, _finite_metrics(value))
+            meta["content"] = sha256_file(target)
+        elif art.kind in ("usd", "texture"):
+            if Path(value).resolve() != target.resolve() or not target.is_file():
+                raise StageError(f"stage {stage.name}: output {art.name} must be written to ctx.path({art.name!r})")
+        out_meta[art.name] = meta
+    return out_meta
 
 
 def _tile_rows(arrays: tiles.TileArrays):
