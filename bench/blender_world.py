@@ -68,10 +68,13 @@ def ground_y(world: Path, x: float, z: float) -> float:
     from pxr import Usd, UsdGeom
 
     stage = Usd.Stage.Open(str(world), Usd.Stage.LoadNone)
-    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Terrain/Ground"))
-    p = np.asarray(mesh.GetPointsAttr().Get(), np.float64)
-    p = p @ np.asarray(UsdGeom.XformCache().GetLocalToWorldTransform(mesh.GetPrim()))[:3, :3] + \
-        np.asarray(UsdGeom.XformCache().GetLocalToWorldTransform(mesh.GetPrim()))[3, :3]
+    stage.Load("/World/Terrain/Ground")  # its tiles' payloads (stages/world/terrain_tiles.py), not the plants'
+    parts = []
+    for prim in Usd.PrimRange(stage.GetPrimAtPath("/World/Terrain/Ground")):
+        if prim.IsA(UsdGeom.Mesh):
+            m = np.asarray(UsdGeom.XformCache().GetLocalToWorldTransform(prim))
+            parts.append(np.asarray(UsdGeom.Mesh(prim).GetPointsAttr().Get(), np.float64) @ m[:3, :3] + m[3, :3])
+    p = np.concatenate(parts)
     return float(p[np.argmin((p[:, 0] - x) ** 2 + (p[:, 2] - z) ** 2), 1])
 
 

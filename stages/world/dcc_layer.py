@@ -23,6 +23,12 @@ prototypes' inherited class and its asset's selection (LOD0). The tiles'
 prototypes stay instanceable: tiles with the same selection share one USD
 prototype.
 
+The terrain's tiles (terrain_tiles.py) get their `lod` the same way: per
+tile the coarsest LOD whose largest height error, from the tile's nearest
+point to the eye, spans at most TERRAIN_ERROR_PX pixels of the plants'
+switch screen. Tiles at different LODs meet without cracks (a coarse LOD
+keeps its border at full resolution).
+
 A renderer that switches by distance itself mutes dcc.usdc
 (Usd.Stage.MuteLayer; usdview's layer stack) and gets every asset's LOD0.
 For a shot away from the centre, or LOD0 everywhere in a DCC:
@@ -48,6 +54,44 @@ CROWN = "crowns"  # the selection that draws a tile's plants as crowns
 RING = math.sqrt(4.0 * math.pi / (3.0 * math.sqrt(3.0)))  # a crown pyramid's base circle, in sphere radii
 CROWN_PX = 4.0  # a plant narrower than this on the switch distances' screen is drawn as a crown
 MIN_PX = 1.0  # a plant narrower than this is left out
+# a terrain tile's LOD: the coarsest whose largest height error (worst vertex) spans at most this many pixels of
+# the switch screen; 8 puts the default world's far ring of tiles (2-3 km from the centre) at quarter LOD
+# (at most 16 m off: 5-7 px there), which brings Blender's import and render of it under 2 GB
+TERRAIN_ERROR_PX = 8.0
+
+
+def terrain_tiles(stage) -> list[tuple[str, np.ndarray, dict[str, float]]]:
+    """(prim path, bounds x0 z0 x1 z1 y0 y1, LOD -> its largest height error
+    in metres) of every terrain tile (terrain_tiles.py) of a stage (the
+    terrain layer's or a world's, its payloads need not be loaded)."""
+    from .terrain_tiles import TILE_KEY, tile_prims
+
+    out = []
+    for prim in tile_prims(stage):
+        info = prim.GetCustomDataByKey(TILE_KEY)
+        bounds = np.asarray(list(info["bounds_xz_m"]) + list(info["height_m"]), np.float64)
+        out.append((str(prim.GetPath()), bounds, {k: float(v) for k, v in info["lod_error_m"].items()}))
+    return out
+
+
+def terrain_selection(tiles, eye: np.ndarray, px_per_rad: float) -> dict[str, str]:
+    """Tile path -> its `lod`: the coarsest LOD whose largest height error,
+    seen from the tile's nearest point to the eye, spans at most
+    TERRAIN_ERROR_PX pixels on the plants' switch screen (px_per_rad); the
+    full LOD where the eye is in or over the tile."""
+    out = {}
+    for path, bounds, errors in tiles:
+        d = tile_distance(bounds, eye)
+        fits = [(e, lod) for lod, e in errors.items() if e * px_per_rad <= TERRAIN_ERROR_PX * d]
+        out[path] = max(fits)[1] if fits else min((e, lod) for lod, e in errors.items())[1]
+    return out
+
+
+def _author_terrain(layer, chosen: dict[str, str]) -> None:
+    from pxr import Sdf
+
+    for path, lod in chosen.items():
+        Sdf.CreatePrimInLayer(layer, Sdf.Path(path)).variantSelections["lod"] = lod
 
 
 def leaf_tiles(vegetation_layer: Path) -> list[tuple[str, np.ndarray, list[str]]]:
@@ -105,7 +149,7 @@ def species_ladders(layer: Path, prims: dict[str, str]) -> dict[str, dict]:
         sphere = json.loads(info)["bounding_sphere"] if info else {"radius_m": 1.0, "centre_m": [0.0, 1.0, 0.0]}
         radius = float(sphere["radius_m"])
         screen = s["screen_px"] / (2.0 * math.tan(math.radians(0.5 * s["fov_deg"])))  # pixels per radian at centre
-        out[species] = {"ladder": ladder, "cull_m": 2.0 * radius * screen / MIN_PX,
+        out[species] = {"ladder": ladder, "cull_m": 2.0 * radius * screen / MIN_PX, "px_per_rad": screen,
                         "crown_m": 2.0 * radius * screen / CROWN_PX, "centre": list(sphere["centre_m"]),
                         "radius": radius, "look": crown_look(prim, json.loads(info) if info else {})}
     return out
@@ -280,10 +324,11 @@ def default_eye(tiles) -> np.ndarray:
 
 
 def write_dcc_layer(root_path: Path, vegetation_layer: Path, impostors_layer: Path, species: list[str],
-                    provenance: dict) -> dict:
+                    provenance: dict, terrain_layer: Path | None = None) -> dict:
     """dcc.usdc beside the root layer, made its strongest sublayer; returns
-    the eye and the tiles per variant (empty, and nothing written, without
-    tiles or switch distances)."""
+    the eye and the tiles per variant, and with terrain_layer the terrain
+    tiles per LOD (empty, and nothing written, without vegetation tiles or
+    switch distances)."""
     from pxr import Sdf
 
     from pipeline import usdio
@@ -303,12 +348,19 @@ def write_dcc_layer(root_path: Path, vegetation_layer: Path, impostors_layer: Pa
     crowns = crown_points(tiles, chosen, ladders, vegetation_layer, eye)
     if crowns:
         _author_crowns(layer, crowns, ladders)
+    ground = {}
+    if terrain_layer is not None:
+        from pxr import Usd
+
+        ground = terrain_selection(terrain_tiles(Usd.Stage.Open(str(terrain_layer), Usd.Stage.LoadNone)), eye,
+                                   next(iter(ladders.values()))["px_per_rad"])
+        _author_terrain(layer, ground)
     layer.Save()
     root = Sdf.Layer.FindOrOpen(str(root_path))
     root.subLayerPaths.insert(0, "./" + LAYER)
     root.Save()
     return {"eye_m": [round(float(v), 2) for v in eye], "tiles": summary(chosen),
-            "crowns": {s: int(len(r)) for s, (_, r) in crowns.items()}}
+            "crowns": {s: int(len(r)) for s, (_, r) in crowns.items()}, "terrain_tiles": summary(ground)}
 
 
 def vegetation_source(veg):
@@ -323,8 +375,9 @@ def vegetation_source(veg):
 
 
 def write_shot_layer(world_usda: Path, out: Path, eye: np.ndarray | None = None, lod: str | None = None) -> dict:
-    """OUT: a root layer over world_usda selecting for a camera at eye, or
-    `lod` on every tile (the plants that dcc.usdc leaves out put back)."""
+    """OUT: a root layer over world_usda selecting for a camera at eye (the
+    terrain tiles' LODs too), or `lod` on every tile (the plants that
+    dcc.usdc leaves out put back) and the terrain at its full LOD."""
     from pxr import Sdf, Usd, UsdGeom
 
     stage = Usd.Stage.Open(str(world_usda), Usd.Stage.LoadNone)
@@ -350,13 +403,19 @@ def write_shot_layer(world_usda: Path, out: Path, eye: np.ndarray | None = None,
         if variant is not None:  # the world's dcc.usdc may have left it out
             Sdf.CreatePrimInLayer(layer, Sdf.Path(inst)).active = True
     _author(layer, "/World", chosen)
+    ground = terrain_tiles(stage)
+    if lod is not None or not ladders:  # every terrain tile at its full LOD
+        ground = {path: "full" for path, _, _ in ground}
+    else:
+        ground = terrain_selection(ground, np.asarray(eye, np.float64), next(iter(ladders.values()))["px_per_rad"])
+    _author_terrain(layer, ground)
     Sdf.CreatePrimInLayer(layer, CROWNS).active = False  # the world's crowns, for its own eye
     crowns = crown_points(tiles, chosen, ladders, Path(source.realPath), np.asarray(eye, np.float64)) if eye is not None else {}
     if crowns:
         _author_crowns(layer, crowns, ladders, CROWNS + "ForShot")
     layer.Save()
     return {"eye_m": None if eye is None else [float(v) for v in eye], "tiles": summary(chosen),
-            "crowns": {s: int(len(r)) for s, (_, r) in crowns.items()}}
+            "crowns": {s: int(len(r)) for s, (_, r) in crowns.items()}, "terrain_tiles": summary(ground)}
 
 
 def main(argv=None) -> None:

@@ -15,7 +15,8 @@ primvar st_detail = (x, -z) in metres through a UsdTransform2d scaling by
 1 / tile_m) and the two splat textures, and outputs <type>_albedo,
 <type>_normal and <type>_weight a DCC wires into its own blend (MaterialX in
 Houdini or Omniverse: sum of weight x albedo, triplanar where it can). The
-near square is a GeomSubset of the ground mesh (materialBind) bound to
+near square is a GeomSubset `Near` of each terrain tile's mesh at each LOD
+with triangles in it (materialBind; terrain_tiles.py) bound to
 GroundNear, a plain UsdPreviewSurface reading the baked near textures
 through primvar st_near.
 """
@@ -31,7 +32,8 @@ from worldlib.ground import GROUND_TYPES
 
 DETAIL_GRAPH = "/World/Terrain/Looks/Ground/Detail"
 NEAR_MATERIAL = "/World/Terrain/Looks/GroundNear"
-NEAR_SUBSET = "/World/Terrain/Ground/Near"
+NEAR_SUBSET_NAME = "Near"  # the GeomSubset under each terrain tile mesh that has near triangles
+REST_SUBSET_NAME = "Rest"  # beside it, the tile's other triangles (bound to the ground material)
 SPLAT_FILES = (("splat_a.exr", GROUND_TYPES[:3]), ("splat_b.exr", GROUND_TYPES[3:]))
 
 
@@ -127,17 +129,12 @@ def bake_near(layer: ground_detail.DetailLayer, splat: np.ndarray, height: np.nd
     return albedo, normal
 
 
-def author_detail(stage, mesh_prim, mesh, folder_files: dict, near: dict | None) -> None:
-    """The detail NodeGraph in the ground material, primvar st_detail, and
-    (near given: {square, faces, albedo, normal}) the near subset, its st_near
-    and its material. folder_files: {"detail/<type>_albedo.png": ..., splat
-    files}: the relative names (each authored as "./name")."""
-    from pxr import Sdf, UsdGeom, UsdShade, Vt
+def author_detail_graph(stage, folder_files: dict) -> None:
+    """The detail NodeGraph in the ground material (its meshes carry
+    primvar st_detail: detail_primvar). folder_files: {"detail/<type>_albedo.png":
+    ..., splat files}: the relative names (each authored as "./name")."""
+    from pxr import Sdf, UsdShade
 
-    pv = UsdGeom.PrimvarsAPI(mesh_prim)
-    p = mesh.points.astype(np.float64)
-    pv.CreatePrimvar("st_detail", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex).Set(
-        Vt.Vec2fArray.FromNumpy(np.stack([p[:, 0], -p[:, 2]], -1).astype(np.float32)))
     graph = UsdShade.NodeGraph.Define(stage, DETAIL_GRAPH)
     graph.GetPrim().SetDocumentation(
         "Ground detail: per ground type albedo and normal textures tiling in metres (st_detail / tile_m) and "
@@ -166,8 +163,16 @@ def author_detail(stage, mesh_prim, mesh, folder_files: dict, near: dict | None)
         nmap = _texture(stage, f"{base}/{t}_normal", f"detail/{t}_normal.png", "raw", xf, "repeat", normal=True)
         graph.CreateOutput(f"{t}_normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(
             nmap.CreateOutput("rgb", Sdf.ValueTypeNames.Float3))
-    if near is not None:
-        _author_near(stage, mesh_prim, mesh, near)
+
+
+def detail_primvar(mesh_prim, mesh) -> None:
+    """Primvar st_detail = (x, -z) in metres of a ground mesh."""
+    from pxr import Sdf, UsdGeom, Vt
+
+    p = mesh.points.astype(np.float64)
+    UsdGeom.PrimvarsAPI(mesh_prim).CreatePrimvar("st_detail", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                 UsdGeom.Tokens.vertex).Set(
+        Vt.Vec2fArray.FromNumpy(np.stack([p[:, 0], -p[:, 2]], -1).astype(np.float32)))
 
 
 def _shader(stage, path: str, shader_id: str):
@@ -193,20 +198,40 @@ def _texture(stage, path: str, file: str, colour_space: str, st_source, wrap: st
     return tex
 
 
-def _author_near(stage, mesh_prim, mesh, near: dict) -> None:
+def author_near_subset(stage, mesh_prim, mesh, near: dict) -> bool:
+    """Primvar st_near and the GeomSubset NEAR_SUBSET_NAME of the mesh's
+    triangles inside near["square"] (none: nothing authored, False), and
+    REST_SUBSET_NAME of the others; the caller binds them to
+    author_near_material's material and the ground's. The rest has its
+    subset because Blender 5.0, given material subsets, draws the faces
+    outside them with the first subset's material, not the mesh's."""
     from pxr import Sdf, UsdGeom, UsdShade, Vt
 
+    faces = near_faces(mesh, near["square"])
+    if not len(faces):
+        return False
     x0, x1, z0, z1 = near["square"]
     p = mesh.points.astype(np.float64)
     st = np.stack([(p[:, 0] - x0) / (x1 - x0), 1.0 - (p[:, 2] - z0) / (z1 - z0)], -1).astype(np.float32)
     UsdGeom.PrimvarsAPI(mesh_prim).CreatePrimvar("st_near", Sdf.ValueTypeNames.TexCoord2fArray,
                                                  UsdGeom.Tokens.vertex).Set(Vt.Vec2fArray.FromNumpy(st))
     geom = UsdGeom.Mesh(mesh_prim)
-    subset = UsdGeom.Subset.Define(stage, NEAR_SUBSET)
-    subset.CreateElementTypeAttr(UsdGeom.Tokens.face)
-    subset.CreateFamilyNameAttr(UsdShade.Tokens.materialBind)
-    subset.CreateIndicesAttr(Vt.IntArray.FromNumpy(near["faces"]))
-    UsdGeom.Subset.SetFamilyType(geom, UsdShade.Tokens.materialBind, UsdGeom.Tokens.nonOverlapping)
+    rest = np.setdiff1d(np.arange(len(mesh.face_vertex_indices) // 3, dtype=np.int32), faces)
+    for name, indices in ((NEAR_SUBSET_NAME, faces), (REST_SUBSET_NAME, rest)):
+        if len(indices):
+            subset = UsdGeom.Subset.Define(stage, mesh_prim.GetPath().AppendChild(name))
+            subset.CreateElementTypeAttr(UsdGeom.Tokens.face)
+            subset.CreateFamilyNameAttr(UsdShade.Tokens.materialBind)
+            subset.CreateIndicesAttr(Vt.IntArray.FromNumpy(indices.astype(np.int32)))
+    UsdGeom.Subset.SetFamilyType(geom, UsdShade.Tokens.materialBind, UsdGeom.Tokens.partition)
+    return True
+
+
+def author_near_material(stage, near: dict):
+    """GroundNear: a plain UsdPreviewSurface reading the near square's baked
+    textures through primvar st_near."""
+    from pxr import Sdf, UsdShade
+
     material = UsdShade.Material.Define(stage, NEAR_MATERIAL)
     surface = _shader(stage, f"{NEAR_MATERIAL}/Surface", "UsdPreviewSurface")
     surface.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(float(near["roughness"]))
@@ -220,7 +245,7 @@ def _author_near(stage, mesh_prim, mesh, near: dict) -> None:
     surface.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(
         nmap.CreateOutput("rgb", Sdf.ValueTypeNames.Float3))
     material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
-    UsdShade.MaterialBindingAPI.Apply(subset.GetPrim()).Bind(material)
+    return material
 
 
 def near_texels_m(square, texels: int) -> float:

@@ -37,17 +37,19 @@ def world_picture(world_usda: Path, out_png: Path, cl, size: tuple[int, int] = V
 
 
 def _ground_scenes(world_usda: Path) -> list:
-    """A worldlib.render Scene per mesh outside the point instancers: water
-    dark blue, the ground in its material's colours (grey without)."""
-    from pxr import Usd, UsdGeom
+    """A worldlib.render Scene per mesh outside the point instancers (a
+    terrain's tiles, the meshes of one parent and material, welded into
+    one): water dark blue, the ground in its material's colours (grey
+    without)."""
+    from pxr import Usd, UsdGeom, UsdShade
 
     from worldlib.render import Scene
 
     from worldlib.render.world_view import mute_dcc_selection
 
     stage = Usd.Stage.Open(str(world_usda))
-    mute_dcc_selection(stage)  # the ground as it is, without the crowns a DCC draws for far plants
-    scenes = []
+    mute_dcc_selection(stage)  # the ground as it is (full terrain LODs), without the crowns a DCC draws for far plants
+    parts: dict[tuple, list] = {}  # (parent, material) -> [(points, triangles, tints)]: a terrain's tiles together
     it = iter(Usd.PrimRange(stage.GetPseudoRoot()))
     for prim in it:
         if prim.IsA(UsdGeom.PointInstancer):
@@ -70,6 +72,17 @@ def _ground_scenes(world_usda: Path) -> list:
             colours = _ground_colours(prim, pts, tris)
             if colours is not None:
                 tint = colours
+        material = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()[0]
+        key = (str(prim.GetPath()) if water else str(prim.GetParent().GetPath()), str(material.GetPath()) if material else "")
+        parts.setdefault(key, []).append((pts, tris, tint))
+    scenes = []
+    for group in parts.values():
+        pts, tris, tint = group[0]
+        if len(group) > 1:  # tiles: welded at their shared borders, so the normals there sum both sides' faces
+            offsets = np.cumsum([0] + [len(p) for p, _, _ in group[:-1]])
+            pts, inverse = np.unique(np.concatenate([p for p, _, _ in group]), axis=0, return_inverse=True)
+            tris = inverse.reshape(-1)[np.concatenate([t + o for (_, t, _), o in zip(group, offsets)])]
+            tint = np.concatenate([c for _, _, c in group])
         scenes.append(Scene(pts, _vertex_normals(pts, tris), np.zeros((len(pts), 2)), tris, tint, -1))
     if not scenes:
         raise ValueError("the world has no meshes to show")
@@ -121,16 +134,19 @@ def _ground_colours(prim, pts: np.ndarray, tris: np.ndarray) -> np.ndarray | Non
         return None
     asset = file_attr.Get()
     uv = st_values[tris].mean(axis=1)
+    # the triangles the whole texture would hold at this density: a terrain tile covers a part of st
+    share = float(np.prod(np.clip(st_values.max(0) - st_values.min(0), 1e-6, 1.0)))
+    n_tris = len(tris) / share
     if "<UDIM>" in asset.path:
         layer_dir = Path(file_attr.GetPropertyStack()[0].layer.realPath).parent
-        return _udim_colours((layer_dir / asset.path).resolve(), uv, len(tris))
+        return _udim_colours((layer_dir / asset.path).resolve(), uv, n_tris)
     path = Path(asset.resolvedPath or "")
     if not path.is_file():
         return None
-    return _sample(_read_level(path, math.sqrt(len(tris) / 2.0)), uv)
+    return _sample(_read_level(path, math.sqrt(n_tris / 2.0)), uv)
 
 
-def _udim_colours(path: Path, uv: np.ndarray, n_tris: int) -> np.ndarray | None:
+def _udim_colours(path: Path, uv: np.ndarray, n_tris: float) -> np.ndarray | None:
     """Colours at `uv` from the UDIM tiles `path` names (<UDIM> in its name),
     a square of n x n tiles over the unit square."""
     pattern = re.escape(path.name).replace(re.escape("<UDIM>"), r"(\d{4})")

@@ -1,8 +1,10 @@
 """The world assembly: writes the layers that make `world.usda`.
 
 For now it reads the latest terrain height and writes
-- terrain.usdc: /World/Terrain (kind component) with the ground UsdGeom.Mesh
-  (subdivisionScheme none, vertex normals, primvars:st, extent) bound to a
+- terrain.usdc: /World/Terrain (kind component) with the ground in tiles,
+  /World/Terrain/Ground/Tile_x<i>_y<j>, each a UsdGeom.Mesh (subdivisionScheme
+  none, vertex normals, primvars:st, extent) whose `lod` variants each load a
+  payload of terrain/tile_x<i>_y<j>.usdc (terrain_tiles.py), bound to a
   UsdPreviewSurface material that reads albedo.exr;
 - albedo.exr: the ground colour from altitude and slope, tiled and mip-mapped;
 - world.usda: /World (kind assembly) composing terrain.usdc and, as later
@@ -52,6 +54,9 @@ class WorldParams(Params):
     mesh_max_vertices: int = Param(1025, ge=2, le=8193, units="vertices",
                                    description="largest number of terrain mesh vertices along the longer side (the shorter side keeps "
                                    "the same spacing); the height grid is resampled down to it")
+    terrain_tile_quads: int = Param(256, ge=2, le=8192, units="quads",
+                                    description="most mesh quads per side of a terrain tile: the mesh is written as tiles, "
+                                    "each a USD payload with full, half and quarter LODs (stages/world/terrain_tiles.py)")
     texture_size: int = Param(1024, ge=16, le=16384, units="texels",
                               description="ground colour texture size per side")
     snow_line_m: float = Param(2200.0, ge=-11000.0, le=9000.0, units="m", description="altitude above which the ground is snow")
@@ -115,27 +120,17 @@ def write_terrain_layer(path: Path, height: Grid, texture: str, params: WorldPar
     """udim: (file pattern with <UDIM>, tiles per side): the albedo from UDIM
     tiles read through primvar st_udim = st * tiles; normal_texture: a
     tangent-space normal map (encoded 0..1) over the whole terrain; detail:
-    the ground's detail layer (ground_near.author_detail)."""
-    from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade, Vt
+    the ground's detail layer (ground_near.author_detail_graph). The mesh
+    is written in tiles with LODs, each a payload (terrain_tiles.py)."""
+    from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade
 
     stage, world = usdio.create_stage(path, provenance)
     terrain = UsdGeom.Xform.Define(stage, "/World/Terrain")
     Usd.ModelAPI(terrain).SetKind(Kind.Tokens.component)
 
     mesh_data = build_terrain_mesh(height, params.mesh_max_vertices)
-    mesh = UsdGeom.Mesh.Define(stage, "/World/Terrain/Ground")
-    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)  # the default catmullClark would ignore normals
-    mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
-    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(mesh_data.points))
     nfaces = len(mesh_data.face_vertex_indices) // 3
-    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(nfaces, 3, dtype=np.int32)))
-    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(mesh_data.face_vertex_indices))
-    mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(mesh_data.normals))
-    mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
     ext = mesh_data.extent
-    mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, ext[0])), Gf.Vec3f(*map(float, ext[1]))]))
-    st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
-    st.Set(Vt.Vec2fArray.FromNumpy(mesh_data.st))
 
     UsdGeom.Scope.Define(stage, "/World/Terrain/Looks")
     material = UsdShade.Material.Define(stage, "/World/Terrain/Looks/Ground")
@@ -147,10 +142,7 @@ def write_terrain_layer(path: Path, height: Grid, texture: str, params: WorldPar
     reader.CreateIdAttr("UsdPrimvarReader_float2")
     reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
     albedo_reader = reader
-    if udim is not None:
-        st_udim = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st_udim", Sdf.ValueTypeNames.TexCoord2fArray,
-                                                          UsdGeom.Tokens.vertex)
-        st_udim.Set(Vt.Vec2fArray.FromNumpy((mesh_data.st * np.float32(udim[1])).astype(np.float32)))
+    if udim is not None:  # the meshes' primvar st_udim = st * tiles (terrain_tiles.py)
         albedo_reader = UsdShade.Shader.Define(stage, "/World/Terrain/Looks/Ground/StUdimReader")
         albedo_reader.CreateIdAttr("UsdPrimvarReader_float2")
         albedo_reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st_udim")
@@ -176,20 +168,24 @@ def write_terrain_layer(path: Path, height: Grid, texture: str, params: WorldPar
     albedo.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
     surface.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(albedo.ConnectableAPI(), "rgb")
     material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
-    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+    near = near_material = None
     if detail is not None:
-        from .ground_near import author_detail, near_faces
+        from .ground_near import author_detail_graph, author_near_material
 
-        near = detail.get("near")
-        if near is not None:
-            near = dict(near, faces=near_faces(mesh_data, near["square"]), roughness=params.roughness)
-        author_detail(stage, mesh.GetPrim(), mesh_data, detail["files"], near)
+        author_detail_graph(stage, detail["files"])
+        if detail.get("near") is not None:
+            near = dict(detail["near"], roughness=params.roughness)
+            near_material = author_near_material(stage, near)
+    from .terrain_tiles import write_terrain_tiles
+
+    tiles = write_terrain_tiles(stage, path.parent, mesh_data, params.terrain_tile_quads, material,
+                                None if udim is None else udim[1], detail is not None, near, near_material, provenance)
 
     world.GetPrim()  # /World stays the defaultPrim of this layer too
     stage.GetRootLayer().Save()
     return {"mesh_vertices": int(len(mesh_data.points)), "mesh_triangles": nfaces,
             "mesh_lattice": list(mesh_data.lattice_shape),
-            "height_min_m": float(ext[0][1]), "height_max_m": float(ext[1][1])}
+            "height_min_m": float(ext[0][1]), "height_max_m": float(ext[1][1]), **tiles}
 
 
 GROUND_TILE_THREADS = 2  # UDIM tiles baked at once (each holds about 40 B a texel at its peak)
@@ -368,7 +364,8 @@ def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
                                                       inputs["impostors"], ctx)
             # what a DCC, which cannot switch LODs by distance, renders (dcc_layer.py)
             ctx.metrics["dcc"] = write_dcc_layer(root_path, inputs["vegetation"], inputs["impostors"],
-                                                 ctx.metrics["impostors"], ctx.provenance) if "vegetation" in inputs else {}
+                                                 ctx.metrics["impostors"], ctx.provenance,
+                                                 terrain_path) if "vegetation" in inputs else {}
     return {"world.root": root_path, "world.terrain": terrain_path, "world.albedo": albedo_path}
 
 
@@ -435,8 +432,9 @@ STAGE = Stage(
         Artifact("world.root", kind="usd", file="world.usda", shape="any", publish=True, beside=("dcc.usdc",),
                  description="the root layer composing every layer of the world; beside it dcc.usdc, its strongest "
                  "sublayer: the per-tile `lod` selection a DCC renders with (dcc_layer.py)"),
-        Artifact("world.terrain", kind="usd", file="terrain.usdc", shape="any",
-                 description="the terrain mesh and its material"),
+        Artifact("world.terrain", kind="usd", file="terrain.usdc", shape="any", beside=("terrain/*.usdc",),
+                 description="the terrain mesh and its material; beside it terrain/tile_x<i>_y<j>.usdc, one payload "
+                 "per terrain tile holding its LOD meshes (terrain_tiles.py)"),
         Artifact("world.albedo", kind="texture", file="albedo.exr", shape="any", units="linear RGB",
                  beside=("ground.*.exr", "normal.exr", "splat_*.exr", "near_*.png", "detail/*.png"),
                  description="ground colour texture (an overview), tiled and mip-mapped; beside it the UDIM albedo "

@@ -35,7 +35,8 @@ IMPOSTORS_SMALL = [a for kv in ("frames=8", "atlas_px=256", "samples=1", "heldou
 SMALL = ["--set", "heightmap.resolution=96", "--set", "world.texture_size=64", "--set", "shared.mesh_max_vertices=49",
          *IMPOSTORS_SMALL, "--set", f"plants.build={json.dumps(list(TREES) + ['grass'])}",
          "--set", "plants.hausdorff_samples=2000", "--set", "world.ground_texel_m=16",
-         "--set", "world.ground_tile_texels=256"]
+         "--set", "world.ground_tile_texels=256",
+         "--set", "world.terrain_tile_quads=16"]  # 48 quads a side: 3 x 3 terrain tiles, each a payload
 
 
 @functools.lru_cache(maxsize=1)

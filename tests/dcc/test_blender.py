@@ -89,6 +89,29 @@ def test_rivers_and_lakes_come_in_as_meshes_with_their_material(dcc_world):
         assert all(m["materials"] and m["materials"][0]["name"] for m in found), f"{name} has no material in Blender"
 
 
+def test_terrain_tiles_come_in_as_meshes_at_their_selected_lod(dcc_world):
+    """Blender loads every terrain tile's payload (terrain_tiles.py) at the
+    `lod` dcc.usdc selects, with the ground material (and the near square's
+    where the tile has its subset)."""
+    from pxr import UsdGeom
+
+    from stages.world.terrain_tiles import tile_prims
+
+    stage = composed(dcc_world["folder"])
+    meshes = dcc_world["report"]["meshes"]
+    tiles = tile_prims(stage)
+    assert len(tiles) == 9
+    for prim in tiles:
+        found = [m for k, m in meshes.items() if k == prim.GetName()]
+        assert len(found) == 1, f"{prim.GetName()} is not one Blender mesh ({sorted(meshes)[:20]})"
+        points = len(UsdGeom.Mesh(prim).GetPointsAttr().Get())
+        assert found[0]["vertices"] == points, (prim.GetName(), found[0]["vertices"], points)
+        names = [m["name"] for m in found[0]["materials"]]
+        # a tile with the near square: both materials (Blender draws faces outside any subset with the first
+        # subset's material: the rest of the tile has its own subset, bound to the ground's)
+        assert names == (["GroundNear", "Ground"] if prim.GetChild("Near") else ["Ground"]), names
+
+
 def _plant_layer(folder: Path, tmp: Path, species: str, lod: str) -> Path:
     """A layer whose /Plant references the world's prototype of the species with `lod` selected."""
     path = tmp / f"{species}_{lod}.usda"

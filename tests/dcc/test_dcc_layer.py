@@ -41,6 +41,46 @@ def test_crown_pyramids_enclose_their_centres_and_face_outward():
         assert plan == pytest.approx(np.pi * radius[k] ** 2, rel=1e-5)
 
 
+def test_terrain_lod_is_the_coarsest_within_the_error_on_screen():
+    errors = {"full": 0.0, "half": 4.0, "quarter": 12.0}
+    tiles = [(f"/T{k}", np.array([x, 0.0, x + 100.0, 100.0, 0.0, 10.0]), errors)
+             for k, x in enumerate((0.0, 1000.0, 3000.0, 9000.0))]
+    eye = np.array([50.0, 5.0, 50.0])
+    px = dcc_layer.TERRAIN_ERROR_PX
+    rho = 1000.0 * px / 4.0  # half's 4 m fits from 1000 m on, quarter's 12 m from 3000 m on
+    got = dcc_layer.terrain_selection(tiles, eye, rho)
+    assert [got[f"/T{k}"] for k in range(4)] == ["full", "full", "half", "quarter"]
+    farther = dcc_layer.terrain_selection([(p, b + [60.0, 0, 60.0, 0, 0, 0], e) for p, b, e in tiles], eye, rho)
+    assert farther["/T1"] == "half" and farther["/T2"] == "quarter"  # 1010 m, 3010 m: one step coarser each
+
+
+def test_the_world_selects_terrain_tiles_by_distance_and_muting_gives_full(small_world):
+    from pxr import Usd
+
+    from stages.world.terrain_tiles import tile_prims
+
+    world = small_world["folder"]
+    stage = Usd.Stage.Open(str(world), Usd.Stage.LoadNone)
+    muted = Usd.Stage.Open(str(world), Usd.Stage.LoadNone)
+    muted.MuteLayer(str(world.parent / "world" / dcc_layer.LAYER))
+    tiles = dcc_layer.terrain_tiles(stage)
+    assert len(tiles) == 9  # the small world's 48 quads a side in tiles of 16
+    veg = dcc_layer.vegetation_source(stage.GetPrimAtPath("/World/Vegetation"))
+    from pathlib import Path
+
+    eye = dcc_layer.default_eye(dcc_layer.leaf_tiles(Path(veg.realPath)))
+    protos = {p.GetName(): str(p.GetPath()) for p in stage.GetPrimAtPath("/World/Vegetation/Prototypes").GetAllChildren()}
+    rho = next(iter(dcc_layer.species_ladders(world, protos).values()))["px_per_rad"]
+    want = dcc_layer.terrain_selection(tiles, eye, rho)
+    for prim in tile_prims(stage):
+        assert prim.GetVariantSets().GetVariantSet("lod").GetVariantSelection() == want[str(prim.GetPath())]
+    for prim in tile_prims(muted):
+        assert prim.GetVariantSets().GetVariantSet("lod").GetVariantSelection() == "full"
+    # the tile holding the eye is at full detail
+    inside = [p for p, b, _ in tiles if b[0] <= eye[0] <= b[2] and b[1] <= eye[2] <= b[3]]
+    assert inside and all(want[p] == "full" for p in inside)
+
+
 def test_the_world_selects_each_tile_by_its_distance(small_world):
     """The published world composes dcc.usdc first; every instancer tile's
     prototype selects what choose() gives for its distance from the eye
@@ -102,6 +142,26 @@ def test_a_shot_layer_puts_every_plant_back_at_lod0(small_world, tmp_path):
         assert sel == "LOD0", p.GetPath()
     crowns = stage.GetPrimAtPath(dcc_layer.CROWNS)
     assert not crowns or not crowns.IsActive(), "the world's crowns still drawn beside the plants they stand for"
+    assert info["terrain_tiles"] == {"full": 9}  # and the terrain at full detail
+
+
+def test_a_shot_layer_selects_the_terrain_for_its_eye(small_world, tmp_path):
+    from pxr import Usd
+
+    from stages.world.terrain_tiles import tile_prims
+
+    stage = Usd.Stage.Open(str(small_world["folder"]), Usd.Stage.LoadNone)
+    tiles = dcc_layer.terrain_tiles(stage)
+    corner = tiles[0][1]  # the north-west tile: an eye over it
+    eye = np.array([corner[0] + 1.0, corner[5] + 10.0, corner[1] + 1.0])
+    out = tmp_path / "shot.usda"
+    dcc_layer.write_shot_layer(small_world["folder"], out, eye=eye)
+    shot = Usd.Stage.Open(str(out), Usd.Stage.LoadNone)
+    protos = {p.GetName(): str(p.GetPath()) for p in stage.GetPrimAtPath("/World/Vegetation/Prototypes").GetAllChildren()}
+    rho = next(iter(dcc_layer.species_ladders(small_world["folder"], protos).values()))["px_per_rad"]
+    want = dcc_layer.terrain_selection(tiles, eye, rho)
+    got = {str(p.GetPath()): p.GetVariantSets().GetVariantSet("lod").GetVariantSelection() for p in tile_prims(shot)}
+    assert got == want and got[tiles[0][0]] == "full"
 
 
 def test_our_renderer_composes_the_world_without_the_dcc_selection(small_world):

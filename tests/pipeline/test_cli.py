@@ -271,7 +271,9 @@ def test_a_rectangular_dem_stating_its_cell_size_bakes_a_rectangular_world(proje
     world = project / "build" / "worlds" / "demworld" / "world.usda"
     assert usdio.validate(world) == []
     stage = Usd.Stage.Open(str(world))
-    lo, hi = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Terrain/Ground")).GetExtentAttr().Get()
+    r = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default"]).ComputeWorldBound(
+        stage.GetPrimAtPath("/World/Terrain/Ground")).ComputeAlignedRange()  # the terrain tiles' extents
+    lo, hi = r.GetMin(), r.GetMax()
     assert (round(hi[0] - lo[0] + 40), round(hi[2] - lo[2] + 40)) == (2000, 1600)  # vertex span + a cell
 
 

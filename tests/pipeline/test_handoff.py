@@ -78,7 +78,7 @@ def test_export_folder_and_usdz_are_self_contained(baked, tmp_path):
         for path in (folder / "world.usda", tmp_path / "world.usdz"):
             assert usdio.validate(path) == [], path
             stage = Usd.Stage.Open(str(path))
-            assert UsdGeom.Mesh(stage.GetPrimAtPath("/World/Terrain/Ground")).GetPointsAttr().Get()
+            assert UsdGeom.Mesh(stage.GetPrimAtPath("/World/Terrain/Ground/Tile_x0_y0")).GetPointsAttr().Get()
             attr = stage.GetPrimAtPath("/World/Terrain/Looks/Ground/Albedo").GetAttribute("inputs:file")
             tex = attr.Get()
             assert "<UDIM>" in tex.path  # Ar resolves each tile, not the pattern

@@ -176,9 +176,11 @@ def load_detail_view(world_usda: str | Path) -> GroundDetailView | None:
     """The detail layer of the world's ground, or None where its material has none."""
     from pxr import Usd, UsdGeom, UsdShade
 
-    from worldlib.terrain.mesh import TerrainMesh
+    from worldlib.render.world_view import mute_dcc_selection
+    from worldlib.terrain.mesh import weld_lattice
 
     stage = Usd.Stage.Open(str(world_usda))
+    mute_dcc_selection(stage)  # the terrain at its full LOD (dcc.usdc may choose coarser tiles)
     for prim in stage.Traverse():
         if not prim.IsA(UsdGeom.Mesh):
             continue
@@ -201,20 +203,23 @@ def load_detail_view(world_usda: str | Path) -> GroundDetailView | None:
             scale = xf.GetInput("scale").Get() if xf and xf.GetInput("scale") else None
             tile[t] = 1.0 / float(scale[0]) if scale is not None else 1.0
             textures[t] = (_read_texture(albedo), 0.5 * _read_texture(normal) + 0.5)  # from_textures takes 0..1
-        pts = np.asarray(UsdGeom.Mesh(prim).GetPointsAttr().Get(), np.float32)
-        normals = UsdGeom.Mesh(prim).GetNormalsAttr().Get()
-        if normals is None or len(normals) != len(pts):
+        # the terrain's tiles (stages/world/terrain_tiles.py): the meshes beside it bound to the same material
+        tiles = [p for p in prim.GetParent().GetChildren() if p.IsA(UsdGeom.Mesh) and
+                 UsdShade.MaterialBindingAPI(p).ComputeBoundMaterial()[0].GetPath() == material.GetPath()]
+        pts = [np.asarray(UsdGeom.Mesh(p).GetPointsAttr().Get(), np.float32) for p in tiles]
+        normals = [UsdGeom.Mesh(p).GetNormalsAttr().Get() for p in tiles]
+        if any(n is None or len(n) != len(q) for n, q in zip(normals, pts)):
             return None
-        nc = int((pts[:, 2] == pts[0, 2]).sum())  # the lattice's first row (the terrain mesh is row-major)
-        lattice = TerrainMesh(pts, np.asarray(normals, np.float32), np.zeros((len(pts), 2), np.float32),
-                              np.zeros(0, np.int32), (len(pts) // nc, nc))
+        lattice = weld_lattice(np.concatenate(pts), np.concatenate([np.asarray(n, np.float32) for n in normals]))
+        if lattice is None:  # not every tile at its full LOD
+            return None
         return GroundDetailView(ground_detail.DetailLayer.from_textures(textures, tile), splat[0], splat[1], lattice,
-                                covered_by_other_meshes(stage, prim, pts))
+                                covered_by_other_meshes(stage, {p.GetPath() for p in tiles}, lattice.points))
     return None
 
 
-def covered_by_other_meshes(stage, terrain, points: np.ndarray, max_cells: int = 4096):
-    """How high meshes other than the terrain (water surfaces, ...; not
+def covered_by_other_meshes(stage, terrain: set, points: np.ndarray, max_cells: int = 4096):
+    """How high meshes other than the terrain's (terrain: their prim paths) (water surfaces, ...; not
     plant prototypes under a PointInstancer, not invisible) lie over the
     terrain's footprint: (top, x0, z0, cell_m), top the highest of their
     triangles at each texel centre (NaN where none; a texel at least the
@@ -234,7 +239,7 @@ def covered_by_other_meshes(stage, terrain, points: np.ndarray, max_cells: int =
                                                  == UsdGeom.Tokens.invisible):
             it.PruneChildren()
             continue
-        if not prim.IsA(UsdGeom.Mesh) or prim == terrain:
+        if not prim.IsA(UsdGeom.Mesh) or prim.GetPath() in terrain:
             continue
         mesh = UsdGeom.Mesh(prim)
         pts, counts, idx = mesh.GetPointsAttr().Get(), mesh.GetFaceVertexCountsAttr().Get(), mesh.GetFaceVertexIndicesAttr().Get()

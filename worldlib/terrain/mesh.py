@@ -114,3 +114,152 @@ def height_on_mesh(mesh: TerrainMesh, x: np.ndarray, z: np.ndarray) -> np.ndarra
     hd, he = P[i + 1, j, 1], P[i + 1, j + 1, 1]
     upper = u + v <= 1.0  # triangle (a, d, b); otherwise (b, d, e)
     return np.where(upper, ha + u * (hb - ha) + v * (hd - ha), he + (1 - u) * (hd - he) + (1 - v) * (hb - he))
+
+
+# Terrain tiles: the lattice cut into tiles of at most tile_quads quads a side, each tile drawn at LOD strides
+# (every stride-th lattice line). A coarse LOD keeps its tile's border at full resolution and fans the ring of
+# coarse quads along the border onto it, so every LOD of a tile has the same border vertices as the full lattice:
+# neighbouring tiles at any LODs meet without cracks, and no skirts are needed.
+LOD_STRIDES = {"full": 1, "half": 2, "quarter": 4}
+
+
+@dataclass(frozen=True)
+class TileMesh:
+    """A part of a TerrainMesh: its vertices (the lattice's own values,
+    bitwise) and triangles indexing them."""
+    points: np.ndarray  # (n, 3) float32
+    normals: np.ndarray  # (n, 3) float32
+    st: np.ndarray  # (n, 2) float32
+    face_vertex_indices: np.ndarray  # (3 * faces,) int32, into points
+    lattice_ids: np.ndarray  # (n,) int64: each vertex's index in the whole lattice (row-major)
+
+    @property
+    def extent(self) -> np.ndarray:
+        return np.stack([self.points.min(axis=0), self.points.max(axis=0)])
+
+
+def tile_edges(n_vertices: int, tile_quads: int) -> np.ndarray:
+    """Lattice lines where tiles meet along one side, first and last
+    included: ceil(quads / tile_quads) tiles of as even a size as whole
+    quads allow (one tile when the side is at most tile_quads quads)."""
+    quads = n_vertices - 1
+    n = max(1, -(-quads // max(tile_quads, 1)))
+    return np.array([k * quads // n for k in range(n + 1)], np.int64)
+
+
+def _lod_lines(n: int, stride: int) -> list[int]:
+    lines = list(range(0, n, stride))
+    return lines + [n] if lines[-1] != n else lines
+
+
+def _coarse_quad(a: int, b: int, c: int, d: int, rows: int, cols: int) -> list[tuple[int, int, int]]:
+    """Triangles (corners as (row, col) flattened by the caller) of the coarse
+    quad rows a..b, cols c..d of a tile of rows x cols quads whose border
+    lines keep every vertex: the quad's outline (its border sides at full
+    resolution) fanned from a corner both of whose sides are plain, else
+    from the quad's centre vertex, else (a one-quad-wide strip between two
+    borders) its fine quads. Counter-clockwise seen from +Y."""
+    def side(start: tuple[int, int], end: tuple[int, int], on_border: bool) -> list[tuple[int, int]]:
+        """The vertices from start up to (not including) end along a row or column: every one on a border."""
+        n = max(abs(end[0] - start[0]), abs(end[1] - start[1]))
+        steps = range(n) if on_border else range(1)
+        return [(start[0] + (end[0] - start[0]) * k // n, start[1] + (end[1] - start[1]) * k // n) for k in steps]
+
+    west, south, east, north = c == 0, b == rows, d == cols, a == 0
+    # the outline NW -> SW -> SE -> NE (counter-clockwise from above: x east, z south)
+    ring = (side((a, c), (b, c), west) + side((b, c), (b, d), south) + side((b, d), (a, d), east)
+            + side((a, d), (a, c), north))
+    plain = {(a, c): not (west and b - a > 1) and not (north and d - c > 1),
+             (b, c): not (west and b - a > 1) and not (south and d - c > 1),
+             (b, d): not (east and b - a > 1) and not (south and d - c > 1),
+             (a, d): not (east and b - a > 1) and not (north and d - c > 1)}
+    corner = next((p for p in ((b, d), (a, c), (b, c), (a, d)) if plain[p]), None)
+    if corner is not None:
+        k = ring.index(corner)
+        ring = ring[k:] + ring[:k]
+        return [(ring[0], ring[i], ring[i + 1]) for i in range(1, len(ring) - 1)]
+    if b - a >= 2 and d - c >= 2:
+        centre = ((a + b) // 2, (c + d) // 2)
+        return [(centre, ring[i], ring[(i + 1) % len(ring)]) for i in range(len(ring))]
+    return [t for r in range(a, b) for q in range(c, d)
+            for t in (((r, q), (r + 1, q), (r, q + 1)), ((r, q + 1), (r + 1, q), (r + 1, q + 1)))]
+
+
+def tile_lod_triangles(rows: int, cols: int, stride: int) -> np.ndarray:
+    """(faces, 3) local vertex indices (row-major over the tile's
+    (rows + 1) x (cols + 1) vertices) of a tile of rows x cols quads at a
+    LOD stride: stride 1 the lattice's own triangles (build_terrain_mesh's
+    diagonal), coarser ones every stride-th line inside with the border at
+    full resolution (_coarse_quad)."""
+    if stride <= 1:
+        idx = np.arange((rows + 1) * (cols + 1), dtype=np.int64).reshape(rows + 1, cols + 1)
+        a, b, d, e = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+        return np.stack([a, d, b, b, d, e], axis=-1).reshape(-1, 3)
+    rr, cc = _lod_lines(rows, stride), _lod_lines(cols, stride)
+    tris = []
+    for i in range(len(rr) - 1):
+        for j in range(len(cc) - 1):
+            a, b, c, d = rr[i], rr[i + 1], cc[j], cc[j + 1]
+            if a > 0 and b < rows and c > 0 and d < cols:  # inside the border ring: two triangles
+                tris += [((a, c), (b, c), (a, d)), ((a, d), (b, c), (b, d))]
+            else:
+                tris += _coarse_quad(a, b, c, d, rows, cols)
+    t = np.asarray(tris, np.int64)  # (faces, 3, 2)
+    return t[..., 0] * (cols + 1) + t[..., 1]
+
+
+def terrain_tile(mesh: TerrainMesh, rows: tuple[int, int], cols: tuple[int, int], stride: int = 1) -> TileMesh:
+    """The tile of the mesh's lattice between lattice lines rows (r0, r1)
+    and cols (c0, c1), inclusive, at a LOD stride (tile_lod_triangles): its
+    vertices are the lattice's own, so tiles sharing a border share its
+    vertices bitwise."""
+    nr, nc = mesh.lattice_shape
+    (r0, r1), (c0, c1) = rows, cols
+    if not (0 <= r0 < r1 < nr and 0 <= c0 < c1 < nc):
+        raise ValueError(f"tile rows {rows} cols {cols} outside the {nr}x{nc} lattice")
+    local = tile_lod_triangles(r1 - r0, c1 - c0, stride)
+    used, faces = np.unique(local, return_inverse=True)
+    lr, lc = np.divmod(used, c1 - c0 + 1)
+    ids = (lr + r0) * nc + (lc + c0)
+    return TileMesh(mesh.points[ids], mesh.normals[ids], mesh.st[ids], faces.reshape(-1).astype(np.int32), ids)
+
+
+def lod_error_m(mesh: TerrainMesh, tile: TileMesh) -> float:
+    """Largest vertical distance between the full lattice's vertices inside
+    the tile and the tile's surface (0 for the full LOD): each triangle
+    against the lattice vertices in its box, in lattice coordinates (the
+    lattice is evenly spaced, so they are the plane's own)."""
+    nc = mesh.lattice_shape[1]
+    heights = mesh.points[:, 1].astype(np.float64)
+    r, c = np.divmod(tile.lattice_ids, nc)
+    tri = tile.face_vertex_indices.reshape(-1, 3)
+    tr, tc, ty = r[tri].astype(np.float64), c[tri].astype(np.float64), heights[tile.lattice_ids][tri]
+    r0, c0 = r[tri].min(1), c[tri].min(1)
+    span = int(max((r[tri].max(1) - r0).max(), (c[tri].max(1) - c0).max())) + 1
+    dr, dc = (a.reshape(-1) for a in np.mgrid[0:span, 0:span])
+    qr, qc = r0[:, None] + dr[None], c0[:, None] + dc[None]  # (faces, span^2) candidate vertices
+    e1r, e1c, e2r, e2c = tr[:, 1] - tr[:, 0], tc[:, 1] - tc[:, 0], tr[:, 2] - tr[:, 0], tc[:, 2] - tc[:, 0]
+    det = (e1c * e2r - e1r * e2c)[:, None]
+    vr, vc = qr - tr[:, :1], qc - tc[:, :1]
+    u = (vc * e2r[:, None] - vr * e2c[:, None]) / det
+    w = (e1c[:, None] * vr - e1r[:, None] * vc) / det
+    inside = (u >= -1e-9) & (w >= -1e-9) & (u + w <= 1 + 1e-9)
+    y = ty[:, :1] + u * (ty[:, 1] - ty[:, 0])[:, None] + w * (ty[:, 2] - ty[:, 0])[:, None]
+    ids = (qr * nc + qc)[inside]
+    err = np.abs(y[inside] - heights[np.clip(ids, 0, len(heights) - 1)])
+    return float(err.max()) if len(err) else 0.0
+
+
+def weld_lattice(points: np.ndarray, normals: np.ndarray) -> TerrainMesh | None:
+    """The lattice (row-major: z rows, x columns) of a terrain given in
+    tiles (their full LOD: every lattice vertex, each border vertex in
+    several tiles, bitwise equal); None unless the points make a whole
+    lattice. No triangles or st: a TerrainMesh for height_on_mesh."""
+    p = np.asarray(points, np.float32)
+    key = np.stack([p[:, 2], p[:, 0]], -1)
+    _, first = np.unique(key, axis=0, return_index=True)  # sorted by z, then x: row-major
+    xs, zs = np.unique(p[:, 0]), np.unique(p[:, 2])
+    if len(first) != len(xs) * len(zs):
+        return None
+    return TerrainMesh(p[first], np.asarray(normals, np.float32)[first], np.zeros((len(first), 2), np.float32),
+                       np.zeros(0, np.int32), (len(zs), len(xs)))

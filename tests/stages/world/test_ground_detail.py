@@ -13,7 +13,7 @@ from stages.world import STAGE
 from worldlib import ground_detail
 from worldlib.ground import GROUND_TYPES, SPLAT_CHANNELS
 
-FAST = dict(mesh_max_vertices=17, texture_size=32, ground_texel_m=2.0, ground_tile_texels=256,
+FAST = dict(mesh_max_vertices=17, terrain_tile_quads=4, texture_size=32, ground_texel_m=2.0, ground_tile_texels=256,
             ground_detail_texels=64, ground_near_m=100.0, ground_near_texels=96)
 
 
@@ -97,27 +97,43 @@ def test_detail_network_wiring(world):
 
 
 def test_st_detail_is_metres_and_the_near_subset_is_bound(world):
+    """On every terrain tile (4 x 4 quads here, so the near square spans several)."""
     from pxr import Gf, Usd, UsdGeom, UsdShade
 
-    from stages.world.ground_near import NEAR_MATERIAL, NEAR_SUBSET
+    from stages.world.ground_near import NEAR_MATERIAL, NEAR_SUBSET_NAME
+    from stages.world.terrain_tiles import tile_prims
 
     _, out, ctx, _, _ = world
     stage = Usd.Stage.Open(str(out["world.root"]))
-    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Terrain/Ground"))
-    pts = np.asarray(mesh.GetPointsAttr().Get())
-    st = np.asarray(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st_detail").Get())
-    np.testing.assert_allclose(st, np.stack([pts[:, 0], -pts[:, 2]], -1), rtol=1e-6)
-    subset = UsdGeom.Subset(stage.GetPrimAtPath(NEAR_SUBSET))
-    assert subset.GetFamilyNameAttr().Get() == "materialBind"
-    assert UsdGeom.Subset.GetFamilyType(mesh, "materialBind") == "nonOverlapping"
-    faces = np.asarray(subset.GetIndicesAttr().Get())
     x0, x1, z0, z1 = ctx.metrics["ground_detail"]["near"]["square"]
-    corners = pts[np.asarray(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)[faces]]
-    assert len(faces) and (corners[..., 0] >= x0 - 1e-3).all() and (corners[..., 0] <= x1 + 1e-3).all()
-    assert (corners[..., 2] >= z0 - 1e-3).all() and (corners[..., 2] <= z1 + 1e-3).all()
-    # the subset's quads are the whole square: (x1 - x0) (z1 - z0) of area, two triangles a quad
-    area = 0.5 * np.abs(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])[:, 1]).sum()
+    area, subsets = 0.0, []
+    for prim in tile_prims(stage):
+        mesh = UsdGeom.Mesh(prim)
+        pts = np.asarray(mesh.GetPointsAttr().Get())
+        st = np.asarray(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st_detail").Get())
+        np.testing.assert_allclose(st, np.stack([pts[:, 0], -pts[:, 2]], -1), rtol=1e-6)
+        subset = UsdGeom.Subset(prim.GetChild(NEAR_SUBSET_NAME))
+        if not subset:
+            continue
+        subsets.append(subset)
+        assert subset.GetFamilyNameAttr().Get() == "materialBind"
+        # Near and Rest (the tile's other triangles, bound to the ground: Blender would draw them with Near's)
+        assert UsdGeom.Subset.GetFamilyType(mesh, "materialBind") == "partition"
+        assert UsdGeom.Subset.ValidateFamily(mesh, "face", "materialBind")[0]
+        rest = prim.GetChild("Rest")
+        assert UsdShade.MaterialBindingAPI(rest).ComputeBoundMaterial()[0].GetPath() == "/World/Terrain/Looks/Ground"
+        faces = np.asarray(subset.GetIndicesAttr().Get())
+        corners = pts[np.asarray(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)[faces]]
+        assert len(faces) and (corners[..., 0] >= x0 - 1e-3).all() and (corners[..., 0] <= x1 + 1e-3).all()
+        assert (corners[..., 2] >= z0 - 1e-3).all() and (corners[..., 2] <= z1 + 1e-3).all()
+        area += 0.5 * np.abs(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])[:, 1]).sum()
+        st_near = np.asarray(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st_near").Get())
+        inside = st_near[np.unique(np.asarray(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)[faces])]
+        assert inside.min() >= -1e-6 and inside.max() <= 1 + 1e-6
+    # the subsets' quads are the whole square: (x1 - x0) (z1 - z0) of area, over more than one tile
+    assert len(subsets) > 1
     assert area == pytest.approx((x1 - x0) * (z1 - z0), rel=1e-4)
+    subset = subsets[0]
     material, _ = UsdShade.MaterialBindingAPI(subset.GetPrim()).ComputeBoundMaterial()
     assert material.GetPath() == NEAR_MATERIAL
     surface = material.ComputeSurfaceSource()[0]
@@ -129,9 +145,6 @@ def test_st_detail_is_metres_and_the_near_subset_is_bound(world):
     assert normal.GetInput("bias").Get() == Gf.Vec4f(-1, -1, -1, 0)
     reader = UsdShade.Shader(albedo.GetInput("st").GetConnectedSource()[0].GetPrim())
     assert reader.GetInput("varname").Get() == "st_near"
-    st_near = np.asarray(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st_near").Get())
-    inside = st_near[np.unique(np.asarray(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)[faces])]
-    assert inside.min() >= -1e-6 and inside.max() <= 1 + 1e-6
 
 
 def test_near_bake_is_the_blend_at_its_texels(world):

@@ -37,7 +37,9 @@ def test_world_layers_validate_and_follow_conventions(tmp_path):
     assert UsdGeom.GetStageMetersPerUnit(stage) == 1.0
     assert stage.GetDefaultPrim().GetPath() == "/World"
     assert Usd.ModelAPI(stage.GetDefaultPrim()).GetKind() == "assembly"
-    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Terrain/Ground"))
+    # a world smaller than a terrain tile is one tile
+    assert [p.GetName() for p in stage.GetPrimAtPath("/World/Terrain/Ground").GetChildren()] == ["Tile_x0_y0"]
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Terrain/Ground/Tile_x0_y0"))
     assert mesh.GetSubdivisionSchemeAttr().Get() == UsdGeom.Tokens.none
     pts = np.array(mesh.GetPointsAttr().Get())
     # 17 vertices along the 40 columns; along the 33 rows the same spacing (39 / 16 cells) gives 14
