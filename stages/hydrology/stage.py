@@ -3,8 +3,10 @@
 Pipeline (every step exact against reference.py, see the tests):
 1. Depression handling (routing.py, as steps 2 and 3): complete breaching (Lindsay 2016, the default;
    one serial work-item, kernels.cl breach_serial, bit-exact against
-   reference.breach) or Priority-Flood fill (Barnes 2014) by minimax
-   relaxation on the OpenCL device (kernels.cl fill_tiles); then Priority-Flood+epsilon
+   reference.breach) or Priority-Flood fill (Barnes 2014) on the OpenCL
+   device in three phases (kernels.cl fill_local, fill_levels, fill_combine:
+   per-tile fill and labels, the spill levels over tile edges, the max of
+   both); then Priority-Flood+epsilon by minimax relaxation (fill_tiles)
    (a float32-safe step: one ulp where |h| >= 1 m, 2^-23 m below) so every
    cell has a strictly descending path to an edge: the routing surface.
 2. D8 steepest descent on the routing surface (kernel d8, pysheds order).

@@ -17,8 +17,10 @@ from . import reference as ref
 
 KERNELS = Path(__file__).with_name("kernels.cl")
 FILL_TILE = 64
+FILL_PLAIN_TILE = 128  # fewer perimeter cells for fill_levels' serial flood
 ACC_TILE = 64
 ACC_TILE_MAX = 128  # the tile's scratch lives in private memory: about 19 B per cell
+FILL_TILE_MAX = 128  # the tile and its halo live in private memory: 8 B (fill_local 10 B and a hash) per cell
 
 
 def _program(env, acc_type: str = "uint", extra: tuple[str, ...] = ()):
@@ -41,18 +43,30 @@ def _ceil(n: int, local: int | None) -> tuple[int, ...]:
     return global_size((n,), (local,) if local else None)
 
 
-def fill(env, h: np.ndarray, kind: np.ndarray, eps: bool, tile: int = FILL_TILE, local: int | None = None,
+def fill(env, h: np.ndarray, kind: np.ndarray, eps: bool, tile: int | None = None, local: int | None = None,
          stats: dict | None = None) -> np.ndarray:
     """The Priority-Flood fill (eps: Priority-Flood+epsilon) of canonical
     float32 heights on the OpenCL device `env` (pipeline.opencl.CL); no-data
-    cells come back as NaN."""
+    cells come back as NaN. The plain fill runs in three phases (kernels.cl
+    fill_local, fill_levels, fill_combine; tiles of FILL_PLAIN_TILE), the
+    epsilon fill by relaxation (fill_tiles, tiles of FILL_TILE): the
+    epsilon's steps add up along a path, which the plain fill's spill levels
+    cannot carry."""
     import pyopencl as cl
 
-    prg = _program(env)
+    tile = tile or (FILL_TILE if eps else FILL_PLAIN_TILE)
+    if not 1 <= tile <= FILL_TILE_MAX:
+        raise ValueError(f"fill tile {tile} outside 1..{FILL_TILE_MAX}")
+    h = np.ascontiguousarray(h, np.float32)
+    if not eps:
+        for hcap in (_fill_hash(tile), 4 * _fill_hash(tile)):  # a tile with more label pairs: a larger hash
+            W = _fill_plain(env, h, kind, tile, local, stats, hcap=hcap)
+            if W is not None:
+                return W
+    prg = _program(env, extra=(f"-DFILL_T={tile}",))
     rows, cols = h.shape
     tiles_x, tiles_y = -(-cols // tile), -(-rows // tile)
     nt = tiles_x * tiles_y
-    h = np.ascontiguousarray(h, np.float32)
     W0 = np.where(kind == ref.INTERIOR, np.float32(np.inf), np.where(kind == ref.EDGE, h, np.float32(-np.inf))).astype(np.float32)
     d_h, d_kind = _buf(env, h), _buf(env, kind)
     d_W, d_pub = _buf(env, W0, True), _buf(env, W0, True)
@@ -65,8 +79,11 @@ def fill(env, h: np.ndarray, kind: np.ndarray, eps: bool, tile: int = FILL_TILE,
     k_fill.set_args(d_h, d_kind, d_W, d_pub, d_active, d_changed, i32(rows), i32(cols), i32(tile), i32(tiles_x),
                     i32(nt), i32(1 if eps else 0), i32(4 * tile * tile))
     k_pub.set_args(d_W, d_pub, d_changed, i32(rows), i32(cols), i32(tile), i32(tiles_x), i32(nt))
+    # one tile per work-group unless asked otherwise: PoCL may keep the
+    # private copies of every work-item of a group alive at once
+    local = local or 1
     g = _ceil(nt, local)
-    lw = (local,) if local else None
+    lw = (local,)
     passes = tiles_run = 0
     while True:
         cl.enqueue_nd_range_kernel(env.queue, k_fill, g, lw)
@@ -91,6 +108,69 @@ def fill(env, h: np.ndarray, kind: np.ndarray, eps: bool, tile: int = FILL_TILE,
     W[kind == ref.NODATA] = np.nan
     if stats is not None:
         stats.update(passes=passes, tiles_run=tiles_run, tiles=nt)
+    return W
+
+
+def _fill_hash(tile: int) -> int:
+    """Slots of fill_local's label-pair hash: a power of two, 64 per tile side
+    (the raw 8192^2 default world needs more than 32 in some tiles of 128^2)."""
+    return 1 << (64 * tile - 1).bit_length()
+
+
+def _fill_plain(env, h: np.ndarray, kind: np.ndarray, tile: int, local: int | None, stats: dict | None,
+                parts: dict | None = None, hcap: int | None = None):
+    """The plain fill by kernels.cl's three phases (fill_local, fill_levels,
+    fill_combine); None when a tile's label pairs overflow its hash (the
+    caller then relaxes instead). parts (tests): gets each phase's output,
+    Wloc, label and level."""
+    import pyopencl as cl
+
+    hcap = hcap or _fill_hash(tile)
+    prg = _program(env, extra=(f"-DFILL_T={tile}", f"-DFILL_HCAP={hcap}"))
+    rows, cols = h.shape
+    tiles_x, tiles_y = -(-cols // tile), -(-rows // tile)
+    nt, pmax, n = tiles_x * tiles_y, 4 * tile, rows * cols
+    mf = cl.mem_flags
+    d_h, d_kind = _buf(env, h), _buf(env, kind)
+    d_wloc, d_label = (cl.Buffer(env.ctx, mf.READ_WRITE, n * 4) for _ in range(2))
+    off = np.empty((nt, pmax + 1), np.int32)
+    d_off = _buf(env, off, True)
+    d_adj_n = cl.Buffer(env.ctx, mf.READ_WRITE, nt * 2 * hcap * 2)
+    d_adj_w = cl.Buffer(env.ctx, mf.READ_WRITE, nt * 2 * hcap * 4)
+    d_init, d_level, d_ncell = (cl.Buffer(env.ctx, mf.READ_WRITE, nt * pmax * 4) for _ in range(3))
+    overflow = np.zeros(nt, np.uint8)
+    d_over = _buf(env, overflow, True)
+    i32 = np.int32
+    geo = (i32(rows), i32(cols), i32(tiles_x), i32(nt))
+    local = local or 1  # private copies of a tile per work-item: one per group
+    k1 = cl.Kernel(prg, "fill_local")
+    k1.set_args(d_h, d_kind, d_wloc, d_label, d_off, d_adj_n, d_adj_w, d_init, d_ncell, d_over, *geo)
+    cl.enqueue_nd_range_kernel(env.queue, k1, _ceil(nt, local), (local,))
+    cl.enqueue_copy(env.queue, overflow, d_over)
+    cl.enqueue_copy(env.queue, off, d_off)
+    if overflow.any():
+        return None
+    heap = nt * pmax * 6 + int(off[:, -1].astype(np.int64).sum())  # nodes, cross-tile and tile edges
+    d_hk, d_hi = (cl.Buffer(env.ctx, mf.READ_WRITE, max(heap, 1) * 4) for _ in range(2))
+    k2 = cl.Kernel(prg, "fill_levels")
+    k2.set_args(d_h, d_kind, d_label, d_ncell, d_off, d_adj_n, d_adj_w, d_init, d_level, d_hk, d_hi, *geo)
+    cl.enqueue_nd_range_kernel(env.queue, k2, (1,), None)
+    W = np.empty_like(h)
+    d_W = cl.Buffer(env.ctx, mf.WRITE_ONLY, W.nbytes)
+    k3 = cl.Kernel(prg, "fill_combine")
+    k3.set_args(d_h, d_kind, d_wloc, d_label, d_level, d_W, i32(n))
+    cl.enqueue_nd_range_kernel(env.queue, k3, _ceil(n, 256), (256,))
+    cl.enqueue_copy(env.queue, W, d_W)
+    if kind.max(initial=0) == ref.NODATA:  # most worlds have none: skip the masked pass
+        W[kind == ref.NODATA] = np.nan
+    if parts is not None:
+        for name, buf, dt, size in (("Wloc", d_wloc, np.float32, n), ("label", d_label, np.int32, n),
+                                    ("level", d_level, np.float32, nt * pmax)):
+            parts[name] = np.empty(size, dt)
+            cl.enqueue_copy(env.queue, parts[name], buf)
+        parts["Wloc"], parts["label"] = parts["Wloc"].reshape(rows, cols), parts["label"].reshape(rows, cols)
+    if stats is not None:
+        stats.update(passes=1, tiles_run=nt, tiles=nt, method="labels", label_edges=int(off[:, -1].sum()) // 2)
     return W
 
 
@@ -200,7 +280,7 @@ def accumulate(env, code: np.ndarray, weights: np.ndarray | None = None, tile: i
     d_entry = cl.Buffer(env.ctx, mf.READ_WRITE, slots * 4)
     d_gdeg = cl.Buffer(env.ctx, mf.READ_WRITE, slots * 4)
     out = np.empty((rows, cols), dtype)
-    d_A = cl.Buffer(env.ctx, mf.WRITE_ONLY, out.nbytes)
+    d_A = cl.Buffer(env.ctx, mf.READ_WRITE, out.nbytes)
     cl.enqueue_fill_buffer(env.queue, d_in, np.zeros(1, dtype), 0, slots * isz)
     i32 = np.int32
     geo = (i32(rows), i32(cols), i32(tiles_x), i32(nt))
@@ -212,13 +292,13 @@ def accumulate(env, code: np.ndarray, weights: np.ndarray | None = None, tile: i
     g = _ceil(nt, local)
     lw = (local,)
     k1 = cl.Kernel(prg, "acc_local")
-    k1.set_args(d_code, d_w, d_exit, d_sum, *geo, i32(unit))
+    k1.set_args(d_code, d_w, d_exit, d_sum, d_A, *geo, i32(unit))
     cl.enqueue_nd_range_kernel(env.queue, k1, g, lw)
     k2 = cl.Kernel(prg, "acc_global")
     k2.set_args(d_code, d_exit, d_sum, d_in, d_entry, d_gdeg, *geo)
     cl.enqueue_nd_range_kernel(env.queue, k2, (1,), None)
     k3 = cl.Kernel(prg, "acc_final")
-    k3.set_args(d_code, d_w, d_in, d_A, *geo, i32(unit))
+    k3.set_args(d_code, d_in, d_A, *geo)
     cl.enqueue_nd_range_kernel(env.queue, k3, g, lw)
     cl.enqueue_copy(env.queue, out, d_A)
     return out

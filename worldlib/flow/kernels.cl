@@ -30,6 +30,14 @@ inline float step_up(float x)
 // reading cells of other tiles from Wpub (published at the end of the
 // previous pass: Jacobi between tiles, so no data race). The fixed point is
 // unique and equals the Priority-Flood result whatever the schedule.
+// The sweeps run on a private copy of the tile and its one-cell halo (in
+// cache on a CPU device): no tile test per neighbour, no cell kinds (a cell
+// that may not change, edge or no-data, gets its own W as its height, so the
+// w == h test skips it). T = FILL_T, the private arrays' compile-time side.
+#ifndef FILL_T
+#define FILL_T 64
+#endif
+#define FILL_P (FILL_T + 2)
 __kernel void fill_tiles(__global const float* h, __global const uchar* kind, __global float* W,
                          __global const float* Wpub, __global const uchar* active, __global uchar* changed,
                          int rows, int cols, int T, int tiles_x, int ntiles, int eps, int max_sweeps)
@@ -37,37 +45,42 @@ __kernel void fill_tiles(__global const float* h, __global const uchar* kind, __
     int t = get_global_id(0);
     if (t >= ntiles) return;
     if (!active[t]) { changed[t] = 0; return; }
-    int r0 = (t / tiles_x) * T, c0 = (t % tiles_x) * T;
-    int r1 = min(r0 + T, rows), c1 = min(c0 + T, cols);
-    int nr = r1 - r0, nc = c1 - c0;
+    float Wp[FILL_P * FILL_P], Hp[FILL_P * FILL_P];
+    int r0 = (t / tiles_x) * FILL_T, c0 = (t % tiles_x) * FILL_T;
+    int nr = min(FILL_T, rows - r0), nc = min(FILL_T, cols - c0);
+    for (int ii = -1; ii <= nr; ++ii)
+        for (int jj = -1; jj <= nc; ++jj) {
+            int r = r0 + ii, c = c0 + jj, i = (ii + 1) * FILL_P + jj + 1;
+            if (r < 0 || r >= rows || c < 0 || c >= cols) { Wp[i] = INFINITY; Hp[i] = INFINITY; continue; }
+            int idx = r * cols + c;
+            int in_tile = ii >= 0 && ii < nr && jj >= 0 && jj < nc;
+            float w = in_tile ? W[idx] : Wpub[idx];
+            Wp[i] = w;
+            Hp[i] = (in_tile && kind[idx] == 0) ? h[idx] : w;
+        }
     int any = 0;
     for (int s = 0; s < max_sweeps; ++s) {
         int chg = 0;
         int dir = s & 3;
         for (int ii = 0; ii < nr; ++ii) {
-            int r = (dir & 1) ? r1 - 1 - ii : r0 + ii;
+            int row = ((dir & 1) ? nr - ii : ii + 1) * FILL_P;
             for (int jj = 0; jj < nc; ++jj) {
-                int c = (dir & 2) ? c1 - 1 - jj : c0 + jj;
-                int idx = r * cols + c;
-                if (kind[idx] != 0) continue;
-                float hc = h[idx];
-                float w = W[idx];
+                int i = row + ((dir & 2) ? nc - jj : jj + 1);
+                float hc = Hp[i];
+                float w = Wp[i];
                 if (w == hc) continue;
-                float m = INFINITY;
-                for (int k = 0; k < 8; ++k) {
-                    int rr = r + DR[k], cc = c + DC[k];
-                    int nidx = rr * cols + cc;
-                    int inside = rr >= r0 && rr < r1 && cc >= c0 && cc < c1;
-                    float v = inside ? W[nidx] : Wpub[nidx];
-                    m = fmin(m, v);
-                }
+                float m = fmin(fmin(fmin(Wp[i - FILL_P], Wp[i - FILL_P + 1]), fmin(Wp[i + 1], Wp[i + FILL_P + 1])),
+                               fmin(fmin(Wp[i + FILL_P], Wp[i + FILL_P - 1]), fmin(Wp[i - 1], Wp[i - FILL_P - 1])));
                 float nw = fmax(hc, eps ? step_up(m) : m);
-                if (nw < w) { W[idx] = nw; chg = 1; }
+                if (nw < w) { Wp[i] = nw; chg = 1; }
             }
         }
         if (!chg) break;
         any = 1;
     }
+    if (any)
+        for (int ii = 0; ii < nr; ++ii)
+            for (int jj = 0; jj < nc; ++jj) W[(r0 + ii) * cols + c0 + jj] = Wp[(ii + 1) * FILL_P + jj + 1];
     changed[t] = (uchar)any;
 }
 
@@ -220,11 +233,12 @@ inline int tile_accumulate(const int* rl, uchar* deg, ACC_T* acc, ushort* ord, i
     return n;
 }
 
-// Phase 1: local sums inside each tile; for every perimeter slot, the slot
-// of its exit cell (the last cell of its path in the tile, -1 if the path
-// ends in the tile) and its local sum.
+// Phase 1: local sums inside each tile, written to A; for every perimeter
+// slot, the slot of its exit cell (the last cell of its path in the tile, -1
+// if the path ends in the tile) and its local sum.
 __kernel void acc_local(__global const char* code, __global const ACC_T* w, __global int* exit_slot,
-                        __global ACC_T* local_sum, int rows, int cols, int tiles_x, int ntiles, int unit)
+                        __global ACC_T* local_sum, __global ACC_T* A, int rows, int cols, int tiles_x, int ntiles,
+                        int unit)
 {
     int t = get_global_id(0);
     if (t >= ntiles) return;
@@ -236,6 +250,8 @@ __kernel void acc_local(__global const char* code, __global const ACC_T* w, __gl
     tile_geometry(t, rows, cols, tiles_x, &r0, &c0, &nr, &nc);
     tile_load(code, w, unit, r0, c0, nr, nc, cols, rl, deg, acc);
     int n = tile_accumulate(rl, deg, acc, ord, nr * nc);
+    for (int lr = 0; lr < nr; ++lr)
+        for (int lc = 0; lc < nc; ++lc) A[(r0 + lr) * cols + c0 + lc] = acc[lr * nc + lc];
     // exits, receivers before donors (reverse order), in place of rl
     for (int q = n - 1; q >= 0; --q) {
         int ci = ord[q];
@@ -308,24 +324,35 @@ __kernel void acc_global(__global const char* code, __global const int* exit_slo
     }
 }
 
-// Phase 3: final accumulation = local accumulation of (weight + inflow).
-__kernel void acc_final(__global const char* code, __global const ACC_T* w, __global const ACC_T* inflow,
-                        __global ACC_T* A, int rows, int cols, int tiles_x, int ntiles, int unit)
+// Phase 3: A (the local sums) plus, on every cell, the inflow of the entry
+// slots upstream of it in the tile: each entry's inflow added down its path
+// until the path ends or leaves the tile. The sum is linear, so this equals a
+// second local accumulation of (weight + inflow) but touches only the cells
+// below an entry (on the default world about one walk step per cell, against
+// a full reload and topological pass of the tile). Integer adds: any order.
+__kernel void acc_final(__global const char* code, __global const ACC_T* inflow, __global ACC_T* A,
+                        int rows, int cols, int tiles_x, int ntiles)
 {
     int t = get_global_id(0);
     if (t >= ntiles) return;
-    int rl[ACC_CELLS];
-    uchar deg[ACC_CELLS];
-    ACC_T acc[ACC_CELLS];
-    ushort ord[ACC_CELLS];
     int r0, c0, nr, nc;
     tile_geometry(t, rows, cols, tiles_x, &r0, &c0, &nr, &nc);
-    tile_load(code, w, unit, r0, c0, nr, nc, cols, rl, deg, acc);
     int base = t * PMAX, np = perimeter_count(nr, nc);
-    for (int p = 0; p < np; ++p) acc[perimeter_local(p, nr, nc)] += inflow[base + p];
-    tile_accumulate(rl, deg, acc, ord, nr * nc);
-    for (int lr = 0; lr < nr; ++lr)
-        for (int lc = 0; lc < nc; ++lc) A[(r0 + lr) * cols + c0 + lc] = acc[lr * nc + lc];
+    for (int p = 0; p < np; ++p) {
+        ACC_T v = inflow[base + p];
+        if (v == 0) continue;
+        int li = perimeter_local(p, nr, nc);
+        int lr = li / nc, lc = li - lr * nc;
+        for (;;) {
+            int idx = (r0 + lr) * cols + c0 + lc;
+            A[idx] += v;
+            char k = code[idx];
+            if (k < 0) break;
+            lr += DR[(int)k];
+            lc += DC[(int)k];
+            if (lr < 0 || lr >= nr || lc < 0 || lc >= nc) break;
+        }
+    }
 }
 
 // Wetness index ln(a / tan b) and moisture, one work-item per cell.
@@ -528,4 +555,236 @@ __kernel void merge_sweep(__global const int* cells, int ncells, __global const 
         cell_node[c] = node;
     }
     node_count[0] = nodes;
+}
+
+// ---- Plain fill (no epsilon) in three exact phases (Barnes 2016's idea,
+// with relaxation inside the tiles instead of a priority queue) ----
+// 1. fill_local, one work-item per tile: the fill of the tile alone, its
+//    perimeter cells and the map's edge cells as seeds at their own heights
+//    (Wloc), each cell labelled by a seed that reaches it at cost Wloc (its
+//    label is copied from the neighbour that last lowered it); then every
+//    pair of 8-adjacent cells of different labels is an edge of weight
+//    max(Wloc, Wloc), kept once per label pair (the lowest) in a small hash,
+//    and written per perimeter slot (CSR). Map edge seeds are one node, the
+//    ocean, whose edges become the slots' initial levels.
+// 2. fill_levels, one work-item: a priority flood over the graph of
+//    perimeter slots (tile edges, and 8-adjacent perimeter cells of
+//    neighbouring tiles at max(h, h)): level = lowest spill to the ocean.
+// 3. fill_combine, one work-item per cell: F = max(Wloc, level(label)) (the
+//    host writes numpy's NaN on no-data: a device's NAN may have other bits).
+// F equals the Priority-Flood result: a path from a cell to the map edge
+// maps to a chain of labels whose edges weigh at most its cost (Wloc <= F,
+// F non-increasing along an optimal path), and a label's seed reaches the
+// cell at cost Wloc, so every bound is met by a real path.
+#define FILL_PMAX (4 * FILL_T)
+#ifndef FILL_HCAP
+#define FILL_HCAP 4096  // the label-pair hash: a power of two, set by the host
+#endif
+#define OCEAN 0xFFFF    // the label of the map's edge cells
+#define OUTSIDE 0xFFFE  // no-data cells and the halo: no label, no pairs
+
+// Insert (a, b) (a < b, slots) with weight w keeping the lowest; returns 0 when the table is full.
+inline int hash_put(int* hk, float* hw, int* count, int a, int b, float w)
+{
+    int key = a * FILL_PMAX + b;
+    uint pos = ((uint)key * 2654435761u) & (FILL_HCAP - 1);
+    for (;;) {
+        if (hk[pos] == key) { hw[pos] = fmin(hw[pos], w); return 1; }
+        if (hk[pos] < 0) {
+            if (4 * (*count + 1) > 3 * FILL_HCAP) return 0;
+            hk[pos] = key; hw[pos] = w; (*count)++;
+            return 1;
+        }
+        pos = (pos + 1) & (FILL_HCAP - 1);
+    }
+}
+
+// The tile's local fill and labels in the private copy: Gauss-Seidel in
+// raster and anti-raster order by turns, each sweep visiting only the rows next to a
+// change since the row was last visited (stale), until no row is stale.
+inline void local_fill(float* Wp, const float* Hp, ushort* Lp, int nr, int nc)
+{
+    uchar stale[FILL_T + 2];
+    for (int ii = 0; ii < nr + 2; ++ii) stale[ii] = ii >= 1 && ii <= nr;
+    for (int s = 0;; ++s) {
+        int chg = 0;
+        int dir = (s & 1) ? 3 : 0;  // raster and anti-raster order
+        for (int ii = 0; ii < nr; ++ii) {
+            int pr = (dir & 1) ? nr - ii : ii + 1;
+            if (!stale[pr]) continue;
+            stale[pr] = 0;
+            int row = pr * FILL_P, rowchg = 0;
+            for (int jj = 0; jj < nc; ++jj) {
+                int i = row + ((dir & 2) ? nc - jj : jj + 1);
+                float hc = Hp[i];
+                float w = Wp[i];
+                if (w == hc) continue;
+                int nb[8] = {i - FILL_P, i - FILL_P + 1, i + 1, i + FILL_P + 1, i + FILL_P, i + FILL_P - 1, i - 1,
+                             i - FILL_P - 1};
+                float m = fmin(fmin(fmin(Wp[nb[0]], Wp[nb[1]]), fmin(Wp[nb[2]], Wp[nb[3]])),
+                               fmin(fmin(Wp[nb[4]], Wp[nb[5]]), fmin(Wp[nb[6]], Wp[nb[7]])));
+                float nw = fmax(hc, m);
+                if (nw < w) {
+                    int k = 0;
+                    while (Wp[nb[k]] != m) ++k;
+                    Wp[i] = nw;
+                    Lp[i] = Lp[nb[k]];
+                    rowchg = 1;
+                }
+            }
+            if (rowchg) {
+                stale[pr - 1] = stale[pr] = stale[pr + 1] = 1;
+                chg = 1;
+            }
+        }
+        if (!chg) break;
+    }
+}
+
+// The label pair of cell i (label a, height wi) and cell j, as an initial
+// level (a pair with the ocean) or a hash entry.
+#define FILL_PAIR(j) { \
+    ushort b_ = Lp[j]; \
+    if (b_ != a && b_ != OUTSIDE) { \
+        float w_ = fmax(wi, Wp[j]); \
+        if (a == OCEAN || b_ == OCEAN) { \
+            int s_ = base + (a == OCEAN ? b_ : a); \
+            init[s_] = fmin(init[s_], w_); \
+        } else { \
+            int lo_ = min((int)a, (int)b_), hi_ = max((int)a, (int)b_), key_ = lo_ * FILL_PMAX + hi_; \
+            if (!full && !(key_ == last && w_ >= last_w)) { \
+                full = !hash_put(hk, hw, &count, lo_, hi_, w_); \
+                last = key_; \
+                last_w = w_; \
+            } \
+        } \
+    } }
+
+__kernel void fill_local(__global const float* h, __global const uchar* kind, __global float* Wloc,
+                         __global int* label, __global int* off, __global ushort* adj_n, __global float* adj_w,
+                         __global float* init, __global int* ncell, __global uchar* overflow, int rows, int cols,
+                         int tiles_x, int ntiles)
+{
+    int t = get_global_id(0);
+    if (t >= ntiles) return;
+    float Wp[FILL_P * FILL_P], Hp[FILL_P * FILL_P];
+    ushort Lp[FILL_P * FILL_P];
+    int hk[FILL_HCAP];
+    float hw[FILL_HCAP];
+    int r0 = (t / tiles_x) * FILL_T, c0 = (t % tiles_x) * FILL_T;
+    int nr = min(FILL_T, rows - r0), nc = min(FILL_T, cols - c0);
+    int base = t * FILL_PMAX;
+    for (int i = 0; i < FILL_P * FILL_P; ++i) { Wp[i] = INFINITY; Hp[i] = INFINITY; Lp[i] = OUTSIDE; }
+    for (int ii = 0; ii < nr; ++ii)
+        for (int jj = 0; jj < nc; ++jj) {
+            int idx = (r0 + ii) * cols + c0 + jj, i = (ii + 1) * FILL_P + jj + 1;
+            uchar k = kind[idx];
+            float hc = h[idx];
+            int slot = perimeter_slot(ii, jj, nr, nc);
+            if (k == 2) { Wp[i] = Hp[i] = -INFINITY; continue; }  // never a neighbour of a non-seed
+            Hp[i] = hc;
+            Lp[i] = OCEAN;  // not reached yet; a non-seed gets a seed's label when first lowered
+            if (k == 1 || slot >= 0) { Wp[i] = hc; Lp[i] = k == 1 ? OCEAN : (ushort)slot; }
+            if (slot >= 0) ncell[base + slot] = k == 0 ? idx : -1;
+        }
+    local_fill(Wp, Hp, Lp, nr, nc);
+    for (int p = 0; p < FILL_PMAX; ++p) init[base + p] = INFINITY;
+    for (int i = 0; i < FILL_HCAP; ++i) hk[i] = -1;
+    int count = 0, full = 0;
+    int last = -1;  // cells along a label boundary repeat the pair: skip the hash
+    float last_w = INFINITY;
+    for (int ii = 0; ii < nr; ++ii)
+        for (int jj = 0; jj < nc; ++jj) {
+            int i = (ii + 1) * FILL_P + jj + 1;
+            int idx = (r0 + ii) * cols + c0 + jj;
+            ushort a = Lp[i];
+            float wi = Wp[i];
+            Wloc[idx] = wi;
+            label[idx] = a >= OUTSIDE ? -1 : base + a;
+            if (a == OUTSIDE) continue;
+            if (((Lp[i + 1] ^ a) | (Lp[i + FILL_P - 1] ^ a) | (Lp[i + FILL_P] ^ a) | (Lp[i + FILL_P + 1] ^ a)) == 0) continue;
+            // the neighbours E, SW, S, SE: each adjacent pair once
+            FILL_PAIR(i + 1) FILL_PAIR(i + FILL_P - 1) FILL_PAIR(i + FILL_P) FILL_PAIR(i + FILL_P + 1)
+        }
+    overflow[t] = (uchar)full;
+    // CSR per slot, both directions; Lp reused as the cursor
+    int ob = t * (FILL_PMAX + 1);
+    for (int p = 0; p <= FILL_PMAX; ++p) off[ob + p] = 0;
+    for (int q = 0; q < FILL_HCAP; ++q)
+        if (hk[q] >= 0) { off[ob + hk[q] / FILL_PMAX + 1]++; off[ob + hk[q] % FILL_PMAX + 1]++; }
+    for (int p = 0; p < FILL_PMAX; ++p) { off[ob + p + 1] += off[ob + p]; Lp[p] = 0; }
+    int ab = t * 2 * FILL_HCAP;
+    for (int q = 0; q < FILL_HCAP; ++q) {
+        if (hk[q] < 0) continue;
+        int a = hk[q] / FILL_PMAX, b = hk[q] % FILL_PMAX;
+        int ea = ab + off[ob + a] + Lp[a]++, eb = ab + off[ob + b] + Lp[b]++;
+        adj_n[ea] = (ushort)b; adj_w[ea] = hw[q];
+        adj_n[eb] = (ushort)a; adj_w[eb] = hw[q];
+    }
+}
+
+// A perimeter node's neighbours in other tiles: every 8-neighbour of its
+// cell x (row r, column c) outside its tile, on the map. The map's edge cells
+// there are the ocean; interior cells are perimeter nodes (their label).
+#define FILL_CROSS(BODY) \
+    for (int k = 0; k < 8; ++k) { \
+        int rr = r + DR[k], cc = c + DC[k]; \
+        if (rr < 0 || rr >= rows || cc < 0 || cc >= cols) continue; \
+        if (rr / FILL_T == r / FILL_T && cc / FILL_T == c / FILL_T) continue; \
+        int q = rr * cols + cc; \
+        BODY \
+    }
+
+__kernel void fill_levels(__global const float* h, __global const uchar* kind, __global const int* label,
+                          __global const int* ncell, __global const int* off, __global const ushort* adj_n,
+                          __global const float* adj_w, __global const float* init, __global float* level,
+                          __global float* hk, __global int* hi, int rows, int cols, int tiles_x, int ntiles)
+{
+    if (get_global_id(0) != 0) return;
+    int size = 0;
+    for (int t = 0; t < ntiles; ++t) {
+        int r0 = (t / tiles_x) * FILL_T, c0 = (t % tiles_x) * FILL_T;
+        int nr = min(FILL_T, rows - r0), nc = min(FILL_T, cols - c0);
+        int np = (nr <= 2 || nc <= 2) ? nr * nc : 2 * nc + 2 * (nr - 2);
+        for (int p = 0; p < FILL_PMAX; ++p) level[t * FILL_PMAX + p] = INFINITY;
+        for (int p = 0; p < np; ++p) {
+            int x = ncell[t * FILL_PMAX + p];
+            if (x < 0) continue;
+            int r = x / cols, c = x - r * cols;
+            float v = init[t * FILL_PMAX + p];
+            FILL_CROSS(if (kind[q] == 1) v = fmin(v, fmax(h[x], h[q]));)
+            level[t * FILL_PMAX + p] = v;
+            if (v < INFINITY) heap_push(hk, hi, &size, v, t * FILL_PMAX + p);
+        }
+    }
+    while (size > 0) {
+        float key = hk[0];
+        int u = heap_pop(hk, hi, &size);
+        if (key > level[u]) continue;  // stale entry
+        int t = u / FILL_PMAX, p = u - t * FILL_PMAX;
+        int ob = t * (FILL_PMAX + 1), ab = t * 2 * FILL_HCAP;
+        for (int e = off[ob + p]; e < off[ob + p + 1]; ++e) {
+            int v = t * FILL_PMAX + adj_n[ab + e];
+            float cand = fmax(key, adj_w[ab + e]);
+            if (cand < level[v]) { level[v] = cand; heap_push(hk, hi, &size, cand, v); }
+        }
+        int x = ncell[u];
+        int r = x / cols, c = x - r * cols;
+        float hx = h[x];
+        FILL_CROSS(
+            if (kind[q] != 0) continue;
+            int v = label[q];
+            float cand = fmax(key, fmax(hx, h[q]));
+            if (cand < level[v]) { level[v] = cand; heap_push(hk, hi, &size, cand, v); })
+    }
+}
+
+__kernel void fill_combine(__global const float* h, __global const uchar* kind, __global const float* Wloc,
+                           __global const int* label, __global const float* level, __global float* F, int n)
+{
+    int i = get_global_id(0);
+    if (i >= n) return;
+    uchar k = kind[i];
+    int lab = label[i];
+    F[i] = k == 1 ? h[i] : (k == 2 ? -INFINITY : (lab < 0 ? Wloc[i] : fmax(Wloc[i], level[lab])));
 }

@@ -4,6 +4,7 @@ serial algorithms, small and obviously right, for tests on small grids.
 - priority_flood: Barnes 2014 Priority-Flood with one binary heap (heapq);
   with eps=True it is Priority-Flood+epsilon (a single queue, no pit FIFO),
   whose result is the least fixed point that the kernel's relaxation reaches.
+- fill_local, fill_levels, fill_combine: the plain fill's three kernels.
 - d8: the steepest-descent kernel, same float32 operations.
 - accumulate: D8 accumulation by Kahn's topological order (integers).
 - accumulate_sweeps: seed 003's Algorithm 1 (fixed-point sweeps), the oracle.
@@ -79,6 +80,61 @@ def priority_flood(h: np.ndarray, eps: bool = False, kind: np.ndarray | None = N
                 heapq.heappush(heap, (float(W[rr, cc]), rr, cc))
     W[kind == NODATA] = np.nan
     return W
+
+
+def fill_local(h: np.ndarray, kind: np.ndarray, tile: int) -> np.ndarray:
+    """kernels.cl fill_local's heights: each tile filled alone, its perimeter
+    cells and the map's edge cells as seeds at their own heights."""
+    W = np.empty(h.shape, np.float32)
+    for r0 in range(0, h.shape[0], tile):
+        for c0 in range(0, h.shape[1], tile):
+            sub = (slice(r0, r0 + tile), slice(c0, c0 + tile))
+            k = kind[sub].copy()
+            k[[0, -1], :] = np.where(k[[0, -1], :] == NODATA, NODATA, EDGE)
+            k[:, [0, -1]] = np.where(k[:, [0, -1]] == NODATA, NODATA, EDGE)
+            W[sub] = priority_flood(h[sub], kind=k)
+    return W
+
+
+def fill_levels(kind: np.ndarray, wloc: np.ndarray, label: np.ndarray) -> dict:
+    """kernels.cl fill_levels: every pair of 8-adjacent data cells of
+    different labels (label -1: the ocean, the map's edge cells) is an edge
+    of weight max(wloc, wloc); each label's level is its lowest spill to the
+    ocean (a priority flood over the labels). Returns {label: level}."""
+    rows, cols = kind.shape
+    data = kind != NODATA
+    adj: dict = {}
+    for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+        r, c = np.nonzero(data)
+        rr, cc = r + dr, c + dc
+        ok = (rr < rows) & (cc >= 0) & (cc < cols)
+        r, c, rr, cc = r[ok], c[ok], rr[ok], cc[ok]
+        ok = data[rr, cc] & (label[r, c] != label[rr, cc])
+        for a, b, w in zip(label[r, c][ok], label[rr, cc][ok], np.maximum(wloc[r, c], wloc[rr, cc])[ok]):
+            for x, y in ((int(a), int(b)), (int(b), int(a))):
+                adj.setdefault(x, {})
+                adj[x][y] = min(adj[x].get(y, np.inf), float(w))
+    level = {-1: -np.inf}
+    heap = [(-np.inf, -1)]
+    while heap:
+        v, x = heapq.heappop(heap)
+        if v > level[x]:
+            continue
+        for y, w in adj.get(x, {}).items():
+            cand = max(v, w)
+            if cand < level.get(y, np.inf):
+                level[y] = cand
+                heapq.heappush(heap, (cand, y))
+    return level
+
+
+def fill_combine(h: np.ndarray, kind: np.ndarray, wloc: np.ndarray, label: np.ndarray, level: dict) -> np.ndarray:
+    """kernels.cl fill_combine: max(wloc, the level of the cell's label) on
+    interior cells, h on edge cells, NaN on no-data."""
+    lv = np.vectorize(lambda x: level.get(int(x), np.inf), otypes=[np.float64])(label).astype(np.float32)
+    F = np.where(kind == EDGE, h, np.maximum(wloc, lv)).astype(np.float32)
+    F[kind == NODATA] = np.nan
+    return F
 
 
 def d8(z: np.ndarray, kind: np.ndarray, dx: float) -> np.ndarray:
