@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from worldlib.render.world_view import DCC_SELECTION_LAYER
+from worldlib.render.usd_asset import DCC_SELECTION_LAYER
 
 LAYER = DCC_SELECTION_LAYER  # the name our own renderer mutes
 CROWNS = "/World/Vegetation/Crowns"

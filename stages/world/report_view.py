@@ -45,7 +45,7 @@ def _ground_scenes(world_usda: Path) -> list:
 
     from worldlib.render import Scene
 
-    from worldlib.render.world_view import mute_dcc_selection
+    from worldlib.render.usd_asset import mute_dcc_selection
 
     stage = Usd.Stage.Open(str(world_usda))
     mute_dcc_selection(stage)  # the ground as it is (full terrain LODs), without the crowns a DCC draws for far plants

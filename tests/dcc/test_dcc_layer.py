@@ -170,7 +170,7 @@ def test_our_renderer_composes_the_world_without_the_dcc_selection(small_world):
     wherever it is: no crowns, every tile's instancer active."""
     from pxr import Usd, UsdGeom
 
-    from worldlib.render.world_view import mute_dcc_selection
+    from worldlib.render.usd_asset import mute_dcc_selection
 
     stage = Usd.Stage.Open(str(small_world["folder"]))
     assert stage.GetPrimAtPath(dcc_layer.CROWNS).IsValid(), "the small world has no crowns to mute"

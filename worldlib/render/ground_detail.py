@@ -176,7 +176,7 @@ def load_detail_view(world_usda: str | Path) -> GroundDetailView | None:
     """The detail layer of the world's ground, or None where its material has none."""
     from pxr import Usd, UsdGeom, UsdShade
 
-    from worldlib.render.world_view import mute_dcc_selection
+    from worldlib.render.usd_asset import mute_dcc_selection
     from worldlib.terrain.mesh import weld_lattice
 
     stage = Usd.Stage.Open(str(world_usda))

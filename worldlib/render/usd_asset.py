@@ -28,6 +28,19 @@ import numpy as np
 
 from pipeline.exr import linear_from_srgb
 
+# The sublayer a DCC renders with (stages/world/dcc_layer.py): a fixed `lod` per tile and far plants as crowns,
+# coarser terrain tiles far away. Our renderers draw every instance as a billboard at any distance and the terrain
+# at its full LOD, so they compose the world without it.
+DCC_SELECTION_LAYER = "dcc.usdc"
+
+
+def mute_dcc_selection(stage) -> None:
+    """Mutes the DCC selection layer wherever it is in the layer stack (the
+    world stage's root layer, itself a sublayer of a world's world.usda)."""
+    for layer in stage.GetLayerStack(includeSessionLayers=False):
+        if Path(layer.realPath or layer.identifier).name == DCC_SELECTION_LAYER:
+            stage.MuteLayer(layer.identifier)
+
 from .scene import Scene
 
 TEXTURE_PX = 256  # the plant readers' texture stack side (the renderer's stack has one size)

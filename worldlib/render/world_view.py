@@ -37,7 +37,7 @@ from pipeline.exr import srgb8
 
 from . import Prepared
 from .scene import Camera, Image, Scene, Settings
-from .usd_asset import load_texture, resized, subtree_scene, with_stack
+from .usd_asset import load_texture, mute_dcc_selection, resized, subtree_scene, with_stack
 from .ground_detail import with_ground_detail
 
 ATLAS_SIZE = 1024  # texels per side of every texture the world picture uses (the ground's and the billboard atlas)
@@ -139,19 +139,6 @@ def default_camera(lo: np.ndarray, hi: np.ndarray, azimuth_deg: float = 200.0, e
     dist = radius / math.sin(min(half, math.atan(math.tan(half) * aspect))) * 0.72
     eye = c + back * dist
     return Camera(tuple(eye), tuple(-back), (0.0, 1.0, 0.0), fov_y_deg=fov_y_deg)
-
-
-# The sublayer a DCC renders with (stages/world/dcc_layer.py): a fixed `lod` per tile and far plants as crowns. This
-# renderer draws every instance as a billboard at any distance, so it composes the world without it.
-DCC_SELECTION_LAYER = "dcc.usdc"
-
-
-def mute_dcc_selection(stage) -> None:
-    """Mutes the DCC selection layer wherever it is in the layer stack (the
-    world stage's root layer, itself a sublayer of a world's world.usda)."""
-    for layer in stage.GetLayerStack(includeSessionLayers=False):
-        if Path(layer.realPath or layer.identifier).name == DCC_SELECTION_LAYER:
-            stage.MuteLayer(layer.identifier)
 
 
 def build_world_scene(env, world_usda: str | Path, min_instance_height_m: float = 0.8, max_instances: int | None = None,
