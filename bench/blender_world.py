@@ -41,26 +41,44 @@ def terrain_bounds(world: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.array(r.GetMin()), np.array(r.GetMax())
 
 
-def stand_point(world: Path, centre: np.ndarray, species: str = "conifer") -> np.ndarray:
-    """The plant of the species near the centre with the most neighbours within 20 m (its base)."""
+def plant_positions(world: Path, centre: np.ndarray, radius_m: float, species: str | None = None) -> np.ndarray:
+    """The bases of the plants (of one species, or all) within radius_m of the centre, horizontally."""
     from pxr import Usd, UsdGeom
 
     stage = Usd.Stage.Open(str(world))
-    best, pts = None, []
+    pts = [np.zeros((0, 3))]
     for prim in stage.Traverse():
-        if prim.IsA(UsdGeom.PointInstancer) and prim.GetName() == species:
+        if prim.IsA(UsdGeom.PointInstancer) and (species is None or prim.GetName() == species):
             p = np.asarray(UsdGeom.PointInstancer(prim).GetPositionsAttr().Get() or [], np.float64).reshape(-1, 3)
-            p = p @ np.asarray(UsdGeom.XformCache().GetLocalToWorldTransform(prim))[:3, :3] + \
-                np.asarray(UsdGeom.XformCache().GetLocalToWorldTransform(prim))[3, :3]
-            pts.append(p[np.hypot(p[:, 0] - centre[0], p[:, 2] - centre[2]) < 400.0])
-    p = np.concatenate(pts) if pts else np.zeros((0, 3))
-    if len(p) == 0:
-        raise SystemExit(f"no {species} within 400 m of the centre")
+            m = np.asarray(UsdGeom.XformCache().GetLocalToWorldTransform(prim))
+            p = p @ m[:3, :3] + m[3, :3]
+            pts.append(p[np.hypot(p[:, 0] - centre[0], p[:, 2] - centre[2]) < radius_m])
+    return np.concatenate(pts)
+
+
+def clear_eye(world: Path, stand: np.ndarray) -> np.ndarray:
+    """Where to stand 6 to 12 m from the stand's plant: of 16 directions and
+    four distances, the spot farthest from every plant's trunk (not inside a crown)."""
+    near = plant_positions(world, stand, 40.0)
+    best, best_clear = stand, -1.0
+    for dist in (8.0, 6.0, 10.0, 12.0):
+        for a in np.radians(np.arange(0.0, 360.0, 22.5)):
+            c = stand + dist * np.array([math.cos(a), 0.0, math.sin(a)])
+            clear = float(np.hypot(near[:, 0] - c[0], near[:, 2] - c[2]).min()) if len(near) else math.inf
+            if clear > best_clear + 0.25:  # a clearly better spot; ties keep the nearer distance
+                best, best_clear = c, clear
+    return best
+
+
+def stand_point(world: Path, centre: np.ndarray, species: str = "conifer") -> np.ndarray:
+    """The plant of the species near the centre with the most neighbours within 20 m (its base)."""
     from scipy.spatial import cKDTree
 
+    p = plant_positions(world, centre, 400.0, species)
+    if len(p) == 0:
+        raise SystemExit(f"no {species} within 400 m of the centre")
     counts = np.array([len(n) for n in cKDTree(p[:, [0, 2]]).query_ball_point(p[:, [0, 2]], 20.0)])
-    best = p[int(np.argmax(counts))]
-    return best
+    return p[int(np.argmax(counts))]
 
 
 def ground_y(world: Path, x: float, z: float) -> float:
@@ -92,9 +110,11 @@ def cameras(world: Path, width: int, height: int, views: list[str]) -> dict:
         d = np.array([math.cos(math.radians(30)), 0.0, math.sin(math.radians(30))])
         eye60 = look - d * 60.0 * math.cos(math.radians(20)) + np.array([0.0, 60.0 * math.sin(math.radians(20)), 0.0])
         out["stand60"] = Camera(tuple(eye60), tuple(look - eye60), (0.0, 1.0, 0.0), fov_y_deg=40.0)
-        eye2 = s - d * 8.0
+        eye2 = clear_eye(world, s)  # not inside another tree's crown
         eye2[1] = max(ground_y(world, eye2[0], eye2[2]), s[1]) + 2.0  # 2 m above the ground there
-        out["stand2"] = Camera(tuple(eye2), tuple(d + np.array([0.0, 0.15, 0.0])), (0.0, 1.0, 0.0), fov_y_deg=60.0)
+        d2 = (s - eye2) * np.array([1.0, 0.0, 1.0])
+        d2 /= np.linalg.norm(d2)
+        out["stand2"] = Camera(tuple(eye2), tuple(d2 + np.array([0.0, 0.15, 0.0])), (0.0, 1.0, 0.0), fov_y_deg=60.0)
     return out
 
 
