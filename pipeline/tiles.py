@@ -321,6 +321,7 @@ class TileRunner:
         from distributed import worker_client
 
         with worker_client() as client:  # this task leaves its slot to the tiles while it waits
-            futures = client.map(_run_tile, jobs, pure=False,
+            # ahead of queued stage runs: a stage holding a world's state waits on these
+            futures = client.map(_run_tile, jobs, pure=False, priority=1,
                                  key=[f"{self.stage.name}-{self.run_key}-{j.pass_name}-{j.tile.name}" for j in jobs])
             return client.gather(futures)
