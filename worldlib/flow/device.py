@@ -132,43 +132,47 @@ def _fill_plain(env, h: np.ndarray, kind: np.ndarray, tile: int, local: int | No
     nt, pmax, n = tiles_x * tiles_y, 4 * tile, rows * cols
     mf = cl.mem_flags
     d_h, d_kind = _buf(env, h), _buf(env, kind)
-    d_wloc, d_label = (cl.Buffer(env.ctx, mf.READ_WRITE, n * 4) for _ in range(2))
+    W = np.empty_like(h)  # Wloc, then the fill in place: the device writes it directly (no copy on a CPU device)
+    d_wloc = cl.Buffer(env.ctx, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=W)
+    d_label = cl.Buffer(env.ctx, mf.READ_WRITE, n * 4)
     off = np.empty((nt, pmax + 1), np.int32)
     d_off = _buf(env, off, True)
     d_adj_n = cl.Buffer(env.ctx, mf.READ_WRITE, nt * 2 * hcap * 2)
     d_adj_w = cl.Buffer(env.ctx, mf.READ_WRITE, nt * 2 * hcap * 4)
-    d_init, d_level, d_ncell = (cl.Buffer(env.ctx, mf.READ_WRITE, nt * pmax * 4) for _ in range(3))
+    d_init, d_level = (cl.Buffer(env.ctx, mf.READ_WRITE, nt * pmax * 4) for _ in range(2))
+    d_xoff = cl.Buffer(env.ctx, mf.READ_WRITE, nt * (pmax + 1) * 4)
+    d_xn, d_xw = (cl.Buffer(env.ctx, mf.READ_WRITE, nt * 3 * pmax * 4) for _ in range(2))  # edges to other tiles
     overflow = np.zeros(nt, np.uint8)
     d_over = _buf(env, overflow, True)
     i32 = np.int32
     geo = (i32(rows), i32(cols), i32(tiles_x), i32(nt))
     local = local or 1  # private copies of a tile per work-item: one per group
     k1 = cl.Kernel(prg, "fill_local")
-    k1.set_args(d_h, d_kind, d_wloc, d_label, d_off, d_adj_n, d_adj_w, d_init, d_ncell, d_over, *geo)
+    k1.set_args(d_h, d_kind, d_wloc, d_label, d_off, d_adj_n, d_adj_w, d_init, d_xoff, d_xn, d_xw, d_over, *geo)
     cl.enqueue_nd_range_kernel(env.queue, k1, _ceil(nt, local), (local,))
     cl.enqueue_copy(env.queue, overflow, d_over)
     cl.enqueue_copy(env.queue, off, d_off)
     if overflow.any():
         return None
-    heap = nt * pmax * 6 + int(off[:, -1].astype(np.int64).sum())  # nodes, cross-tile and tile edges
+    heap = nt * pmax * 4 + int(off[:, -1].astype(np.int64).sum())  # nodes, cross-tile and tile edges
     d_hk, d_hi = (cl.Buffer(env.ctx, mf.READ_WRITE, max(heap, 1) * 4) for _ in range(2))
     k2 = cl.Kernel(prg, "fill_levels")
-    k2.set_args(d_h, d_kind, d_label, d_ncell, d_off, d_adj_n, d_adj_w, d_init, d_level, d_hk, d_hi, *geo)
+    k2.set_args(d_off, d_adj_n, d_adj_w, d_xoff, d_xn, d_xw, d_init, d_level, d_hk, d_hi, i32(nt))
     cl.enqueue_nd_range_kernel(env.queue, k2, (1,), None)
-    W = np.empty_like(h)
-    d_W = cl.Buffer(env.ctx, mf.WRITE_ONLY, W.nbytes)
-    k3 = cl.Kernel(prg, "fill_combine")
-    k3.set_args(d_h, d_kind, d_wloc, d_label, d_level, d_W, i32(n))
-    cl.enqueue_nd_range_kernel(env.queue, k3, _ceil(n, 256), (256,))
-    cl.enqueue_copy(env.queue, W, d_W)
-    if kind.max(initial=0) == ref.NODATA:  # most worlds have none: skip the masked pass
-        W[kind == ref.NODATA] = np.nan
     if parts is not None:
         for name, buf, dt, size in (("Wloc", d_wloc, np.float32, n), ("label", d_label, np.int32, n),
                                     ("level", d_level, np.float32, nt * pmax)):
             parts[name] = np.empty(size, dt)
             cl.enqueue_copy(env.queue, parts[name], buf)
         parts["Wloc"], parts["label"] = parts["Wloc"].reshape(rows, cols), parts["label"].reshape(rows, cols)
+    k3 = cl.Kernel(prg, "fill_combine")  # in place: Wloc becomes the fill
+    k3.set_args(d_wloc, d_label, d_level, i32(n))
+    cl.enqueue_nd_range_kernel(env.queue, k3, _ceil(n, 256), (256,))
+    mapped, _ = cl.enqueue_map_buffer(env.queue, d_wloc, cl.map_flags.READ, 0, W.shape, W.dtype, is_blocking=True)
+    mapped.base.release(env.queue).wait()  # mapping a USE_HOST_PTR buffer makes W hold the device's result
+    d_wloc.release()
+    if kind.max(initial=0) == ref.NODATA:  # most worlds have none: skip the masked pass
+        W[kind == ref.NODATA] = np.nan
     if stats is not None:
         stats.update(passes=1, tiles_run=nt, tiles=nt, method="labels", label_edges=int(off[:, -1].sum()) // 2)
     return W

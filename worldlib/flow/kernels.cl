@@ -583,57 +583,87 @@ __kernel void merge_sweep(__global const int* cells, int ncells, __global const 
 #define OCEAN 0xFFFF    // the label of the map's edge cells
 #define OUTSIDE 0xFFFE  // no-data cells and the halo: no label, no pairs
 
+// min and max of floats that are never NaN here (no-data cells are -inf in
+// the private copies and never read otherwise), written out: PoCL 3.0 calls
+// its fmin/fmax out of line. Arguments are evaluated twice: pass plain values.
+#define FLO(a, b) ((b) < (a) ? (b) : (a))
+#define FHI(a, b) ((b) > (a) ? (b) : (a))
+
 // Insert (a, b) (a < b, slots) with weight w keeping the lowest; returns 0 when the table is full.
-inline int hash_put(int* hk, float* hw, int* count, int a, int b, float w)
+inline int hash_put(int* hk, float* hw, ushort* used, int* count, int a, int b, float w)
 {
     int key = a * FILL_PMAX + b;
     uint pos = ((uint)key * 2654435761u) & (FILL_HCAP - 1);
     for (;;) {
-        if (hk[pos] == key) { hw[pos] = fmin(hw[pos], w); return 1; }
+        if (hk[pos] == key) { hw[pos] = FLO(hw[pos], w); return 1; }
         if (hk[pos] < 0) {
             if (4 * (*count + 1) > 3 * FILL_HCAP) return 0;
-            hk[pos] = key; hw[pos] = w; (*count)++;
+            hk[pos] = key; hw[pos] = w; used[(*count)++] = (ushort)pos;
             return 1;
         }
         pos = (pos + 1) & (FILL_HCAP - 1);
     }
 }
 
+// The lower of a cell's neighbours above and below (column j of a row
+// visit) and its label.
+#define FILL_COLUMN(J, M, L) { \
+    float a_ = Wp[up + (J)], b_ = Wp[dn + (J)]; \
+    int k_ = b_ < a_; \
+    M = k_ ? b_ : a_; \
+    L = k_ ? Lp[dn + (J)] : Lp[up + (J)]; }
+
 // The tile's local fill and labels in the private copy: Gauss-Seidel in
-// raster and anti-raster order by turns, each sweep visiting only the rows next to a
-// change since the row was last visited (stale), until no row is stale.
+// raster and anti-raster order by turns until a sweep changes nothing. Each
+// row keeps the span of columns whose neighbourhood changed since they were
+// last evaluated (lo..hi, empty when lo > hi); a visit evaluates its span
+// and goes on past it while the cell behind changed. A cell takes the
+// lowest of its 8 neighbours (the one behind already updated) and the label
+// of that neighbour: any lowest one is a seed reaching it at cost W.
 inline void local_fill(float* Wp, const float* Hp, ushort* Lp, int nr, int nc)
 {
-    uchar stale[FILL_T + 2];
-    for (int ii = 0; ii < nr + 2; ++ii) stale[ii] = ii >= 1 && ii <= nr;
+    uchar lo[FILL_T + 2], hi[FILL_T + 2];
+    for (int r = 0; r < nr + 2; ++r) { lo[r] = 1; hi[r] = r >= 1 && r <= nr ? nc : 0; }
     for (int s = 0;; ++s) {
-        int chg = 0;
-        int dir = (s & 1) ? 3 : 0;  // raster and anti-raster order
+        int chg = 0, back = s & 1;  // raster and anti-raster order
+        int step = back ? -1 : 1;
         for (int ii = 0; ii < nr; ++ii) {
-            int pr = (dir & 1) ? nr - ii : ii + 1;
-            if (!stale[pr]) continue;
-            stale[pr] = 0;
-            int row = pr * FILL_P, rowchg = 0;
-            for (int jj = 0; jj < nc; ++jj) {
-                int i = row + ((dir & 2) ? nc - jj : jj + 1);
-                float hc = Hp[i];
-                float w = Wp[i];
-                if (w == hc) continue;
-                int nb[8] = {i - FILL_P, i - FILL_P + 1, i + 1, i + FILL_P + 1, i + FILL_P, i + FILL_P - 1, i - 1,
-                             i - FILL_P - 1};
-                float m = fmin(fmin(fmin(Wp[nb[0]], Wp[nb[1]]), fmin(Wp[nb[2]], Wp[nb[3]])),
-                               fmin(fmin(Wp[nb[4]], Wp[nb[5]]), fmin(Wp[nb[6]], Wp[nb[7]])));
-                float nw = fmax(hc, m);
-                if (nw < w) {
-                    int k = 0;
-                    while (Wp[nb[k]] != m) ++k;
-                    Wp[i] = nw;
-                    Lp[i] = Lp[nb[k]];
-                    rowchg = 1;
-                }
+            int pr = back ? nr - ii : ii + 1;
+            int a = lo[pr], b = hi[pr];
+            if (a > b) continue;
+            lo[pr] = FILL_P; hi[pr] = 0;
+            int row = pr * FILL_P, up = row - FILL_P, dn = row + FILL_P;
+            int j = back ? b : a, last = back ? a : b;
+            float pw = Wp[row + j - step], m0, m1, m2;
+            ushort pl = Lp[row + j - step], l0, l1, l2;
+            FILL_COLUMN(j - step, m0, l0)
+            FILL_COLUMN(j, m1, l1)
+            int clo = FILL_P, chi = 0, upd = 0;
+            for (; j >= 1 && j <= nc && (upd || (back ? j >= last : j <= last)); j += step) {
+                int i = row + j;
+                FILL_COLUMN(j + step, m2, l2)
+                float m = m0, nx = Wp[i + step];
+                ushort l = l0;
+                int k = m1 < m; m = k ? m1 : m; l = k ? l1 : l;
+                k = m2 < m; m = k ? m2 : m; l = k ? l2 : l;
+                k = nx < m; m = k ? nx : m; l = k ? Lp[i + step] : l;
+                k = pw < m; m = k ? pw : m; l = k ? pl : l;
+                float w = Wp[i], nw = FHI(Hp[i], m);
+                upd = nw < w;
+                pw = upd ? nw : w;
+                pl = upd ? l : Lp[i];
+                Wp[i] = pw;
+                Lp[i] = pl;
+                clo = upd && j < clo ? j : clo;
+                chi = upd && j > chi ? j : chi;
+                m0 = m1; l0 = l1; m1 = m2; l1 = l2;
             }
-            if (rowchg) {
-                stale[pr - 1] = stale[pr] = stale[pr + 1] = 1;
+            if (chi) {
+                int nlo = clo > 1 ? clo - 1 : 1, nhi = chi < nc ? chi + 1 : nc;
+                for (int r = pr - 1; r <= pr + 1; ++r) {
+                    lo[r] = nlo < lo[r] ? nlo : lo[r];
+                    hi[r] = nhi > hi[r] ? nhi : hi[r];
+                }
                 chg = 1;
             }
         }
@@ -646,24 +676,64 @@ inline void local_fill(float* Wp, const float* Hp, ushort* Lp, int nr, int nc)
 #define FILL_PAIR(j) { \
     ushort b_ = Lp[j]; \
     if (b_ != a && b_ != OUTSIDE) { \
-        float w_ = fmax(wi, Wp[j]); \
+        float wj_ = Wp[j], w_ = FHI(wi, wj_); \
         if (a == OCEAN || b_ == OCEAN) { \
             int s_ = base + (a == OCEAN ? b_ : a); \
-            init[s_] = fmin(init[s_], w_); \
+            float i_ = init[s_]; \
+            init[s_] = FLO(i_, w_); \
         } else { \
-            int lo_ = min((int)a, (int)b_), hi_ = max((int)a, (int)b_), key_ = lo_ * FILL_PMAX + hi_; \
+            int lo_ = a < b_ ? a : b_, hi_ = a < b_ ? b_ : a, key_ = lo_ * FILL_PMAX + hi_; \
             if (!full && !(key_ == last && w_ >= last_w)) { \
-                full = !hash_put(hk, hw, &count, lo_, hi_, w_); \
+                full = !hash_put(hk, hw, used, &count, lo_, hi_, w_); \
                 last = key_; \
                 last_w = w_; \
             } \
         } \
     } }
 
+// The perimeter slots' edges to other tiles: every 8-neighbour q of the
+// slot's cell outside the tile, on the map; the map's edge cells there are
+// the ocean (an initial level max(h, h)), interior cells are perimeter slots
+// of their tile (an edge of weight max(h, h)), no-data cells nothing. Written
+// here, in tile order, so that fill_levels reads only arrays indexed by node.
+// A tile has at most 6 (nr + nc) - 4 < 3 * FILL_PMAX of them (CSR xoff, xn, xw).
+inline void fill_cross(__global const float* h, __global const uchar* kind, const float* Hp, __global float* init,
+                       __global int* xoff, __global int* xn, __global float* xw, int t, int r0, int c0, int nr,
+                       int nc, int rows, int cols, int tiles_x)
+{
+    int base = t * FILL_PMAX, ob = t * (FILL_PMAX + 1), xb = t * 3 * FILL_PMAX, e = 0;
+    int np = (nr <= 2 || nc <= 2) ? nr * nc : 2 * nc + 2 * (nr - 2);
+    for (int p = 0; p < FILL_PMAX; ++p) {
+        xoff[ob + p] = e;
+        if (p >= np) continue;
+        int loc = perimeter_local(p, nr, nc), lr = loc / nc, lc = loc - lr * nc;
+        int r = r0 + lr, c = c0 + lc;
+        if (kind[r * cols + c] != 0) continue;
+        float hx = Hp[(lr + 1) * FILL_P + lc + 1], v = init[base + p];
+        for (int k = 0; k < 8; ++k) {
+            int rr = r + DR[k], cc = c + DC[k];
+            if (rr < 0 || rr >= rows || cc < 0 || cc >= cols) continue;
+            if (rr >= r0 && rr < r0 + nr && cc >= c0 && cc < c0 + nc) continue;
+            int q = rr * cols + cc;
+            uchar kq = kind[q];
+            if (kq == 2) continue;
+            float hq = h[q], w = FHI(hx, hq);
+            if (kq == 1) { v = FLO(v, w); continue; }
+            int tr = rr / FILL_T, tc = cc / FILL_T, qr0 = tr * FILL_T, qc0 = tc * FILL_T;
+            int qnr = min(FILL_T, rows - qr0), qnc = min(FILL_T, cols - qc0);
+            xn[xb + e] = (tr * tiles_x + tc) * FILL_PMAX + perimeter_slot(rr - qr0, cc - qc0, qnr, qnc);
+            xw[xb + e] = w;
+            ++e;
+        }
+        init[base + p] = v;
+    }
+    xoff[ob + FILL_PMAX] = e;
+}
+
 __kernel void fill_local(__global const float* h, __global const uchar* kind, __global float* Wloc,
                          __global int* label, __global int* off, __global ushort* adj_n, __global float* adj_w,
-                         __global float* init, __global int* ncell, __global uchar* overflow, int rows, int cols,
-                         int tiles_x, int ntiles)
+                         __global float* init, __global int* xoff, __global int* xn, __global float* xw,
+                         __global uchar* overflow, int rows, int cols, int tiles_x, int ntiles)
 {
     int t = get_global_id(0);
     if (t >= ntiles) return;
@@ -671,120 +741,160 @@ __kernel void fill_local(__global const float* h, __global const uchar* kind, __
     ushort Lp[FILL_P * FILL_P];
     int hk[FILL_HCAP];
     float hw[FILL_HCAP];
+    ushort used[3 * FILL_HCAP / 4 + 1];  // the hash's filled slots, in insertion order
     int r0 = (t / tiles_x) * FILL_T, c0 = (t % tiles_x) * FILL_T;
     int nr = min(FILL_T, rows - r0), nc = min(FILL_T, cols - c0);
     int base = t * FILL_PMAX;
-    for (int i = 0; i < FILL_P * FILL_P; ++i) { Wp[i] = INFINITY; Hp[i] = INFINITY; Lp[i] = OUTSIDE; }
+    for (int jj = 0; jj < nc + 2; ++jj)  // the halo (the cells are all set below)
+        for (int i = jj; i <= jj + (nr + 1) * FILL_P; i += (nr + 1) * FILL_P) { Wp[i] = Hp[i] = INFINITY; Lp[i] = OUTSIDE; }
+    for (int ii = 1; ii <= nr; ++ii)
+        for (int i = ii * FILL_P; i <= ii * FILL_P + nc + 1; i += nc + 1) { Wp[i] = Hp[i] = INFINITY; Lp[i] = OUTSIDE; }
     for (int ii = 0; ii < nr; ++ii)
         for (int jj = 0; jj < nc; ++jj) {
             int idx = (r0 + ii) * cols + c0 + jj, i = (ii + 1) * FILL_P + jj + 1;
             uchar k = kind[idx];
             float hc = h[idx];
             int slot = perimeter_slot(ii, jj, nr, nc);
-            if (k == 2) { Wp[i] = Hp[i] = -INFINITY; continue; }  // never a neighbour of a non-seed
+            if (k == 2) { Wp[i] = Hp[i] = -INFINITY; Lp[i] = OUTSIDE; continue; }  // never a neighbour of a non-seed
             Hp[i] = hc;
-            Lp[i] = OCEAN;  // not reached yet; a non-seed gets a seed's label when first lowered
-            if (k == 1 || slot >= 0) { Wp[i] = hc; Lp[i] = k == 1 ? OCEAN : (ushort)slot; }
-            if (slot >= 0) ncell[base + slot] = k == 0 ? idx : -1;
+            int seed = k == 1 || slot >= 0;
+            Wp[i] = seed ? hc : INFINITY;
+            // not reached yet; a non-seed gets a seed's label when first lowered
+            Lp[i] = k == 1 || slot < 0 ? OCEAN : (ushort)slot;
         }
     local_fill(Wp, Hp, Lp, nr, nc);
     for (int p = 0; p < FILL_PMAX; ++p) init[base + p] = INFINITY;
+    fill_cross(h, kind, Hp, init, xoff, xn, xw, t, r0, c0, nr, nc, rows, cols, tiles_x);
     for (int i = 0; i < FILL_HCAP; ++i) hk[i] = -1;
     int count = 0, full = 0;
     int last = -1;  // cells along a label boundary repeat the pair: skip the hash
     float last_w = INFINITY;
-    for (int ii = 0; ii < nr; ++ii)
+    for (int ii = 0; ii < nr; ++ii) {
+        for (int jj = 0; jj < nc; ++jj) {  // branch-free: vectorised
+            int i = (ii + 1) * FILL_P + jj + 1, idx = (r0 + ii) * cols + c0 + jj;
+            ushort a = Lp[i];
+            Wloc[idx] = Wp[i];
+            label[idx] = a >= OUTSIDE ? -1 : base + a;
+        }
         for (int jj = 0; jj < nc; ++jj) {
             int i = (ii + 1) * FILL_P + jj + 1;
-            int idx = (r0 + ii) * cols + c0 + jj;
             ushort a = Lp[i];
             float wi = Wp[i];
-            Wloc[idx] = wi;
-            label[idx] = a >= OUTSIDE ? -1 : base + a;
             if (a == OUTSIDE) continue;
             if (((Lp[i + 1] ^ a) | (Lp[i + FILL_P - 1] ^ a) | (Lp[i + FILL_P] ^ a) | (Lp[i + FILL_P + 1] ^ a)) == 0) continue;
             // the neighbours E, SW, S, SE: each adjacent pair once
             FILL_PAIR(i + 1) FILL_PAIR(i + FILL_P - 1) FILL_PAIR(i + FILL_P) FILL_PAIR(i + FILL_P + 1)
         }
+    }
     overflow[t] = (uchar)full;
     // CSR per slot, both directions; Lp reused as the cursor
     int ob = t * (FILL_PMAX + 1);
     for (int p = 0; p <= FILL_PMAX; ++p) off[ob + p] = 0;
-    for (int q = 0; q < FILL_HCAP; ++q)
-        if (hk[q] >= 0) { off[ob + hk[q] / FILL_PMAX + 1]++; off[ob + hk[q] % FILL_PMAX + 1]++; }
+    for (int u = 0; u < count; ++u) {
+        int key = hk[used[u]];
+        off[ob + key / FILL_PMAX + 1]++;
+        off[ob + key % FILL_PMAX + 1]++;
+    }
     for (int p = 0; p < FILL_PMAX; ++p) { off[ob + p + 1] += off[ob + p]; Lp[p] = 0; }
     int ab = t * 2 * FILL_HCAP;
-    for (int q = 0; q < FILL_HCAP; ++q) {
-        if (hk[q] < 0) continue;
-        int a = hk[q] / FILL_PMAX, b = hk[q] % FILL_PMAX;
+    for (int u = 0; u < count; ++u) {
+        int q = used[u], a = hk[q] / FILL_PMAX, b = hk[q] % FILL_PMAX;
         int ea = ab + off[ob + a] + Lp[a]++, eb = ab + off[ob + b] + Lp[b]++;
         adj_n[ea] = (ushort)b; adj_w[ea] = hw[q];
         adj_n[eb] = (ushort)a; adj_w[eb] = hw[q];
     }
 }
 
-// A perimeter node's neighbours in other tiles: every 8-neighbour of its
-// cell x (row r, column c) outside its tile, on the map. The map's edge cells
-// there are the ocean; interior cells are perimeter nodes (their label).
-#define FILL_CROSS(BODY) \
-    for (int k = 0; k < 8; ++k) { \
-        int rr = r + DR[k], cc = c + DC[k]; \
-        if (rr < 0 || rr >= rows || cc < 0 || cc >= cols) continue; \
-        if (rr / FILL_T == r / FILL_T && cc / FILL_T == c / FILL_T) continue; \
-        int q = rr * cols + cc; \
-        BODY \
+// fill_levels' heap: 4-ary (half the depth of a binary one), ordered on the
+// key alone: the levels are the unique minimax values whatever order equal
+// keys leave in.
+inline void fheap_push(__global float* hk, __global int* hi, int* size, float k, int i)
+{
+    int pos = (*size)++;
+    while (pos > 0) {
+        int parent = (pos - 1) >> 2;
+        float kp = hk[parent];
+        if (!(k < kp)) break;
+        hk[pos] = kp;
+        hi[pos] = hi[parent];
+        pos = parent;
     }
+    hk[pos] = k;
+    hi[pos] = i;
+}
 
-__kernel void fill_levels(__global const float* h, __global const uchar* kind, __global const int* label,
-                          __global const int* ncell, __global const int* off, __global const ushort* adj_n,
-                          __global const float* adj_w, __global const float* init, __global float* level,
-                          __global float* hk, __global int* hi, int rows, int cols, int tiles_x, int ntiles)
+inline int fheap_pop(__global float* hk, __global int* hi, int* size)
+{
+    int top = hi[0];
+    int n = --(*size);
+    float k = hk[n];
+    int i = hi[n];
+    int pos = 0;
+    for (;;) {
+        int first = 4 * pos + 1;
+        if (first >= n) break;
+        int child = first;
+        float kc = hk[first];
+        int end = first + 4 < n ? first + 4 : n;
+        for (int c = first + 1; c < end; ++c) {
+            float kk = hk[c];
+            int lower = kk < kc;
+            child = lower ? c : child;
+            kc = lower ? kk : kc;
+        }
+        if (!(kc < k)) break;
+        hk[pos] = kc;
+        hi[pos] = hi[child];
+        pos = child;
+    }
+    hk[pos] = k;
+    hi[pos] = i;
+    return top;
+}
+
+// The flood over the perimeter slots from their initial levels (edges to the
+// ocean), through the tile edges (off, adj_n, adj_w) and the edges to other
+// tiles (xoff, xn, xw). Slots that are no node keep an infinite level.
+__kernel void fill_levels(__global const int* off, __global const ushort* adj_n, __global const float* adj_w,
+                          __global const int* xoff, __global const int* xn, __global const float* xw,
+                          __global const float* init, __global float* level, __global float* hk, __global int* hi,
+                          int ntiles)
 {
     if (get_global_id(0) != 0) return;
     int size = 0;
-    for (int t = 0; t < ntiles; ++t) {
-        int r0 = (t / tiles_x) * FILL_T, c0 = (t % tiles_x) * FILL_T;
-        int nr = min(FILL_T, rows - r0), nc = min(FILL_T, cols - c0);
-        int np = (nr <= 2 || nc <= 2) ? nr * nc : 2 * nc + 2 * (nr - 2);
-        for (int p = 0; p < FILL_PMAX; ++p) level[t * FILL_PMAX + p] = INFINITY;
-        for (int p = 0; p < np; ++p) {
-            int x = ncell[t * FILL_PMAX + p];
-            if (x < 0) continue;
-            int r = x / cols, c = x - r * cols;
-            float v = init[t * FILL_PMAX + p];
-            FILL_CROSS(if (kind[q] == 1) v = fmin(v, fmax(h[x], h[q]));)
-            level[t * FILL_PMAX + p] = v;
-            if (v < INFINITY) heap_push(hk, hi, &size, v, t * FILL_PMAX + p);
-        }
+    for (int u = 0; u < ntiles * FILL_PMAX; ++u) {
+        float v = init[u];
+        level[u] = v;
+        if (v < INFINITY) fheap_push(hk, hi, &size, v, u);
     }
     while (size > 0) {
         float key = hk[0];
-        int u = heap_pop(hk, hi, &size);
+        int u = fheap_pop(hk, hi, &size);
         if (key > level[u]) continue;  // stale entry
         int t = u / FILL_PMAX, p = u - t * FILL_PMAX;
-        int ob = t * (FILL_PMAX + 1), ab = t * 2 * FILL_HCAP;
+        int ob = t * (FILL_PMAX + 1), ab = t * 2 * FILL_HCAP, xb = t * 3 * FILL_PMAX;
         for (int e = off[ob + p]; e < off[ob + p + 1]; ++e) {
             int v = t * FILL_PMAX + adj_n[ab + e];
-            float cand = fmax(key, adj_w[ab + e]);
-            if (cand < level[v]) { level[v] = cand; heap_push(hk, hi, &size, cand, v); }
+            float we = adj_w[ab + e], cand = FHI(key, we);
+            if (cand < level[v]) { level[v] = cand; fheap_push(hk, hi, &size, cand, v); }
         }
-        int x = ncell[u];
-        int r = x / cols, c = x - r * cols;
-        float hx = h[x];
-        FILL_CROSS(
-            if (kind[q] != 0) continue;
-            int v = label[q];
-            float cand = fmax(key, fmax(hx, h[q]));
-            if (cand < level[v]) { level[v] = cand; heap_push(hk, hi, &size, cand, v); })
+        for (int e = xoff[ob + p]; e < xoff[ob + p + 1]; ++e) {
+            int v = xn[xb + e];
+            float we = xw[xb + e], cand = FHI(key, we);
+            if (cand < level[v]) { level[v] = cand; fheap_push(hk, hi, &size, cand, v); }
+        }
     }
 }
 
-__kernel void fill_combine(__global const float* h, __global const uchar* kind, __global const float* Wloc,
-                           __global const int* label, __global const float* level, __global float* F, int n)
+// In place on fill_local's Wloc (edge cells: h, no-data: -inf, both with
+// no label): the level of the cell's label where that is higher.
+__kernel void fill_combine(__global float* F, __global const int* label, __global const float* level, int n)
 {
     int i = get_global_id(0);
     if (i >= n) return;
-    uchar k = kind[i];
     int lab = label[i];
-    F[i] = k == 1 ? h[i] : (k == 2 ? -INFINITY : (lab < 0 ? Wloc[i] : fmax(Wloc[i], level[lab])));
+    if (lab >= 0) {
+        float w = F[i], l = level[lab];
+        if (l > w) F[i] = l;
+    }
 }
