@@ -349,7 +349,7 @@ def write_png_rows(path: Path | str, shape: tuple[int, int], bands) -> None:
     rows, north to south, covering `shape`): the bytes of write_png of the
     whole picture, without holding it."""
     oiio = _oiio()
-    out, y, spec = None, 0, None
+    out, y = None, 0
     try:
         for band in bands:
             band = np.ascontiguousarray(band)

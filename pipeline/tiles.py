@@ -210,6 +210,13 @@ def _split_summary(summary: dict[str, Any]) -> tuple[dict[str, np.ndarray], dict
     return arrays, {k: v for k, v in summary.items() if k not in arrays}
 
 
+def _tile_unit(units, job: _TileJob):
+    """The unit of one tile of one pass: the run's key, the pass, the tile."""
+    t = job.tile
+    return units.unit(f"{job.pass_name}-{t.name}",
+                      {"run": job.run_key, "pass": job.pass_name, "tile": [t.row0, t.col0, t.rows, t.cols]})
+
+
 def _run_tile(job: _TileJob) -> tuple[dict[str, str], dict[str, Any], float]:
     """One tile: restored from its unit, or run and kept as a unit. Returns
     the files of its grids, its summary and the seconds it took (0 reused)."""
@@ -217,9 +224,7 @@ def _run_tile(job: _TileJob) -> tuple[dict[str, str], dict[str, Any], float]:
 
     units = Units(Path(job.unit_root) if job.unit_root else None, Path(job.unit_tmp) if job.unit_tmp else None,
                   job.stage, job.code_material)
-    unit = units.unit(f"{job.pass_name}-{job.tile.name}",
-                      {"run": job.run_key, "pass": job.pass_name, "tile": [job.tile.row0, job.tile.col0,
-                                                                           job.tile.rows, job.tile.cols]})
+    unit = _tile_unit(units, job)
     work = Path(job.work) / job.pass_name / job.tile.name
     saved = unit.restore(work) if unit.folder is not None and job.keep else None
     if saved is not None:
@@ -299,8 +304,7 @@ class TileRunner:
         results = self._dask(jobs) if _in_dask_worker() else self._local(jobs, pass_name)
         for job in jobs:  # the unit keys the run used (its manifest keeps them from gc)
             if self.units is not None and keep:
-                self.units.unit(f"{pass_name}-{job.tile.name}", {"run": self.run_key, "pass": pass_name, "tile": [
-                    job.tile.row0, job.tile.col0, job.tile.rows, job.tile.cols]})
+                _tile_unit(self.units, job)
         self.passes.append({"pass": pass_name, "tiles": len(tiles), "kept": keep,
                             "reused": sum(1 for _, _, s in results if s == 0.0),
                             "tile_seconds": round(sum(s for _, _, s in results), 3),

@@ -247,7 +247,8 @@ def height_tile(tctx, inputs: dict[str, Any], params: HeightmapParams, shared: A
     inner = tctx.tile.inner(1)
     shade = hillshade(Grid(h, cell_size_m=dx, channels=("height",)))[inner]
     own = h[inner].astype(np.float64)
-    info = {k: v for k, v in info.items() if isinstance(v, (int, float, str)) and not k.endswith("_seconds")}
+    # the generator's description, not how fast this run was: a tile's summary is content (its unit's JSON)
+    info = {k: v for k, v in info.items() if isinstance(v, (int, float, str)) and not k.startswith(("kernel_", "dem_s"))}
     return TileOutput({"height": np.ascontiguousarray(h[inner]), "hillshade": shade},
                       {"min": float(own.min()), "max": float(own.max()), "sum": float(own.sum()),
                        "sum_sq": float(np.square(own).sum()), "cells": int(own.size), "cell_size_m": dx, "info": info})

@@ -21,18 +21,19 @@ from worldlib.flow import tiled_fill as tf
 MAX_EPS_ROUNDS = 10_000
 
 
-def _heights(tctx, terrain) -> tuple[np.ndarray, np.ndarray]:
-    """The tile's canonical heights (NaN on no-data) and kinds."""
+def _heights(tctx, terrain) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The tile's canonical heights (NaN on no-data), kinds, and its heights
+    with a one-cell halo (NaN beyond the world)."""
     halo = ref.canonical(terrain.read_padded(tctx.tile, 1, channel=terrain.channels[0]))
     kind = tf.tile_kind(halo)
     h = np.ascontiguousarray(halo[1:-1, 1:-1])
     h[kind == ref.NODATA] = np.nan
-    return h, kind
+    return h, kind, halo
 
 
 def fill_local(tctx, inputs: dict[str, Any], params, shared) -> TileOutput:
     """Barnes 2016 pass 1: the tile filled with its perimeter open, its watersheds and perimeter."""
-    h, kind = _heights(tctx, inputs["terrain"])
+    h, kind, _ = _heights(tctx, inputs["terrain"])
     t = tf.fill_tile(h, kind, tctx.cl)
     p = t.perimeter
     summary = {f"{side}_{what}": arr for side, pair in zip(("top", "bottom", "left", "right"),
@@ -58,14 +59,12 @@ def eps_round(tctx, inputs: dict[str, Any], params, shared: dict) -> TileOutput:
     """One round of the epsilon fill: the tile with its neighbours' values
     of the round before as outlets (inf: not yet known). A tile whose ring
     cannot have changed keeps its value."""
-    h, kind = _heights(tctx, inputs["terrain"])
     before = inputs.get("routing")
     if before is not None and tctx.tile.name not in shared["active"]:
         return TileOutput({"routing": np.array(before.tile_array(tctx.tile))}, {"changed": False})
+    h, kind, halo = _heights(tctx, inputs["terrain"])
     if before is None:  # round 1: every neighbour value unknown
-        ring = np.full((h.shape[0] + 2, h.shape[1] + 2), np.inf, np.float32)
-        known = inputs["terrain"].read_padded(tctx.tile, 1, channel=inputs["terrain"].channels[0])
-        ring[~np.isfinite(ref.canonical(known))] = np.nan
+        ring = np.where(np.isfinite(halo), np.float32(np.inf), np.float32(np.nan))  # no-data: NaN or +-inf
         old = np.where(np.isnan(h), np.float32(np.nan), np.float32(np.inf))
     else:
         ring = before.read_padded(tctx.tile, 1)
@@ -78,8 +77,7 @@ def eps_round(tctx, inputs: dict[str, Any], params, shared: dict) -> TileOutput:
 def directions(tctx, inputs: dict[str, Any], params, dx: float) -> TileOutput:
     """D8 on the routing surface from a one-cell halo (kinds from the terrain's)."""
     z = inputs["routing"].read_padded(tctx.tile, 1)
-    _, kind = _heights(tctx, inputs["terrain"])
-    code = ta.tile_d8(z, kind, dx, tctx.cl)
+    code = ta.tile_d8(z, tf.tile_kind(z), dx, tctx.cl)  # the routing surface is NaN where the terrain is
     return TileOutput({"code": code}, {"pits": int((code == ref.PIT).sum())})
 
 
@@ -94,7 +92,7 @@ def accumulate_finish(tctx, inputs: dict[str, Any], params, inflow: dict) -> Til
     """Barnes 2017 pass 3: the tile's accumulation with the inflow from other tiles."""
     code = np.asarray(inputs["code"].tile_array(tctx.tile))
     counts = ta.finish_tile(code, inflow[tctx.tile.name], None, tctx.cl)
-    _, kind = _heights(tctx, inputs["terrain"])
+    kind = tf.tile_kind(inputs["routing"].read_padded(tctx.tile, 1))
     return TileOutput({"counts": counts}, {"outlet_cells": int(counts[kind == ref.EDGE].astype(np.int64).sum()),
                                            "data_cells": int((kind != ref.NODATA).sum())})
 
@@ -131,7 +129,7 @@ def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, 
                   and abs(t.row - c.row) <= 1 and abs(t.col - c.col) <= 1}
     else:
         raise StageError(f"hydrology: the tiled routing surface found no fixed point after {MAX_EPS_ROUNDS} rounds")
-    code, parts = runner.map(directions, "directions", shape, {"routing": routing, "terrain": terrain}, params, dx,
+    code, parts = runner.map(directions, "directions", shape, {"routing": routing}, params, dx,
                              grids={"code": ("code",)}, **geo)
     if sum(s["pits"] for s in parts):
         raise StageError("hydrology: a cell has no downslope path after depression handling (broken invariant)")
@@ -140,7 +138,7 @@ def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, 
               for t, s in zip(tiles, parts)]
     inflow = ta.solve_inflow(_grid_of(tiles, perims))
     by_name = {t.name: f for t, f in zip(tiles, [f for row in inflow for f in row])}
-    counts, parts = runner.map(accumulate_finish, "counts", shape, {**code, "terrain": terrain}, params, by_name,
+    counts, parts = runner.map(accumulate_finish, "counts", shape, {**code, "routing": routing}, params, by_name,
                                grids={"counts": ("counts",)}, **geo)
     outlet, data = sum(s["outlet_cells"] for s in parts), sum(s["data_cells"] for s in parts)
     if outlet != data:
