@@ -286,10 +286,12 @@ class TileRunner:
 
     def map(self, fn: Callable, pass_name: str, shape: tuple[int, int], inputs: dict[str, Any], params: Any,
             shared: Any = None, *, grids: dict[str, tuple[str, ...]] | None = None, cell_size_m: float = 1.0,
-            origin_m: tuple[float, float] = (0.0, 0.0), keep: bool = True
+            origin_m: tuple[float, float] = (0.0, 0.0), keep: bool = True, per_tile: dict[str, Any] | None = None
             ) -> tuple[dict[str, TileArrays], list[dict[str, Any]]]:
         """fn(TileContext, inputs, params, shared) -> TileOutput on every tile
-        of a `shape` world. grids: the arrays fn returns, name -> channels.
+        of a `shape` world. per_tile: tile name -> the `shared` value of that
+        tile alone (a global pass's answer per tile, not sent to every task).
+        grids: the arrays fn returns, name -> channels.
         keep: each tile a unit in the store (False: a cheap pass whose arrays
         only the run needs, remade on a resume). Returns the grids as
         TileArrays and the tiles' summaries in tile order."""
@@ -297,7 +299,8 @@ class TileRunner:
         root = self.units.root if self.units is not None else None
         tmp = self.units.tmp if self.units is not None else None
         code = self.units.code_material if self.units is not None else {"stage": self.stage.name}
-        jobs = [_TileJob(fn, pass_name, t, inputs, params, shared, self.seed, self.stage.name,
+        jobs = [_TileJob(fn, pass_name, t, inputs, params, per_tile[t.name] if per_tile is not None else shared,
+                         self.seed, self.stage.name,
                          self.stage.uses_opencl, str(self.project_root), str(root) if root else None,
                          str(tmp) if tmp else None, str(self.work), code, self.run_key, keep) for t in tiles]
         t0 = time.perf_counter()

@@ -48,19 +48,19 @@ def _perimeter(s: dict) -> tf.Perimeter:
     return tf.Perimeter(*sides, int(s["n_labels"]), (s["spill_a"], s["spill_b"], s["spill_z"]))
 
 
-def fill_finish(tctx, inputs: dict[str, Any], params, levels: dict) -> TileOutput:
+def fill_finish(tctx, inputs: dict[str, Any], params, level: np.ndarray) -> TileOutput:
     """Barnes 2016 pass 3: max(the tile-local fill, its watershed's level)."""
     local = np.asarray(inputs["local"].tile_array(tctx.tile))
     labels = np.asarray(inputs["labels"].tile_array(tctx.tile))
-    return TileOutput({"filled": tf.finish_tile(local, labels, levels[tctx.tile.name])})
+    return TileOutput({"filled": tf.finish_tile(local, labels, level)})
 
 
-def eps_round(tctx, inputs: dict[str, Any], params, shared: dict) -> TileOutput:
+def eps_round(tctx, inputs: dict[str, Any], params, active: bool) -> TileOutput:
     """One round of the epsilon fill: the tile with its neighbours' values
     of the round before as outlets (inf: not yet known). A tile whose ring
     cannot have changed keeps its value."""
     before = inputs.get("routing")
-    if before is not None and tctx.tile.name not in shared["active"]:
+    if before is not None and not active:
         return TileOutput({"routing": np.array(before.tile_array(tctx.tile))}, {"changed": False})
     h, kind, halo = _heights(tctx, inputs["terrain"])
     if before is None:  # round 1: every neighbour value unknown
@@ -88,10 +88,10 @@ def accumulate_local(tctx, inputs: dict[str, Any], params, shared) -> TileOutput
     return TileOutput({}, {"code": p.code, "exit": p.exit, "local_sum": p.local_sum})
 
 
-def accumulate_finish(tctx, inputs: dict[str, Any], params, inflow: dict) -> TileOutput:
+def accumulate_finish(tctx, inputs: dict[str, Any], params, inflow: np.ndarray) -> TileOutput:
     """Barnes 2017 pass 3: the tile's accumulation with the inflow from other tiles."""
     code = np.asarray(inputs["code"].tile_array(tctx.tile))
-    counts = ta.finish_tile(code, inflow[tctx.tile.name], None, tctx.cl)
+    counts = ta.finish_tile(code, inflow, None, tctx.cl)
     kind = tf.tile_kind(inputs["routing"].read_padded(tctx.tile, 1))
     return TileOutput({"counts": counts}, {"outlet_cells": int(counts[kind == ref.EDGE].astype(np.int64).sum()),
                                            "data_cells": int((kind != ref.NODATA).sum())})
@@ -112,21 +112,22 @@ def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, 
                               grids={"local": ("filled",), "labels": ("label",)}, **geo)
     levels = tf.solve_levels(_grid_of(tiles, [_perimeter(s) for s in parts]))
     by_name = {t.name: lv for t, lv in zip(tiles, [lv for row in levels for lv in row])}
-    filled, _ = runner.map(fill_finish, "filled", shape, dict(local), params, by_name,
+    filled, _ = runner.map(fill_finish, "filled", shape, dict(local), params, per_tile=by_name,
                            grids={"filled": ("filled",)}, **geo)
     routing, active = None, {t.name for t in tiles}
     for rnd in range(1, MAX_EPS_ROUNDS + 1):
         progress(0.02, f"routing surface: round {rnd}, {len(active)} tiles")
         ins = {"terrain": terrain, **({"routing": routing} if routing is not None else {})}
         # the rounds are not kept as units: dozens of world-sized arrays, each cheaper to remake than to store
-        routing_now, parts = runner.map(eps_round, f"routing{rnd}", shape, ins, params, {"active": sorted(active)},
+        routing_now, parts = runner.map(eps_round, f"routing{rnd}", shape, ins, params,
+                                        per_tile={t.name: t.name in active for t in tiles},
                                         grids={"routing": ("routing",)}, keep=False, **geo)
         routing = routing_now["routing"]
-        changed = {t.name for t, s in zip(tiles, parts) if s["changed"]}
+        changed = {(t.row, t.col) for t, s in zip(tiles, parts) if s["changed"]}
         if not changed:
             break
-        active = {t.name for t in tiles for c in tiles if c.name in changed
-                  and abs(t.row - c.row) <= 1 and abs(t.col - c.col) <= 1}
+        # a tile reads its 8 neighbours' values: it runs again when one of them (or itself) changed
+        active = {t.name for t in tiles if any((t.row + i, t.col + j) in changed for i in (-1, 0, 1) for j in (-1, 0, 1))}
     else:
         raise StageError(f"hydrology: the tiled routing surface found no fixed point after {MAX_EPS_ROUNDS} rounds")
     code, parts = runner.map(directions, "directions", shape, {"routing": routing}, params, dx,
@@ -138,7 +139,8 @@ def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, 
               for t, s in zip(tiles, parts)]
     inflow = ta.solve_inflow(_grid_of(tiles, perims))
     by_name = {t.name: f for t, f in zip(tiles, [f for row in inflow for f in row])}
-    counts, parts = runner.map(accumulate_finish, "counts", shape, {**code, "routing": routing}, params, by_name,
+    counts, parts = runner.map(accumulate_finish, "counts", shape, {**code, "routing": routing}, params,
+                               per_tile=by_name,
                                grids={"counts": ("counts",)}, **geo)
     outlet, data = sum(s["outlet_cells"] for s in parts), sum(s["data_cells"] for s in parts)
     if outlet != data:
