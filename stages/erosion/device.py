@@ -68,7 +68,8 @@ class DeviceSim:
     allows). Results depend on none of these."""
 
     def __init__(self, env, height: np.ndarray, ph: Physics, *, local: tuple[int, int] | None = DEFAULT_LOCAL,
-                 water: np.ndarray | None = None, sediment: np.ndarray | None = None, vw: int | None = None,
+                 water: np.ndarray | None = None, sediment: np.ndarray | None = None,
+                 change: np.ndarray | None = None, vw: int | None = None,
                  nv: int | None = None, avx512: bool | None = None, nr: int | None = None):
         import pyopencl as cl
 
@@ -118,7 +119,9 @@ class DeviceSim:
         s0 = zeros if sediment is None else np.asarray(sediment, np.float32)
         P = lambda a: pad(a, self.periodic, (self.prows, self.pitch))  # noqa: E731
         self.Tb = buf(P(height))
-        self.dT = [buf(P(zeros)), buf(P(zeros))]
+        # change: a run resumed from an earlier one's dT (the tiled talus rule's rounds)
+        dT0 = zeros if change is None else np.asarray(change, np.float32)
+        self.dT = [buf(P(dT0)), buf(P(dT0))]
         self.W = [buf(P(w0)), buf(P(w0))]
         self.S = [buf(P(s0)), buf(P(s0))]
         self.M = buf(P(zeros))
@@ -215,6 +218,10 @@ class DeviceSim:
         arr = np.empty(self.npad, np.float32)
         cl.enqueue_copy(self.queue, arr, b)
         return arr.reshape(self.prows, self.pitch)[1:self.rows + 1, X0:X0 + self.cols].copy()
+
+    def change(self) -> np.ndarray:
+        """dT alone: the terrain's change so far."""
+        return self._read(self.dT[self.cd])
 
     def fields(self) -> dict[str, np.ndarray]:
         import pyopencl as cl

@@ -92,6 +92,13 @@ class ErosionParams(Params):
     geological_years: float = Param(
         0.0, units="years", description="duration of stream-power river incision with uplift (implicit Braun-Willett "
         "scheme, no time-step limit; the map edges are base level whatever the boundary); 0 skips it", ge=0.0, le=1e9)
+    geological_cell_m: float = Param(
+        0.0, units="m", description="geological time's own cell size: on finer terrain cells the stream-power solve, "
+        "creep and landsliding run on blocks of f x f cells (f the largest whole factor with f dx <= this that "
+        "divides both sides; the block means of the heights) and their change comes back to the fine cells "
+        "conserving each block's volume, so geological time costs the same per fine cell at any resolution and a "
+        "tiled world's geology is 1/f^2 of its cells. Valleys narrower than this are not resolved (the talus rule "
+        "and the storm still shape the fine cells). 0: geological time runs on the terrain's cells", ge=0.0, le=1e4)
     geological_step_years: float = Param(
         1.0e4, units="years", description="time step of the stream-power solve (stable at any size; smaller is more "
         "accurate)", ge=1.0, le=1e9)
@@ -339,39 +346,127 @@ def check_input(height: Grid) -> np.ndarray:
 
 def slope_excess(h: np.ndarray, dx: float, talus_deg: float, periodic: bool) -> dict[str, float]:
     """How far the 8-neighbour slopes exceed the talus angle (float64)."""
-    h = h.astype(np.float64)
-    worst = 0.0
-    above = 0
-    pairs = 0
+    if periodic:
+        h = np.pad(h, ((0, 1), (1, 1)), mode="wrap")  # every pair once: from each cell to its E, S, SE, SW
+        return slope_excess_of(slope_excess_counts(h, (slice(0, h.shape[0] - 1), slice(1, h.shape[1] - 1)), dx,
+                                                   talus_deg))
+    return slope_excess_of(slope_excess_counts(h, (slice(0, h.shape[0]), slice(0, h.shape[1])), dx, talus_deg))
+
+
+def slope_excess_counts(h: np.ndarray, inner: tuple[slice, slice], dx: float, talus_deg: float) -> dict[str, float]:
+    """The worst excess over the talus angle (deg), the pairs above it by more
+    than SLOPE_TOLERANCE_DEG and all pairs, of the pairs from a cell of
+    h[inner] to its E, S, SE and SW neighbour inside h: a tile's (inner in a
+    window with its halo) add up to the whole map's."""
+    h = np.asarray(h, np.float64)
+    rows, cols = h.shape
+    worst, above, pairs = -math.inf, 0, 0
     for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        if periodic:
-            d = np.abs(h - np.roll(h, (-dr, -dc), axis=(0, 1)))
-        else:
-            rows, cols = h.shape
-            r0, r1 = max(0, -dr), rows - max(0, dr)
-            c0, c1 = max(0, -dc), cols - max(0, dc)
-            d = np.abs(h[r0:r1, c0:c1] - h[r0 + dr:r1 + dr, c0 + dc:c1 + dc])
+        r0, r1 = max(inner[0].start, -dr), min(inner[0].stop, rows - dr)
+        c0, c1 = max(inner[1].start, -dc), min(inner[1].stop, cols - dc)
+        if r1 <= r0 or c1 <= c0:
+            continue
+        d = np.abs(h[r0:r1, c0:c1] - h[r0 + dr:r1 + dr, c0 + dc:c1 + dc])
         ang = np.degrees(np.arctan(d / (dx * math.hypot(dr, dc))))
         worst = max(worst, float(ang.max()) - talus_deg)
         above += int((ang > talus_deg + SLOPE_TOLERANCE_DEG).sum())
         pairs += ang.size
-    return {"max_excess_deg": worst, "fraction_above_tolerance": above / max(pairs, 1)}
+    return {"worst": worst, "above": above, "pairs": pairs}
+
+
+def slope_excess_of(*counts: dict[str, float]) -> dict[str, float]:
+    """slope_excess from the counts of the tiles (slope_excess_counts)."""
+    pairs = sum(c["pairs"] for c in counts)
+    return {"max_excess_deg": max(max(c["worst"] for c in counts), 0.0) if pairs else 0.0,
+            "fraction_above_tolerance": sum(c["above"] for c in counts) / max(pairs, 1)}
 
 
 THERMAL_METRICS = ("thermal_iterations", "thermal_c", "thermal_seconds", "thermal_mass_residual_rel")
 
 
+def geology(cl, h: np.ndarray, dx: float, params: ErosionParams, progress) -> tuple[np.ndarray, dict]:
+    """Geological time on the terrain's cells, or on its own grid
+    (geological_cell_m, coarse_grid.py): the heights after it (float32) and
+    its metrics. On its own grid the solve runs on the f x f block means and
+    its change comes back conserving each block's volume (geology_change)."""
+    from .coarse_grid import block_mean, coarse_factor
+
+    fac = coarse_factor(h.shape[0], h.shape[1], dx, params.geological_cell_m)
+    coarse = block_mean(h, fac) if fac > 1 else h.astype(np.float64)
+    res = solve_geology(cl, coarse, dx * fac, params, progress)
+    if fac == 1:
+        return res.height.astype(np.float32), res.stats
+    change = geology_change(res.height, coarse, fac)
+    return geology_heights(h, change.whole()), {**res.stats, "geological_cell_factor": fac}
+
+
+def solve_geology(cl, h: np.ndarray, dx: float, params: ErosionParams, progress):
+    """The stream-power solve with creep, landslides and strata on cells of
+    dx metres (stream_power.run); its budget checked. Its stats name the cell
+    size it ran on."""
+    from . import stream_power
+
+    res = stream_power.run(cl, h, dx, params.geological_years, params.geological_step_years,
+                           params.stream_power_k, params.stream_power_m, params.stream_power_n,
+                           params.uplift_mm_per_year / 1000.0, progress=progress,
+                           routing=params.geological_routing, channel_area_m2=channel_threshold_m2(params, dx),
+                           diffusivity_m2_per_year=params.hillslope_diffusivity_m2_per_year,
+                           breach=params.geological_breach, mfd_exponent=params.geological_mfd_exponent,
+                           flat_routing=params.geological_flat_routing, fill_lakes=params.geological_lake_fill,
+                           mfd_isotropic=params.geological_mfd_isotropic,
+                           critical_slope=math.tan(math.radians(params.critical_slope_deg)),
+                           deposition_g=params.deposition_g, strata=strata_for(params),
+                           incision_width_m=params.incision_width_m)
+    if res.budget_relative_error > 1e-9:
+        raise StageError(f"erosion: stream power lost {res.budget_relative_error:.2e} of the eroded volume "
+                         f"on its way to base level")
+    res.stats.update(channel_area_used_m2=channel_threshold_m2(params, dx), geological_cell_size_m=dx)
+    return res
+
+
+def geology_change(coarse_after: np.ndarray, coarse_before: np.ndarray, fac: int):
+    """The coarse geology's change as a volume-keeping Prolongation to the fine cells."""
+    from .coarse_grid import Prolongation
+
+    return Prolongation.conserving(np.asarray(coarse_after, np.float64) - coarse_before, fac)
+
+
+def geology_heights(h: np.ndarray, change: np.ndarray) -> np.ndarray:
+    """Fine heights after geological time on its own grid (float32, cell by cell)."""
+    return (h + change).astype(np.float32)
+
+
+def storm_fields(fc: dict[str, np.ndarray], fac: int) -> dict[str, Any]:
+    """The coarse storm's final state as Prolongations to the fine cells:
+    terrain change conserving each block's volume, water and sediment
+    likewise and non-negative, velocity and moisture bilinear."""
+    from .coarse_grid import Prolongation
+
+    out = {"dT": Prolongation.conserving(fc["dT"], fac), "W": Prolongation.positive(fc["W"], fac),
+           "S": Prolongation.positive(fc["S"], fac)}
+    out.update({k: Prolongation.linear(fc[k], fac) for k in ("vx", "vz", "M")})
+    return out
+
+
+def fine_fields(storm: dict[str, Any], dT_thermal: np.ndarray, window: tuple[int, int, int, int]) -> dict[str, np.ndarray]:
+    """The fine cells of a window after the storm on its own grid: dT the
+    talus rule's change (float32) plus the storm's (float64), the rest float32."""
+    fields = {"dT": dT_thermal.astype(np.float64) + storm["dT"].window(*window)}
+    fields.update({k: storm[k].window(*window).astype(np.float32) for k in ("W", "S", "vx", "vz", "M")})
+    return fields
+
+
 def _thermal_and_storm(cl, h: np.ndarray, params: ErosionParams, ph: Physics, plan: simulate.Plan,
                        progress, after_thermal) -> tuple[Any, dict[str, np.ndarray], dict]:
     """Thermal weathering on the terrain's cells, then the storm: on the same
-    cells, or on the storm's own grid (storm_grid.py) when the cells are finer
+    cells, or on the storm's own grid (coarse_grid.py) when the cells are finer
     than storm_cell_m. Returns the simulator of the storm (its OpenCL settings
     go to the metrics), the final fields on the terrain's cells (dT the change
     since h) and the metrics."""
     import dataclasses
 
+    from .coarse_grid import block_mean, storm_factor
     from .device import DeviceSim
-    from .storm_grid import block_mean, prolong_conserving, prolong_linear, storm_factor
 
     dx = ph.dx
     fac = storm_factor(h.shape[0], h.shape[1], dx, params.storm_cell_m)
@@ -382,23 +477,30 @@ def _thermal_and_storm(cl, h: np.ndarray, params: ErosionParams, ph: Physics, pl
         return sim, sim.fields(), metrics
     fine = simulate.run(sim, ph, dataclasses.replace(plan, duration_s=0.0), progress=progress,
                         after_thermal=after_thermal)
-    dT_thermal = sim.fields()["dT"].astype(np.float64)
+    dT_thermal = sim.fields()["dT"]
     sim.finish()
     del sim
-    phc = physics_for(params, dx * fac)
-    planc = dataclasses.replace(plan_for(params, dx * fac, phc), thermal_iterations=0)
-    simc = DeviceSim(cl, block_mean(h + dT_thermal, fac).astype(np.float32), phc)
-    metrics = simulate.run(simc, phc, planc, progress=progress)
+    simc, fc, metrics = coarse_storm(cl, block_mean(h + dT_thermal.astype(np.float64), fac), params, dx * fac, progress)
     metrics.update({k: fine[k] for k in THERMAL_METRICS if k in fine})
     metrics["total_seconds"] += fine["total_seconds"]
     metrics.update(storm_cell_factor=fac, storm_cell_size_m=dx * fac)
     progress(0.96, "reading the maps back")
-    fc = simc.fields()
-    fields = {"dT": dT_thermal + prolong_conserving(fc["dT"], fac),
-              "W": prolong_conserving(fc["W"], fac, positive=True).astype(np.float32),
-              "S": prolong_conserving(fc["S"], fac, positive=True).astype(np.float32)}
-    fields.update({k: prolong_linear(fc[k], fac).astype(np.float32) for k in ("vx", "vz", "M")})
-    return simc, fields, metrics
+    rows, cols = h.shape
+    return simc, fine_fields(storm_fields(fc, fac), dT_thermal, (0, 0, rows, cols)), metrics
+
+
+def coarse_storm(cl, coarse_h: np.ndarray, params: ErosionParams, dx: float, progress):
+    """The storm alone on its own grid's heights (the block means): its
+    simulator, its final fields on the coarse cells and its metrics."""
+    import dataclasses
+
+    from .device import DeviceSim
+
+    phc = physics_for(params, dx)
+    planc = dataclasses.replace(plan_for(params, dx, phc), thermal_iterations=0)
+    simc = DeviceSim(cl, coarse_h.astype(np.float32), phc)
+    metrics = simulate.run(simc, phc, planc, progress=progress)
+    return simc, simc.fields(), metrics
 
 
 def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[str, Any]:
@@ -408,28 +510,11 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[
     ph = physics_for(params, dx)
     plan = plan_for(params, dx, ph)
     h_in = h
-    geology: dict[str, Any] = {}
+    geology_stats: dict[str, Any] = {}
     progress = ctx.progress
     if params.geological_years > 0:
-        from . import stream_power
-
         share = 0.5  # of the progress bar
-        res = stream_power.run(ctx.cl, h.astype(np.float64), dx, params.geological_years, params.geological_step_years,
-                               params.stream_power_k, params.stream_power_m, params.stream_power_n,
-                               params.uplift_mm_per_year / 1000.0, progress=lambda f, m: ctx.progress(share * f, m),
-                               routing=params.geological_routing, channel_area_m2=channel_threshold_m2(params, dx),
-                               diffusivity_m2_per_year=params.hillslope_diffusivity_m2_per_year,
-                               breach=params.geological_breach, mfd_exponent=params.geological_mfd_exponent,
-                               flat_routing=params.geological_flat_routing, fill_lakes=params.geological_lake_fill,
-                               mfd_isotropic=params.geological_mfd_isotropic,
-                               critical_slope=math.tan(math.radians(params.critical_slope_deg)),
-                               deposition_g=params.deposition_g, strata=strata_for(params),
-                               incision_width_m=params.incision_width_m)
-        if res.budget_relative_error > 1e-9:
-            raise StageError(f"erosion: stream power lost {res.budget_relative_error:.2e} of the eroded volume "
-                             f"on its way to base level")
-        h = res.height.astype(np.float32)
-        geology = {**res.stats, "channel_area_used_m2": channel_threshold_m2(params, dx)}
+        h, geology_stats = geology(ctx.cl, h, dx, params, lambda f, m: ctx.progress(share * f, m))
         progress = lambda f, m: ctx.progress(share + (1 - share) * f, m)  # noqa: E731
     progress(0.0, f"erosion {h.shape[1]}x{h.shape[0]} cells of {dx:g} m: {plan.thermal_iterations} talus "
                   f"iterations, {params.storm_hours:g} h storm")
@@ -439,46 +524,85 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[
         after_thermal.update(slope_excess(h + fields["dT"], dx, params.talus_angle_deg, params.boundary == "periodic"))
 
     sim, f, metrics = _thermal_and_storm(ctx.cl, h, params, ph, plan, progress, on_thermal_done)
-    metrics.update(geology)
+    metrics.update(geology_stats)
     height = (h + f["dT"]).astype(np.float32)
     for name, arr in (("height", height), ("water", f["W"]), ("sediment", f["S"])):
         if not np.isfinite(arr).all():
             raise StageError(f"erosion: non-finite {name} in the final state (step {metrics['steps']})")
-    speed = np.sqrt(f["vx"].astype(np.float64) ** 2 + f["vz"].astype(np.float64) ** 2).astype(np.float32)
-    change = (height.astype(np.float64) - h_in).astype(np.float32)  # geology, talus and storm together
-    out_grid = lambda data, ch: Grid(np.ascontiguousarray(data, np.float32), cell_size_m=dx, channels=ch,  # noqa: E731
-                                     origin_m=grid.origin_m)
-    outputs = {
-        "erosion.height": out_grid(height, ("height",)),
-        "erosion.water": out_grid(f["W"], ("water.depth",)),
-        "erosion.flow": out_grid(np.stack([f["vx"], f["vz"], speed], axis=-1), ("flow.vx", "flow.vz", "flow.speed")),
-        "erosion.sediment": out_grid(f["S"], ("sediment.depth",)),
-        "erosion.change": out_grid(np.stack([change, np.maximum(-change, 0), np.maximum(change, 0)], axis=-1),
-                                   ("change.net", "change.wear", "change.deposition")),
-        "erosion.moisture": out_grid(np.clip(f["M"], 0.0, 1.0), ("moisture",)),
-    }
+    maps = output_maps(h_in, height, f)
+    out_grid = lambda name: Grid(maps[name], cell_size_m=dx, channels=CHANNELS[name], origin_m=grid.origin_m)  # noqa: E731
+    outputs = {f"erosion.{name}": out_grid(name) for name in CHANNELS}
     ctx.progress(0.98, "hillshade")
     outputs["erosion.hillshade"] = hillshade(outputs["erosion.height"])
     final = slope_excess(height, dx, params.talus_angle_deg, params.boundary == "periodic")
-    c64 = change.astype(np.float64)
-    metrics.update(
-        cells=int(h.size), cell_size_m=dx,
+    metrics.update(final_metrics(map_sums(maps, params.wet_depth_m), after_thermal, final, dx),
+                   opencl_local_size=list(sim.local), opencl_vector_width=sim.vw,
+                   opencl_vector_width_thermal=sim.vw_thermal,
+                   opencl_storm_tile=[sim.nr, sim.tile_vectors], opencl_storm_local_size=list(sim.local_storm),
+                   opencl_storm_avx512=sim.avx512)
+    ctx.metrics.update(metrics)
+    ctx.progress(1.0, "done")
+    return outputs
+
+
+def run_tiled(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[str, Any]:
+    """run on a tiled world (tiled.py): the fine cells per tile, geological
+    time and the storm on their own grids; the same files. A world whose
+    geology or storm spans its fine cells runs whole (the reason in the metrics)."""
+    from pipeline import exr
+
+    from . import tiled
+
+    src = inputs["height"]
+    why = tiled.whole_reason(params, tuple(src.shape), float(src.cell_size_m), ctx.tiles.tile_cells)
+    if why is not None:
+        ctx.metrics["tiled_steps"] = f"none: {why}; the stage ran whole"
+        return run(ctx, {"height": exr.read_grid(src.path)}, params)
+    outputs, metrics = tiled.run(ctx, src, params, ctx.progress)
+    metrics["tiled_steps"] = "talus rule in rounds, block means, maps; geology and storm on their own grids"
+    ctx.metrics.update(metrics)
+    ctx.progress(1.0, "done")
+    return outputs
+
+
+# the channels of each output grid, in the order output_maps stacks them
+CHANNELS = {"height": ("height",), "water": ("water.depth",), "flow": ("flow.vx", "flow.vz", "flow.speed"),
+            "sediment": ("sediment.depth",), "change": ("change.net", "change.wear", "change.deposition"),
+            "moisture": ("moisture",)}
+
+
+def output_maps(h_in: np.ndarray, height: np.ndarray, f: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The output grids' arrays (float32) from the input heights, the final
+    heights and the final fields, cell by cell (a tile's are the whole map's)."""
+    speed = np.sqrt(f["vx"].astype(np.float64) ** 2 + f["vz"].astype(np.float64) ** 2).astype(np.float32)
+    change = (height.astype(np.float64) - h_in).astype(np.float32)  # geology, talus and storm together
+    c32 = lambda a: np.ascontiguousarray(a, np.float32)  # noqa: E731
+    return {"height": c32(height), "water": c32(f["W"]), "flow": c32(np.stack([f["vx"], f["vz"], speed], axis=-1)),
+            "sediment": c32(f["S"]),
+            "change": c32(np.stack([change, np.maximum(-change, 0), np.maximum(change, 0)], axis=-1)),
+            "moisture": c32(np.clip(f["M"], 0.0, 1.0))}
+
+
+def map_sums(maps: dict[str, np.ndarray], wet_depth_m: float) -> dict[str, float]:
+    """What the final metrics sum over the cells (float64): a tile's add up to the world's."""
+    c64 = maps["change"][..., 0].astype(np.float64)
+    return {"cells": int(c64.size), "change_min": float(c64.min()), "change_max": float(c64.max()),
+            "wear_sum": float(np.maximum(-c64, 0).sum()), "deposition_sum": float(np.maximum(c64, 0).sum()),
+            "water_sum": float(maps["water"].astype(np.float64).sum()),
+            "wet_cells": int((maps["water"] > wet_depth_m).sum())}
+
+
+def final_metrics(sums: dict[str, float], after_thermal: dict, final: dict, dx: float) -> dict[str, Any]:
+    return dict(
+        cells=sums["cells"], cell_size_m=dx,
         thermal_max_excess_deg=after_thermal.get("max_excess_deg"),
         thermal_fraction_above_talus=after_thermal.get("fraction_above_tolerance"),
         slope_tolerance_deg=SLOPE_TOLERANCE_DEG,
         final_max_excess_deg=final["max_excess_deg"], final_fraction_above_talus=final["fraction_above_tolerance"],
-        wear_max_m=float(max(-c64.min(), 0.0)), deposition_max_m=float(max(c64.max(), 0.0)),
-        wear_volume_m3=float(np.maximum(-c64, 0).sum() * dx * dx),
-        deposition_volume_m3=float(np.maximum(c64, 0).sum() * dx * dx),
-        water_volume_m3=float(f["W"].astype(np.float64).sum() * dx * dx),
-        wet_fraction=float((f["W"] > params.wet_depth_m).mean()),
-        opencl_local_size=list(sim.local), opencl_vector_width=sim.vw, opencl_vector_width_thermal=sim.vw_thermal,
-        opencl_storm_tile=[sim.nr, sim.tile_vectors], opencl_storm_local_size=list(sim.local_storm),
-        opencl_storm_avx512=sim.avx512,
+        wear_max_m=max(-sums["change_min"], 0.0), deposition_max_m=max(sums["change_max"], 0.0),
+        wear_volume_m3=sums["wear_sum"] * dx * dx, deposition_volume_m3=sums["deposition_sum"] * dx * dx,
+        water_volume_m3=sums["water_sum"] * dx * dx, wet_fraction=sums["wet_cells"] / max(sums["cells"], 1),
     )
-    ctx.metrics.update(metrics)
-    ctx.progress(1.0, "done")
-    return outputs
 
 
 BYTES_PER_CELL_STORM = 200  # the device state (about 30 float32 fields, double-buffered) and the host copies
@@ -503,7 +627,7 @@ def check(params: ErosionParams, ctx: CheckContext) -> Check:
         raise ParamError("", str(e).removeprefix("erosion: ")) from None
     cells = height.shape[0] * height.shape[1]
     if params.dt_s is None and params.storm_hours > 0:
-        from .storm_grid import storm_factor
+        from .coarse_grid import storm_factor
 
         fac = storm_factor(height.shape[0], height.shape[1], dx, params.storm_cell_m)  # the storm's own grid
         dx, ph = dx * fac, physics_for(params, dx * fac)
@@ -516,8 +640,33 @@ def check(params: ErosionParams, ctx: CheckContext) -> Check:
                              f"rain net of evaporation deepens the water until waves reach {wave:.3g} m/s, "
                              f"dt {ph.dt_limit(wave):.3g} s), more than the {limit:,} a storm may take ({limit_how}); "
                              f"shorten the storm, lower the rain or coarsen the grid")
+    shape = tuple(height.shape)
+    if ctx.tile_cells:
+        from .tiled import THERMAL_ROUND, whole_reason
+
+        if whole_reason(params, shape, height.cell_size_m, ctx.tile_cells) is None:
+            return _tiled_memory(params, shape, height.cell_size_m, ctx.tile_cells + 4 * THERMAL_ROUND)
     per_cell = BYTES_PER_CELL_STORM + (BYTES_PER_CELL_GEOLOGY if params.geological_years > 0 else 0)
     return Check(memory_bytes=per_cell * cells, memory_how=f"the terrain's {cells:,} cells x {per_cell} B")
+
+
+def _tiled_memory(params: ErosionParams, shape: tuple[int, int], dx: float, held: int) -> Check:
+    """A tiled run holds one tile with its halo at a time, and the coarse
+    grids of geology and the storm (with their prolongations) whole."""
+    from .coarse_grid import coarse_factor
+
+    cells = shape[0] * shape[1]
+    parts = [(BYTES_PER_CELL_STORM * held * held, f"a tile and its halo ({held}^2 cells x {BYTES_PER_CELL_STORM} B)")]
+    if params.geological_years > 0:
+        fg = coarse_factor(*shape, dx, params.geological_cell_m)
+        per = BYTES_PER_CELL_GEOLOGY + BYTES_PER_CELL_STORM
+        parts.append((per * cells // fg ** 2, f"geology's {cells // fg ** 2:,} cells x {per} B"))
+    fs = coarse_factor(*shape, dx, params.storm_cell_m)
+    if fs > 1:
+        parts.append((BYTES_PER_CELL_STORM * cells // fs ** 2,
+                      f"the storm's {cells // fs ** 2:,} cells x {BYTES_PER_CELL_STORM} B"))
+    memory = max(m for m, _ in parts)  # one at a time: the tiles' passes, the geology, the storm
+    return Check(memory_bytes=memory, memory_how="the largest of " + ", ".join(how for _, how in parts))
 
 
 STAGE = Stage(
@@ -547,6 +696,7 @@ STAGE = Stage(
     ),
     params=ErosionParams,
     run=run,
+    run_tiled=run_tiled,
     check=check,
     report=(ReportMap("erosion.height", "height", name="height", title="Height ({artifact})",
                       relief=Relief(hillshade, ("erosion.height",), "height")),

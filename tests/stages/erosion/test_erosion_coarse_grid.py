@@ -1,4 +1,4 @@
-"""The storm on its own grid (storm_cell_m, stages/erosion/storm_grid.py):
+"""The storm on its own grid (storm_cell_m, stages/erosion/coarse_grid.py):
 the prolongation keeps every block's volume, the stage is bitwise unchanged
 when the cells are already as coarse, the budgets hold on the fine cells, and
 the result stays near the fine explicit run's."""
@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.erosion.storm_grid import block_mean, prolong_conserving, prolong_linear, storm_factor
+from stages.erosion.coarse_grid import block_mean, prolong_conserving, prolong_linear, storm_factor
 
 from .helpers import run_stage, world
 

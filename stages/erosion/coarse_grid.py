@@ -1,0 +1,185 @@
+"""The erosion's coarse grids: on cells finer than storm_cell_m (the storm)
+or geological_cell_m (geological time) that process runs on blocks of f x f
+cells (f the largest whole factor with f dx <= the cell size that divides
+both sides), and its result comes back to the fine cells by a prolongation
+that keeps every block's volume.
+
+Why: the storm's explicit step is CFL-bound, dt ~ dx / wave speed, so on a
+grid k times finer it takes k times the steps over k^2 the cells (cost per
+cell and simulated hour grows as 1 / dx). Geological time has no step limit,
+but its processes (rivers incise by their flow per incision_width_m of width,
+hillslopes creep and slide over many metres) have nothing to resolve below a
+few metres, and its implicit solve is one sweep over the whole world. On the
+coarse grid the step count and the cells are those of the coarse cell size
+whatever the terrain's cells: the cost per fine cell falls as the terrain
+gets finer, and the coarse world (1/f^2 of the cells) is small enough for one
+process while the fine terrain is baked in tiles. This is the coarse-flow /
+fine-terrain split of multi-resolution erosion (the solve on a coarser grid,
+the change carried back to the fine heights). What it costs: gullies and
+valleys narrower than the coarse cell are not resolved; the fine grid
+receives the block's change spread smoothly (bilinear) and corrected so each
+block keeps its coarse volume (float64, to round-off), so the budgets of the
+coarse run hold on the fine grid.
+
+A prolongation is computed once on the coarse grid (Prolongation: a coarse
+field to interpolate and a per-block scale and offset) and evaluated on any
+window of fine cells (Prolongation.window) with the same operations for a
+cell whatever the window: a tiled bake's tiles get the whole map's bits.
+
+With f = 1 (cells already >= the coarse cell size, or it is 0) nothing here runs."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+PROLONG_SWEEPS = 6  # smooth residual corrections before the exact per-block one (Prolongation.conserving)
+# over-relaxed: block-mean-of-bilinear keeps 0.35 .. 1 of a residual, so a gain of 1.5 shrinks the slowest
+# (block-to-block alternating) part about 2x per sweep, the smooth part at once
+PROLONG_GAIN = 1.5
+
+
+def coarse_factor(rows: int, cols: int, dx: float, coarse_cell_m: float) -> int:
+    """Cells per block side of a coarse grid: the largest f <= coarse_cell_m / dx
+    (with a 1e-9 tolerance) dividing rows and cols; 1 when coarse_cell_m is 0 or <= dx."""
+    if coarse_cell_m <= 0:
+        return 1
+    most = int(math.floor(coarse_cell_m / dx * (1.0 + 1e-9)))
+    for f in range(min(most, rows, cols), 1, -1):
+        if rows % f == 0 and cols % f == 0:
+            return f
+    return 1
+
+
+storm_factor = coarse_factor  # the storm's: storm_cell_m
+
+
+def block_mean(a: np.ndarray, f: int) -> np.ndarray:
+    """The mean over each f x f block (float64), summed in a fixed order
+    (block row by block row, cell by cell): the same bits for a block
+    whatever the array around it, so a tile's block means are the whole map's."""
+    a = np.asarray(a, np.float64)
+    total = np.zeros((a.shape[0] // f, a.shape[1] // f))
+    for i in range(f):
+        for j in range(f):
+            total += a[i::f, j::f]
+    return total / (f * f)
+
+
+def _block_mean_of_linear_1d(c: np.ndarray, f: int, axis: int) -> np.ndarray:
+    """Along one axis, the block means of the cell-centred linear
+    interpolation of c (prolong_linear): c + alpha (c[-1] - 2 c + c[+1]), the
+    outer cells held (alpha = the mean offset of a block's cells towards a
+    neighbour: 1/8 for even f, (f^2 - 1) / (8 f^2) for odd)."""
+    alpha = sum(abs(k + 0.5 - f / 2.0) / f for k in range(f) if k + 0.5 > f / 2.0) / f
+    lo = np.concatenate([np.take(c, [0], axis=axis), np.take(c, np.arange(c.shape[axis] - 1), axis=axis)], axis=axis)
+    hi = np.concatenate([np.take(c, np.arange(1, c.shape[axis]), axis=axis), np.take(c, [-1], axis=axis)], axis=axis)
+    return c + alpha * ((lo - c) + (hi - c))
+
+
+def block_mean_of_linear(c: np.ndarray, f: int) -> np.ndarray:
+    """block_mean(prolong_linear(c, f), f), computed on the coarse grid."""
+    c = np.asarray(c, np.float64)
+    return _block_mean_of_linear_1d(_block_mean_of_linear_1d(c, f, 0), f, 1)
+
+
+def _linear_1d(c: np.ndarray, f: int, axis: int, start: int, count: int, n: int, c_start: int) -> np.ndarray:
+    """Cell-centred linear interpolation along one axis, held constant beyond
+    the outer cell centres: fine cells [start, start + count) of a map of n
+    coarse cells, from c holding coarse cells [c_start, ...) on that axis."""
+    x = np.clip((np.arange(start, start + count) + 0.5) / f - 0.5, 0.0, n - 1)
+    i0 = np.minimum(np.floor(x).astype(np.int64), n - 1)
+    i1 = np.minimum(i0 + 1, n - 1)
+    w = x - i0
+    shape = [1, 1]
+    shape[axis] = count
+    w = w.reshape(shape)
+    return np.take(c, i0 - c_start, axis=axis) * (1.0 - w) + np.take(c, i1 - c_start, axis=axis) * w
+
+
+def coarse_span(start: int, count: int, f: int, n: int) -> tuple[int, int]:
+    """The coarse cells [lo, hi) that fine cells [start, start + count) read."""
+    lo = max(0, min(n - 1, int(math.floor((start + 0.5) / f - 0.5))))
+    hi = min(n, int(math.floor((start + count - 0.5) / f - 0.5)) + 2)
+    return lo, max(hi, lo + 1)
+
+
+@dataclass(frozen=True)
+class Prolongation:
+    """Fine cells = bilinear(field) * scale[block] + offset[block], f fine
+    cells per coarse cell; the arrays may be a window of the coarse map
+    starting at coarse cell `origin` of a map of `shape` coarse cells."""
+
+    f: int
+    field: np.ndarray
+    scale: np.ndarray | None
+    offset: np.ndarray | None
+    shape: tuple[int, int]
+    origin: tuple[int, int] = (0, 0)
+
+    @classmethod
+    def linear(cls, c: np.ndarray, f: int) -> "Prolongation":
+        """Bilinear (cell-centred) interpolation."""
+        c = np.asarray(c, np.float64)
+        return cls(f, c, None, None, c.shape)
+
+    @classmethod
+    def conserving(cls, c: np.ndarray, f: int) -> "Prolongation":
+        """Bilinear, corrected so every block's mean is c: PROLONG_SWEEPS
+        smooth corrections (the residual's own bilinear interpolation; the
+        interpolation is linear, so the sweeps run on the coarse field it
+        interpolates), then each block's last residual added to its cells."""
+        c = np.asarray(c, np.float64)
+        a = c.copy()
+        # a constant correction per block prints the blocks where the change varies fast: first
+        # take the residual back smoothly, sweep by sweep (it shrinks each time), then what is left
+        for _ in range(PROLONG_SWEEPS):
+            a += PROLONG_GAIN * (c - block_mean_of_linear(a, f))
+        return cls(f, a, None, c - block_mean_of_linear(a, f), c.shape)
+
+    @classmethod
+    def positive(cls, c: np.ndarray, f: int) -> "Prolongation":
+        """For a non-negative field (water, sediment): bilinear scaled per
+        block to the block's mean, so it stays non-negative (a block whose
+        interpolation sums to nothing gets its value uniformly)."""
+        c = np.asarray(c, np.float64)
+        mean = block_mean_of_linear(c, f)
+        ok = mean > 0
+        return cls(f, c, np.where(ok, c / np.where(ok, mean, 1.0), 0.0), np.where(ok, 0.0, c), c.shape)
+
+    def part(self, row0: int, col0: int, rows: int, cols: int) -> "Prolongation":
+        """The coarse data fine cells [row0, +rows) x [col0, +cols) read (what a tile is sent)."""
+        f, (n_r, n_c) = self.f, self.shape
+        r_lo, r_hi = coarse_span(row0, rows, f, n_r)
+        c_lo, c_hi = coarse_span(col0, cols, f, n_c)
+        b_lo, b_hi, d_lo, d_hi = row0 // f, -(-(row0 + rows) // f), col0 // f, -(-(col0 + cols) // f)
+        r_lo, r_hi, c_lo, c_hi = min(r_lo, b_lo), max(r_hi, b_hi), min(c_lo, d_lo), max(c_hi, d_hi)
+        cut = lambda a: None if a is None else np.ascontiguousarray(  # noqa: E731
+            a[r_lo - self.origin[0]:r_hi - self.origin[0], c_lo - self.origin[1]:c_hi - self.origin[1]])
+        return Prolongation(f, cut(self.field), cut(self.scale), cut(self.offset), self.shape, (r_lo, c_lo))
+
+    def window(self, row0: int, col0: int, rows: int, cols: int) -> np.ndarray:
+        """The fine cells [row0, +rows) x [col0, +cols), float64."""
+        f, (n_r, n_c), (o_r, o_c) = self.f, self.shape, self.origin
+        fine = _linear_1d(_linear_1d(self.field, f, 0, row0, rows, n_r, o_r), f, 1, col0, cols, n_c, o_c)
+        if self.scale is None and self.offset is None:
+            return fine
+        br = np.arange(row0, row0 + rows) // f - o_r
+        bc = np.arange(col0, col0 + cols) // f - o_c
+        if self.scale is not None:
+            fine = fine * self.scale[np.ix_(br, bc)]
+        return fine + self.offset[np.ix_(br, bc)]
+
+    def whole(self) -> np.ndarray:
+        return self.window(0, 0, self.shape[0] * self.f, self.shape[1] * self.f)
+
+
+def prolong_linear(c: np.ndarray, f: int) -> np.ndarray:
+    """Bilinear (cell-centred) interpolation to f times the cells per side, float64."""
+    return Prolongation.linear(c, f).whole()
+
+
+def prolong_conserving(c: np.ndarray, f: int, positive: bool = False) -> np.ndarray:
+    """The whole map's Prolongation.conserving (or .positive)."""
+    return (Prolongation.positive(c, f) if positive else Prolongation.conserving(c, f)).whole()
