@@ -99,10 +99,11 @@ def _linear_1d(c: np.ndarray, f: int, axis: int, start: int, count: int, n: int,
 
 
 def coarse_span(start: int, count: int, f: int, n: int) -> tuple[int, int]:
-    """The coarse cells [lo, hi) that fine cells [start, start + count) read."""
-    lo = max(0, min(n - 1, int(math.floor((start + 0.5) / f - 0.5))))
-    hi = min(n, int(math.floor((start + count - 0.5) / f - 0.5)) + 2)
-    return lo, max(hi, lo + 1)
+    """The coarse cells [lo, hi) that fine cells [start, start + count) read
+    (_linear_1d: cells i0 and i0 + 1 of each, the second even at weight 0)."""
+    first = min(max((start + 0.5) / f - 0.5, 0.0), n - 1)
+    last = min(max((start + count - 0.5) / f - 0.5, 0.0), n - 1)
+    return int(math.floor(first)), min(n, int(math.floor(last)) + 2)
 
 
 @dataclass(frozen=True)

@@ -112,6 +112,36 @@ def test_a_stopped_tiled_bake_resumes_from_its_tiles(project):
     assert p["reused"] == p["tiles"] == 4
 
 
+# 2 m cells in 3 x 3 tiles of 256 (the last row and column part tiles): geological time and the storm on
+# 8 m blocks, the talus rule's 150 iterations in rounds of 32
+ERODED = ("heightmap.size_m=1280", "heightmap.resolution=640", "erosion.geological_cell_m=8", 'outputs=["erosion"]')
+
+
+@pytest.mark.parametrize("executor", ["local", "dask"])
+def test_a_tiled_erosion_is_the_untiled_one_byte_for_byte(project, executor):
+    bake(project, "whole", *ERODED)
+    bake(project, "tiled", *ERODED, "tiling.tile_cells=256", executor=executor)
+    assert stage_files(project / "tiled", "erosion") == stage_files(project / "whole", "erosion")
+    whole, tiled = manifest(project / "whole", "erosion")["metrics"], manifest(project / "tiled", "erosion")["metrics"]
+    assert tiled["geological_cell_factor"] == tiled["storm_cell_factor"] == 4 and tiled["thermal_rounds"] == 5
+    for key in ("steps", "thermal_iterations", "wear_volume_m3", "final_fraction_above_talus", "thermal_max_excess_deg"):
+        assert tiled[key] == pytest.approx(whole[key], rel=1e-12), key
+    passes = tiled["tiling"]["passes"]
+    assert [p["pass"] for p in passes] == ["prepare", "thermal0", "thermal32", "thermal64", "thermal96", "thermal128",
+                                           "storm_input", "maps"]
+    assert [p["kept"] for p in passes] == [True, False, False, False, False, True, False, True]
+    assert all(p["tiles"] == 9 for p in passes)
+
+
+def test_a_world_whose_erosion_spans_its_cells_runs_whole(project):
+    """16 m cells: the storm would run on the terrain's own cells."""
+    sets = ("heightmap.resolution=512", 'outputs=["erosion"]', "erosion.geological_years=1e6")
+    bake(project, "whole", *sets)
+    bake(project, "tiled", *sets, "tiling.tile_cells=256")
+    assert stage_files(project / "tiled", "erosion") == stage_files(project / "whole", "erosion")
+    assert manifest(project / "tiled", "erosion")["metrics"]["tiled_steps"].startswith("none: geological time runs")
+
+
 def test_tiled_inputs_are_read_by_window(tmp_path):
     grid = np.arange(700 * 300, dtype=np.float32).reshape(700, 300)
     from pipeline.grid import Grid
