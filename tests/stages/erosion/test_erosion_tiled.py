@@ -13,8 +13,8 @@ import pytest
 from pipeline.contract import CheckContext, GridInfo
 from pipeline.tiles import tiles_of
 from stages.erosion import ErosionParams
-from stages.erosion.coarse_grid import (Prolongation, block_mean, block_mean_of_linear, coarse_span,
-                                        prolong_linear)
+from stages.erosion.coarse_grid import (Prolongation, block_mean, block_mean_of_cubic, block_mean_of_linear,
+                                        coarse_span, prolong_linear)
 from pipeline.opencl import get_cl
 from stages.erosion.stage import (check, geology, slope_excess, slope_excess_counts, slope_excess_of,
                                    solve_geology)
@@ -38,7 +38,7 @@ def test_a_prolongations_window_is_the_whole_maps_cells(f):
             want = whole[r0:r0 + rows, c0:c0 + cols]
             assert np.array_equal(pro.window(r0, c0, rows, cols), want)
             part = pro.part(r0, c0, rows, cols)  # what a tile is sent: a few coarse cells
-            assert part.field.shape[0] <= rows // f + 3 and part.field.shape[1] <= cols // f + 3
+            assert part.field.shape[0] <= rows // f + 5 and part.field.shape[1] <= cols // f + 5
             assert np.array_equal(part.window(r0, c0, rows, cols), want)
 
 
@@ -47,7 +47,25 @@ def test_the_coarse_block_means_of_the_interpolation_are_the_fine_ones():
     c = rng.normal(size=(6, 10))
     for f in (2, 3, 5, 8):
         np.testing.assert_allclose(block_mean_of_linear(c, f), block_mean(prolong_linear(c, f), f), atol=1e-12)
+        cubic = Prolongation(f, c, None, None, c.shape, cubic=True).whole()
+        np.testing.assert_allclose(block_mean_of_cubic(c, f), block_mean(cubic, f), atol=1e-12)
     assert coarse_span(0, 8, 8, 4) == (0, 2) and coarse_span(8, 8, 8, 4) == (0, 3) and coarse_span(1, 1, 4, 9) == (0, 2)
+    assert coarse_span(0, 8, 8, 4, cubic=True) == (0, 3) and coarse_span(8, 8, 8, 9, cubic=True) == (0, 4)
+
+
+def test_the_conserving_prolongation_has_no_kinks_at_the_coarse_cells():
+    """Its gradient is continuous (C1): a hillshade of 1 m cells shows no 8 m
+    grid. The bilinear one's slope jumps at every coarse cell centre: its
+    largest change of slope between neighbouring cells is 3.7x the cubic's
+    (measured 0.099 and 0.027 m per cell on this smooth change)."""
+    x = np.linspace(0.0, 3.0, 12)
+    c = np.add.outer(np.sin(x) * 40.0, np.cos(x) * 25.0)  # a smooth coarse change, metres
+    f = 8
+    kink = {}
+    for name, pro in (("cubic", Prolongation.conserving(c, f)), ("linear", Prolongation.linear(c, f))):
+        second = np.abs(np.diff(pro.whole(), n=2, axis=1))[:, 2 * f:-2 * f]  # slope changes along the rows
+        kink[name] = second.max()
+    assert kink["cubic"] < 0.35 * kink["linear"], kink
 
 
 def test_a_tiles_block_means_are_the_whole_maps():
