@@ -81,9 +81,9 @@ def run(ctx, src, params, progress) -> tuple[dict[str, Any], dict[str, Any]]:
     if fg:
         coarse = _assemble(tiles.tiles(shape), parts, "block_mean", fg)
         res = st.solve_geology(ctx.cl, coarse, dx * fg, params, lambda f, m: progress(0.4 * f, m))
-        geology = st.geology_change(res.height, coarse, fg)
+        geology = st.FineGeology.of(res.height, coarse, fg, params, dx)
         del coarse, res.height
-        metrics.update(res.stats, geological_cell_factor=fg)
+        metrics.update(res.stats, geological_cell_factor=fg, geological_detail_kept=geology.keep)
 
     # the talus rule in rounds, each reading the round before's change from a halo
     t0 = time.perf_counter()
@@ -158,7 +158,7 @@ def _assemble(tiles, parts: list[dict], key: str, f: int) -> np.ndarray:
 
 
 def _part(pro, tile, halo: int):
-    """The coarse data of a Prolongation the tile's window(halo) reads (None: none)."""
+    """The coarse data of a Prolongation (or FineGeology) the tile's window(halo) reads (None: none)."""
     return None if pro is None else pro.part(*tile.window(halo))
 
 
@@ -178,12 +178,10 @@ def _drop(arrays, work: Path) -> None:
 
 def _heights(tctx, inputs: dict[str, Any], geology, halo: int) -> tuple[tuple[int, int, int, int], np.ndarray]:
     """The tile's window(halo) and its heights after geological time (float32), cell by cell as stage.geology."""
-    from . import stage as st
-
     window = tctx.tile.window(halo)
     h = np.asarray(inputs["height"].read(*window, channel=inputs["height"].channels[0]), np.float32)
     if geology is not None:
-        h = st.geology_heights(h, geology.window(*window))
+        h = geology.heights(h, window)
     return window, h
 
 
