@@ -210,11 +210,13 @@ def _split_summary(summary: dict[str, Any]) -> tuple[dict[str, np.ndarray], dict
     return arrays, {k: v for k, v in summary.items() if k not in arrays}
 
 
+def _tile_unit_id(run_key: str, pass_name: str, t: Tile) -> tuple[str, dict]:
+    """The name and material of one tile's unit of one pass: the run's key, the pass, the tile."""
+    return f"{pass_name}-{t.name}", {"run": run_key, "pass": pass_name, "tile": [t.row0, t.col0, t.rows, t.cols]}
+
+
 def _tile_unit(units, job: _TileJob):
-    """The unit of one tile of one pass: the run's key, the pass, the tile."""
-    t = job.tile
-    return units.unit(f"{job.pass_name}-{t.name}",
-                      {"run": job.run_key, "pass": job.pass_name, "tile": [t.row0, t.col0, t.rows, t.cols]})
+    return units.unit(*_tile_unit_id(job.run_key, job.pass_name, job.tile))
 
 
 def _run_tile(job: _TileJob) -> tuple[dict[str, str], dict[str, Any], float]:
@@ -283,6 +285,12 @@ class TileRunner:
 
     def tiles(self, shape: tuple[int, int]) -> list[Tile]:
         return tiles_of(shape, self.tile_cells)
+
+    def kept(self, pass_name: str, shape: tuple[int, int]) -> bool:
+        """Whether every tile of a kept pass is in the store: a resumed run
+        may skip the passes that only led to it."""
+        return self.units is not None and all(self.units.saved(*_tile_unit_id(self.run_key, pass_name, t))
+                                              for t in self.tiles(shape))
 
     def map(self, fn: Callable, pass_name: str, shape: tuple[int, int], inputs: dict[str, Any], params: Any,
             shared: Any = None, *, grids: dict[str, tuple[str, ...]] | None = None, cell_size_m: float = 1.0,

@@ -134,12 +134,19 @@ class Units:
         self.code_material = code_material
         self.used: dict[str, str] = {}
 
+    def _key(self, name: str, material: Any) -> str:
+        text = json.dumps({"code": self.code_material, "unit": name, "material": material}, sort_keys=True,
+                          separators=(",", ":"))
+        return hashlib.sha256(text.encode()).hexdigest()[:UNIT_KEY_LENGTH]
+
+    def saved(self, name: str, material: Any) -> bool:
+        """Whether that unit is in the store, complete (without asking for it: the run may still not use it)."""
+        return self.root is not None and (self.root / self.stage / self._key(name, material) / UNIT_MANIFEST).is_file()
+
     def unit(self, name: str, material: Any) -> Unit:
         if name in self.used:
             raise ValueError(f"stage {self.stage}: unit {name!r} asked for twice in one run")
-        text = json.dumps({"code": self.code_material, "unit": name, "material": material}, sort_keys=True,
-                          separators=(",", ":"))
-        key = hashlib.sha256(text.encode()).hexdigest()[:UNIT_KEY_LENGTH]
+        key = self._key(name, material)
         self.used[name] = key
         provenance = {"stage": self.stage, "version": self.code_material.get("version"), "unit": name, "unit_key": key,
                       "seed": self.code_material.get("seed")}

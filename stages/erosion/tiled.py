@@ -88,7 +88,9 @@ def run(ctx, src, params, progress) -> tuple[dict[str, Any], dict[str, Any]]:
     # the talus rule in rounds, each reading the round before's change from a halo
     t0 = time.perf_counter()
     n_th, change = plan.thermal_iterations, None
-    done = 0
+    last_round = (n_th - 1) // THERMAL_ROUND * THERMAL_ROUND if n_th else 0
+    # a resumed run whose last round is in the store takes it from there (the rounds before are not kept)
+    done = last_round if n_th and tiles.kept(f"thermal{last_round}", shape) else 0
     while done < n_th:
         k = min(THERMAL_ROUND, n_th - done)
         last = done + k == n_th

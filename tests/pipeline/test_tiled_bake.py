@@ -133,6 +133,19 @@ def test_a_tiled_erosion_is_the_untiled_one_byte_for_byte(project, executor):
     assert all(p["tiles"] == 9 for p in passes)
 
 
+def test_a_stopped_tiled_erosion_resumes_from_its_last_talus_round(project):
+    """The talus rule's rounds before the last are not kept; a bake that
+    finds the last round's tiles in the store starts there."""
+    bake(project, "b", *ERODED, "tiling.tile_cells=256")
+    before = stage_files(project / "b", "erosion")
+    shutil.rmtree(project / "b" / "artifacts" / "erosion")
+    bake(project, "b", *ERODED, "tiling.tile_cells=256")
+    assert stage_files(project / "b", "erosion") == before
+    passes = manifest(project / "b", "erosion")["metrics"]["tiling"]["passes"]
+    assert [p["pass"] for p in passes] == ["prepare", "thermal128", "storm_input", "maps"]
+    assert [p["reused"] for p in passes] == [9, 9, 0, 9]
+
+
 def test_a_world_whose_erosion_spans_its_cells_runs_whole(project):
     """16 m cells: the storm would run on the terrain's own cells."""
     sets = ("heightmap.resolution=512", 'outputs=["erosion"]', "erosion.geological_years=1e6")
