@@ -70,7 +70,7 @@ class DeviceSim:
     def __init__(self, env, height: np.ndarray, ph: Physics, *, local: tuple[int, int] | None = DEFAULT_LOCAL,
                  water: np.ndarray | None = None, sediment: np.ndarray | None = None,
                  change: np.ndarray | None = None, vw: int | None = None,
-                 nv: int | None = None, avx512: bool | None = None, nr: int | None = None):
+                 nv: int | None = None, avx512: bool | None = None, nr: int | None = None, thermal_only: bool = False):
         import pyopencl as cl
 
         self.cl = env
@@ -118,22 +118,31 @@ class DeviceSim:
         w0 = zeros if water is None else np.asarray(water, np.float32)
         s0 = zeros if sediment is None else np.asarray(sediment, np.float32)
         P = lambda a: pad(a, self.periodic, (self.prows, self.pitch))  # noqa: E731
+        pz = P(zeros)
         self.Tb = buf(P(height))
         # change: a run resumed from an earlier one's dT (the tiled talus rule's rounds)
-        dT0 = zeros if change is None else np.asarray(change, np.float32)
-        self.dT = [buf(P(dT0)), buf(P(dT0))]
-        self.W = [buf(P(w0)), buf(P(w0))]
-        self.S = [buf(P(s0)), buf(P(s0))]
-        self.M = buf(P(zeros))
-        self.EA = buf(P(zeros))
-        self.Q = [buf(P(zeros)) for _ in range(4)]
-        self.tmp = buf(P(zeros))  # thermal send factors s
-        self.tmp2 = buf(P(zeros))  # thermal receiver shares r
+        pd = pz if change is None else P(change)
+        self.dT = [buf(pd), buf(pd)]
+        pw = pz if water is None else P(w0)
+        self.tmp = buf(pz)  # thermal send factors s
+        self.tmp2 = buf(pz)  # thermal receiver shares r
+        if thermal_only:  # the talus rule alone (the tiled rounds): no storm state
+            self.W = [buf(pw)]
+            return self._scalars(ph)
+        self.W = [buf(pw), buf(pw)]
+        ps = pz if sediment is None else P(s0)
+        self.S = [buf(ps), buf(ps)]
+        self.M = buf(pz)
+        self.EA = buf(pz)
+        self.Q = [buf(pz) for _ in range(4)]
         self.wave = buf(P(np.sqrt(np.float32(G) * w0).astype(np.float32)))  # CFL speed per cell
         self.nfaces = 2 * (self.rows + self.cols)
         self.bnd = buf(np.zeros(2 * self.nfaces, np.float64))
         self.sums = cl.Buffer(ctx, mf.READ_WRITE, 8 * 5 * self.rows)
         self.mx = cl.Buffer(ctx, mf.READ_WRITE, 4 * 5 * self.rows)
+        self._scalars(ph)
+
+    def _scalars(self, ph: Physics) -> None:
         self.cd = 0  # which dT buffer is current (thermal flips only this one)
         self.cw = 0  # which W and S buffers are current
         self.t_ax, self.t_dg = talus_thresholds(ph)

@@ -218,7 +218,7 @@ def thermal_tile(tctx, inputs: dict[str, Any], params, shared: dict) -> TileOutp
     window, h = _heights(tctx, inputs, shared["geology"], 2 * k)
     before = inputs["change"]
     dT = np.zeros_like(h) if before is None else np.asarray(before.read(*window), np.float32)
-    sim = DeviceSim(tctx.cl, h, st.physics_for(params, inputs["height"].cell_size_m), change=dT)
+    sim = DeviceSim(tctx.cl, h, st.physics_for(params, inputs["height"].cell_size_m), change=dT, thermal_only=True)
     sim.thermal(k, cfrac=shared["cfrac"])
     out = sim.change()[tctx.tile.inner(2 * k)]
     sim.finish()
