@@ -91,6 +91,7 @@ def run(ctx, src, params, progress) -> tuple[dict[str, Any], dict[str, Any]]:
     last_round = (n_th - 1) // THERMAL_ROUND * THERMAL_ROUND if n_th else 0
     # a resumed run whose last round is in the store takes it from there (the rounds before are not kept)
     done = last_round if n_th and tiles.kept(f"thermal{last_round}", shape) else 0
+    idle = 0  # tile rounds in which no slope was above the talus angle
     while done < n_th:
         k = min(THERMAL_ROUND, n_th - done)
         last = done + k == n_th
@@ -99,6 +100,7 @@ def run(ctx, src, params, progress) -> tuple[dict[str, Any], dict[str, Any]]:
         grids, parts = tiles.map(thermal_tile, f"thermal{done}", shape, {**inputs, "change": change}, params,
                                  per_tile=shared, grids={"change": ("change",)}, cell_size_m=dx, keep=last)
         nonfinite = sum(p["nonfinite"] for p in parts)
+        idle += sum(p["idle"] for p in parts)
         if nonfinite:
             raise StageError(f"erosion: thermal weathering blew up at iteration {done + k} (talus_angle_deg): "
                              f"{nonfinite} non-finite cells")
@@ -106,7 +108,7 @@ def run(ctx, src, params, progress) -> tuple[dict[str, Any], dict[str, Any]]:
         change, done = grids["change"], done + k
         progress(0.4 + 0.2 * done / n_th, f"thermal weathering {done}/{n_th}")
     metrics.update(thermal_iterations=n_th, thermal_c=plan.thermal_c, thermal_seconds=time.perf_counter() - t0,
-                   thermal_rounds=-(-n_th // THERMAL_ROUND))
+                   thermal_rounds=-(-n_th // THERMAL_ROUND), thermal_idle_tile_rounds=idle)
 
     storm = None
     if fs > 1:
@@ -213,16 +215,35 @@ def thermal_tile(tctx, inputs: dict[str, Any], params, shared: dict) -> TileOutp
     iteration, from the change of the round before (none: the first)."""
     from . import stage as st
     from .device import DeviceSim
+    from .physics import talus_thresholds
 
     k = shared["iterations"]
     window, h = _heights(tctx, inputs, shared["geology"], 2 * k)
     before = inputs["change"]
     dT = np.zeros_like(h) if before is None else np.asarray(before.read(*window), np.float32)
-    sim = DeviceSim(tctx.cl, h, st.physics_for(params, inputs["height"].cell_size_m), change=dT, thermal_only=True)
+    ph = st.physics_for(params, inputs["height"].cell_size_m)
+    if not _any_above_talus(h, dT, *talus_thresholds(ph)):
+        # no cell sends: every iteration adds 0 to dT, which keeps its bits (dT is never -0)
+        out = dT[tctx.tile.inner(2 * k)]
+        return TileOutput({"change": np.ascontiguousarray(out)}, {"nonfinite": int((~np.isfinite(out)).sum()),
+                                                                  "idle": True})
+    sim = DeviceSim(tctx.cl, h, ph, change=dT, thermal_only=True)
     sim.thermal(k, cfrac=shared["cfrac"])
     out = sim.change()[tctx.tile.inner(2 * k)]
     sim.finish()
-    return TileOutput({"change": np.ascontiguousarray(out)}, {"nonfinite": int((~np.isfinite(out)).sum())})
+    return TileOutput({"change": np.ascontiguousarray(out)}, {"nonfinite": int((~np.isfinite(out)).sum()),
+                                                              "idle": False})
+
+
+def _any_above_talus(Tb: np.ndarray, dT: np.ndarray, t_ax: np.float32, t_dg: np.float32) -> bool:
+    """Whether any pair of neighbours differs by more than the talus rule's
+    threshold, as its kernels test it (float32 heights Tb + dT, d > t)."""
+    h = (Tb + dT).astype(np.float32)
+    for a, b, t in ((h[:, 1:], h[:, :-1], t_ax), (h[1:], h[:-1], t_ax), (h[1:, 1:], h[:-1, :-1], t_dg),
+                    (h[1:, :-1], h[:-1, 1:], t_dg)):
+        if (np.abs(a - b) > t).any():
+            return True
+    return False
 
 
 def storm_input_tile(tctx, inputs: dict[str, Any], params, shared: dict) -> TileOutput:

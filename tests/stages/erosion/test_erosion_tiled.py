@@ -139,3 +139,28 @@ def test_geology_on_its_own_grid_keeps_the_volume_and_follows_the_fine_solve(tmp
     change = block_mean(after.astype(np.float64) - h32, 2)
     assert np.abs(change).max() > 1.0
     np.testing.assert_allclose(change, solved - coarse_h, rtol=0, atol=3e-5)
+
+
+def test_a_tile_with_no_slope_above_the_talus_angle_is_left_as_the_kernels_leave_it():
+    """The tiled rounds skip a window where no neighbours differ by more than
+    the talus threshold: the device's iterations leave its change bit for bit."""
+    from stages.erosion.device import DeviceSim
+    from stages.erosion.physics import talus_thresholds
+    from stages.erosion.stage import physics_for
+    from stages.erosion.tiled import _any_above_talus
+
+    ph = physics_for(ErosionParams(talus_angle_deg=40.0), 2.0)
+    t_ax, t_dg = talus_thresholds(ph)
+    rng = np.random.default_rng(5)
+    gentle = (np.add.outer(np.arange(40.0), np.arange(36.0)) * 0.9).astype(np.float32)  # 0.9 m per 2 m cell: 24 deg
+    change = (rng.normal(size=gentle.shape) * 0.01).astype(np.float32)
+    assert not _any_above_talus(gentle, change, t_ax, t_dg)
+    sim = DeviceSim(get_cl(), gentle, ph, change=change, thermal_only=True)
+    sim.thermal(8)
+    assert np.array_equal(sim.change(), change)
+    steep = gentle.copy()
+    steep[20, 18] += 5.0  # one spike: 5 m over 2 m cells
+    assert _any_above_talus(steep, change, t_ax, t_dg)
+    sim = DeviceSim(get_cl(), steep, ph, change=change, thermal_only=True)
+    sim.thermal(8)
+    assert not np.array_equal(sim.change(), change)
