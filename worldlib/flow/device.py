@@ -283,9 +283,9 @@ def accumulate(env, code: np.ndarray, weights: np.ndarray | None = None, tile: i
     d_in = cl.Buffer(env.ctx, mf.READ_WRITE, slots * isz)
     d_entry = cl.Buffer(env.ctx, mf.READ_WRITE, slots * 4)
     d_gdeg = cl.Buffer(env.ctx, mf.READ_WRITE, slots * 4)
+    d_merge = cl.Buffer(env.ctx, mf.READ_WRITE, slots * 4)
     out = np.empty((rows, cols), dtype)
     d_A = cl.Buffer(env.ctx, mf.READ_WRITE, out.nbytes)
-    cl.enqueue_fill_buffer(env.queue, d_in, np.zeros(1, dtype), 0, slots * isz)
     i32 = np.int32
     geo = (i32(rows), i32(cols), i32(tiles_x), i32(nt))
     # one tile per work-group unless asked otherwise: PoCL may keep the
@@ -296,13 +296,13 @@ def accumulate(env, code: np.ndarray, weights: np.ndarray | None = None, tile: i
     g = _ceil(nt, local)
     lw = (local,)
     k1 = cl.Kernel(prg, "acc_local")
-    k1.set_args(d_code, d_w, d_exit, d_sum, d_A, *geo, i32(unit))
+    k1.set_args(d_code, d_w, d_exit, d_sum, d_in, d_merge, d_A, *geo, i32(unit))  # zeroes d_in
     cl.enqueue_nd_range_kernel(env.queue, k1, g, lw)
     k2 = cl.Kernel(prg, "acc_global")
     k2.set_args(d_code, d_exit, d_sum, d_in, d_entry, d_gdeg, *geo)
     cl.enqueue_nd_range_kernel(env.queue, k2, (1,), None)
     k3 = cl.Kernel(prg, "acc_final")
-    k3.set_args(d_code, d_in, d_A, *geo)
+    k3.set_args(d_code, d_in, d_merge, d_A, *geo)
     cl.enqueue_nd_range_kernel(env.queue, k3, g, lw)
     cl.enqueue_copy(env.queue, out, d_A)
     return out

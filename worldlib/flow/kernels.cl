@@ -192,77 +192,141 @@ inline void tile_geometry(int t, int rows, int cols, int tiles_x, int* r0, int* 
 
 // A tile's in-tile receivers (local index, -1 where the path ends: outlet,
 // no-data or pit, LEAVES where it leaves the tile), in-tile donor counts and
-// cell weights (1 per data cell when unit, else w).
+// cell weights (1 per data cell when unit, else w); cell m = nr * nc is a
+// dummy receiver (weight 0) for the paths that end or leave.
 inline void tile_load(__global const char* code, __global const ACC_T* w, int unit, int r0, int c0, int nr,
                       int nc, int cols, int* rl, uchar* deg, ACC_T* acc)
 {
-    for (int i = 0; i < nr * nc; ++i) deg[i] = 0;
-    for (int lr = 0; lr < nr; ++lr)
+    int m = nr * nc;
+    for (int lr = 0; lr < nr; ++lr) {
+        __global const char* row = code + (r0 + lr) * cols + c0;
         for (int lc = 0; lc < nc; ++lc) {
-            int idx = (r0 + lr) * cols + c0 + lc;
-            char k = code[idx];
-            int j = -1;
-            if (k >= 0) {
-                int rr = lr + DR[(int)k], cc = lc + DC[(int)k];
-                j = (rr >= 0 && rr < nr && cc >= 0 && cc < nc) ? rr * nc + cc : LEAVES;
-            }
-            rl[lr * nc + lc] = j;
-            acc[lr * nc + lc] = unit ? (ACC_T)(k != -2) : w[idx];
-            if (j >= 0) deg[j]++;
+            char k = row[lc];
+            int kk = k & 7;  // any direction for the table look-up; k < 0 decides below
+            int rr = lr + DR[kk], cc = lc + DC[kk];
+            int in = (rr >= 0) & (rr < nr) & (cc >= 0) & (cc < nc);
+            rl[lr * nc + lc] = k < 0 ? -1 : (in ? rr * nc + cc : LEAVES);
         }
+        if (unit)
+            for (int lc = 0; lc < nc; ++lc) acc[lr * nc + lc] = (ACC_T)(row[lc] != -2);
+        else
+            for (int lc = 0; lc < nc; ++lc) acc[lr * nc + lc] = w[(r0 + lr) * cols + c0 + lc];
+    }
+    acc[m] = 0;
+    uchar d2[ACC_CELLS + 1];  // odd cells' counts apart: no store-to-load wait between neighbours
+    for (int i = 0; i <= m; ++i) deg[i] = d2[i] = 0;
+    int i = 0;
+    for (; i + 1 < m; i += 2) {
+        int j0 = rl[i], j1 = rl[i + 1];
+        deg[j0 >= 0 ? j0 : m]++;
+        d2[j1 >= 0 ? j1 : m]++;
+    }
+    if (i < m) deg[rl[i] >= 0 ? rl[i] : m]++;
+    for (int q = 0; q < m; ++q) deg[q] += d2[q];
 }
 
-// Accumulate acc downstream inside the tile (Kahn's order by walking
-// chains from cells without in-tile donors); ord gets the topological order.
+// Accumulate acc downstream inside the tile by Kahn's algorithm, ord its
+// queue (the topological order). No branch decides which cell comes next
+// (the receiver is queued or not by adding 0 or 1 to the queue's length): on
+// a CPU the data-dependent branches of a chain walk mispredicted on about
+// every source cell and cost more than the sums. Cell m is a dummy receiver.
 inline int tile_accumulate(const int* rl, uchar* deg, ACC_T* acc, ushort* ord, int m)
 {
     int n = 0;
-    for (int i = 0; i < m; ++i) {
-        if (deg[i] != 0) continue;
-        int ci = i;
-        for (;;) {
-            ord[n++] = (ushort)ci;
-            int j = rl[ci];
-            if (j < 0) break;
-            acc[j] += acc[ci];
-            if (--deg[j] != 0) break;
-            deg[j] = 255;  // visited: never a start cell again
-            ci = j;
-        }
+    for (int i = 0; i < m; ++i) {  // the sources, without a branch
+        ord[n] = (ushort)i;
+        n += deg[i] == 0;
+    }
+    for (int q = 0; q < n; ++q) {  // Kahn's queue: a receiver joins when its last donor is done
+        int ci = ord[q];
+        int j = rl[ci];
+        int jj = j < 0 ? m : j;  // m: a dummy cell
+        acc[jj] += acc[ci];
+        uchar d = --deg[jj];
+        ord[n] = (ushort)jj;
+        n += (d == 0) & (j >= 0);
     }
     return n;
 }
 
+inline void mark_entry(__global const char* code, int r, int c, int r0, int c0, int nr, int nc, int cols,
+                       uchar* deg)
+{
+    char k = code[r * cols + c];
+    if (k < 0) return;
+    int rr = r + DR[(int)k] - r0, cc = c + DC[(int)k] - c0;
+    if (rr >= 0 && rr < nr && cc >= 0 && cc < nc) deg[rr * nc + cc] = 2;
+}
+
+// Mark (deg 2) the tile's cells that receive flow from another tile: the
+// receivers, inside the tile, of the ring of cells around it.
+inline void mark_entries(__global const char* code, int r0, int c0, int nr, int nc, int rows, int cols,
+                         uchar* deg)
+{
+    for (int c = max(c0 - 1, 0); c <= min(c0 + nc, cols - 1); ++c) {
+        if (r0 > 0) mark_entry(code, r0 - 1, c, r0, c0, nr, nc, cols, deg);
+        if (r0 + nr < rows) mark_entry(code, r0 + nr, c, r0, c0, nr, nc, cols, deg);
+    }
+    for (int r = r0; r < r0 + nr; ++r) {
+        if (c0 > 0) mark_entry(code, r, c0 - 1, r0, c0, nr, nc, cols, deg);
+        if (c0 + nc < cols) mark_entry(code, r, c0 + nc, r0, c0, nr, nc, cols, deg);
+    }
+}
+
 // Phase 1: local sums inside each tile, written to A; for every perimeter
 // slot, the slot of its exit cell (the last cell of its path in the tile, -1
-// if the path ends in the tile) and its local sum.
+// if the path ends in the tile) and its local sum; inflow zeroed. For
+// acc_final, the paths from the entry cells (cells with a donor in another
+// tile) cut into segments that share no cell: in slot order, each entry's
+// path up to the first cell an earlier segment holds (merge: that cell, -2 if
+// the path leaves the tile or ends first, -1 when the slot is no entry).
 __kernel void acc_local(__global const char* code, __global const ACC_T* w, __global int* exit_slot,
-                        __global ACC_T* local_sum, __global ACC_T* A, int rows, int cols, int tiles_x, int ntiles,
-                        int unit)
+                        __global ACC_T* local_sum, __global ACC_T* inflow, __global int* merge, __global ACC_T* A,
+                        int rows, int cols, int tiles_x, int ntiles, int unit)
 {
     int t = get_global_id(0);
     if (t >= ntiles) return;
     int rl[ACC_CELLS];
-    uchar deg[ACC_CELLS];
-    ACC_T acc[ACC_CELLS];
-    ushort ord[ACC_CELLS];
+    uchar deg[ACC_CELLS + 1];
+    ACC_T acc[ACC_CELLS + 1];
+    ushort ord[ACC_CELLS + 1];
     int r0, c0, nr, nc;
     tile_geometry(t, rows, cols, tiles_x, &r0, &c0, &nr, &nc);
     tile_load(code, w, unit, r0, c0, nr, nc, cols, rl, deg, acc);
-    int n = tile_accumulate(rl, deg, acc, ord, nr * nc);
+    int n = tile_accumulate(rl, deg, acc, ord, nr * nc);  // leaves deg 0 on every cell
     for (int lr = 0; lr < nr; ++lr)
         for (int lc = 0; lc < nc; ++lc) A[(r0 + lr) * cols + c0 + lc] = acc[lr * nc + lc];
+    mark_entries(code, r0, c0, nr, nc, rows, cols, deg);
+    int base = t * PMAX, np = perimeter_count(nr, nc);
+    for (int p = 0; p < np; ++p) {  // segments; deg bit 1: held by a segment
+        int ci = perimeter_local(p, nr, nc), mc = -1;
+        if (deg[ci] & 2) {
+            mc = -2;
+            for (;;) {
+                if (deg[ci] & 1) {
+                    mc = ci;
+                    break;
+                }
+                deg[ci] |= 1;
+                ci = rl[ci];
+                if (ci < 0) break;
+            }
+        }
+        merge[base + p] = mc;
+        inflow[base + p] = 0;
+    }
     // exits, receivers before donors (reverse order), in place of rl
     for (int q = n - 1; q >= 0; --q) {
         int ci = ord[q];
         int j = rl[ci];
-        rl[ci] = j >= 0 ? rl[j] : (j == LEAVES ? ci : -1);
+        int e = rl[j >= 0 ? j : ci];
+        rl[ci] = j >= 0 ? e : (j == LEAVES ? ci : -1);
     }
-    int base = t * PMAX, np = perimeter_count(nr, nc);
+    for (int p = 0; p < np; ++p) ord[perimeter_local(p, nr, nc)] = (ushort)p;  // exits are perimeter cells
     for (int p = 0; p < np; ++p) {
         int li = perimeter_local(p, nr, nc);
         int e = rl[li];
-        exit_slot[base + p] = e < 0 ? -1 : base + perimeter_slot(e / nc, e % nc, nr, nc);
+        exit_slot[base + p] = e < 0 ? -1 : base + ord[e];
         local_sum[base + p] = acc[li];
     }
 }
@@ -325,33 +389,57 @@ __kernel void acc_global(__global const char* code, __global const int* exit_slo
 }
 
 // Phase 3: A (the local sums) plus, on every cell, the inflow of the entry
-// slots upstream of it in the tile: each entry's inflow added down its path
-// until the path ends or leaves the tile. The sum is linear, so this equals a
-// second local accumulation of (weight + inflow) but touches only the cells
-// below an entry (on the default world about one walk step per cell, against
-// a full reload and topological pass of the tile). Integer adds: any order.
-__kernel void acc_final(__global const char* code, __global const ACC_T* inflow, __global ACC_T* A,
-                        int rows, int cols, int tiles_x, int ntiles)
+// slots upstream of it in the tile. The segments (acc_local) are walked in
+// reverse slot order, so every segment that merges into a segment is done
+// before it: a segment's running value is its entry's inflow plus what the
+// later segments carried into its cells. Each cell below an entry is
+// touched once. Integer adds: exact in any order.
+__kernel void acc_final(__global const char* code, __global const ACC_T* inflow, __global const int* merge,
+                        __global ACC_T* A, int rows, int cols, int tiles_x, int ntiles)
 {
     int t = get_global_id(0);
     if (t >= ntiles) return;
+    ACC_T add[ACC_CELLS];
+    uchar row_hit[ACC_TILE];
     int r0, c0, nr, nc;
     tile_geometry(t, rows, cols, tiles_x, &r0, &c0, &nr, &nc);
     int base = t * PMAX, np = perimeter_count(nr, nc);
-    for (int p = 0; p < np; ++p) {
+    for (int i = 0; i < nr * nc; ++i) add[i] = 0;
+    for (int i = 0; i < nr; ++i) row_hit[i] = 0;
+    int goff[8], loff[8];  // the neighbour offsets in the grid and in the tile
+    for (int k = 0; k < 8; ++k) {
+        goff[k] = DR[k] * cols + DC[k];
+        loff[k] = DR[k] * nc + DC[k];
+    }
+    for (int p = np - 1; p >= 0; --p) {
+        int mc = merge[base + p];
+        if (mc == -1) continue;
         ACC_T v = inflow[base + p];
-        if (v == 0) continue;
-        int li = perimeter_local(p, nr, nc);
-        int lr = li / nc, lc = li - lr * nc;
+        int ci = perimeter_local(p, nr, nc);
+        int lr = ci / nc, lc = ci - lr * nc;
+        __global const char* cp = code + (r0 + lr) * cols + c0 + lc;
         for (;;) {
-            int idx = (r0 + lr) * cols + c0 + lc;
-            A[idx] += v;
-            char k = code[idx];
+            if (ci == mc) {
+                add[ci] += v;
+                break;
+            }
+            v += add[ci];
+            add[ci] = v;
+            row_hit[lr] = 1;
+            char k = *cp;
             if (k < 0) break;
-            lr += DR[(int)k];
-            lc += DC[(int)k];
+            int dr = DR[(int)k], dc = DC[(int)k];
+            lr += dr;
+            lc += dc;
             if (lr < 0 || lr >= nr || lc < 0 || lc >= nc) break;
+            cp += goff[(int)k];
+            ci += loff[(int)k];
         }
+    }
+    for (int lr = 0; lr < nr; ++lr) {
+        if (!row_hit[lr]) continue;
+        __global ACC_T* a = A + (r0 + lr) * cols + c0;
+        for (int lc = 0; lc < nc; ++lc) a[lc] += add[lr * nc + lc];
     }
 }
 

@@ -76,6 +76,24 @@ def test_d8_and_accumulation_match_reference(cl_env, name, h):
         np.testing.assert_array_equal(dev.accumulate(cl_env, code, w, tile=tile, local=local), want_w)
 
 
+def test_accumulation_through_many_tiles_matches_reference(cl_env):
+    """Paths that cross many tiles and merge in other tiles than they
+    entered (acc_final walks each entry's path once, in segments that end
+    where they join an earlier one): every tile and work-group size, random pits."""
+    rng = np.random.default_rng(11)
+    rows, cols = 300, 257
+    h = np.add.outer(np.linspace(0, 60, rows), np.linspace(0, 40, cols)) + rng.normal(size=(rows, cols)) * 3.0
+    kind = ref.cell_kinds(h)
+    code = dev.d8(cl_env, h, kind, 1.0, local=(4, 4))
+    assert (code == ref.PIT).any()
+    want = ref.accumulate(code)
+    w = rng.integers(0, 10**12, code.shape)
+    want_w = ref.accumulate(code, w)
+    for tile, local in ((128, 16), (127, 3), (3, 5)):
+        np.testing.assert_array_equal(dev.accumulate(cl_env, code, tile=tile, local=local), want)
+        np.testing.assert_array_equal(dev.accumulate(cl_env, code, w, tile=tile, local=local), want_w)
+
+
 def test_quantized_weights_sum_exactly():
     w = np.array([[1e-3, 2.5, 0.0], [np.nan, 7.0, 1e6]])
     q, scale = dev.quantize(w)
