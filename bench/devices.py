@@ -47,7 +47,7 @@ def erosion_case(n: int, steps: int = 20):
     from stages.erosion.device import DeviceSim
     from stages.erosion.physics import step_constants
     from stages.erosion.reference import synthetic_world
-    from stages.erosion.stage import ErosionParams, physics_for
+    from stages.erosion.params import ErosionParams, physics_for
 
     size_m = 8192.0
     h = synthetic_world(n, size_m=size_m, relief_m=1200.0, seed=7)

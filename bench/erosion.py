@@ -68,7 +68,7 @@ def roofline(sizes: list[int], reps: int, rounds: int = 20) -> list[dict]:
     from bench.erosion_profile import BYTES_PER_CELL, COPY_KERNELS, profile
     from stages.erosion.device import DeviceSim
     from stages.erosion.physics import step_constants
-    from stages.erosion.stage import ErosionParams, physics_for, plan_for
+    from stages.erosion.params import ErosionParams, physics_for, plan_for
 
     rows = []
     per_step = BYTES_PER_CELL["flux"] + BYTES_PER_CELL["update"]
@@ -114,7 +114,7 @@ def speedup(n: int, steps: int) -> dict:
     from stages.erosion.device import DeviceSim
     from stages.erosion.physics import step_constants
     from stages.erosion.reference import ReferenceSim
-    from stages.erosion.stage import ErosionParams, physics_for
+    from stages.erosion.params import ErosionParams, physics_for
 
     h, dx = _world(n)
     ph = physics_for(ErosionParams(), dx)
@@ -154,7 +154,7 @@ def _fixed_run(n: int, size_m: float, dt: float, hours: float) -> tuple[np.ndarr
     cl_env = get_cl()  # the engine's choice of device
     from stages.erosion import simulate
     from stages.erosion.device import DeviceSim
-    from stages.erosion.stage import ErosionParams, physics_for, plan_for
+    from stages.erosion.params import ErosionParams, physics_for, plan_for
 
     h, dx = _world(n, size_m)
     p = ErosionParams(thermal_years=0.0, storm_hours=hours, dt_s=dt)

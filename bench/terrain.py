@@ -49,7 +49,7 @@ def run_kwargs(overrides: dict | None = None, dx: float = 8.0) -> dict:
     keys it leaves out), with `overrides` (param names) applied first."""
     import tomllib
 
-    from stages.erosion.stage import ErosionParams, channel_threshold_m2, strata_for
+    from stages.erosion.params import ErosionParams, channel_threshold_m2, strata_for
 
     table = tomllib.loads(CONFIG.read_text())["erosion"]
     table.update(overrides or {})

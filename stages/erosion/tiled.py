@@ -1,6 +1,7 @@
 """The stage on a tiled world (pipeline.tiles): every fine cell's work per
 tile, the processes that span the world on their own coarse grids in the
-stage's process, every map bitwise the untiled run's (stage.run).
+stage's process, every map bitwise the untiled run's (stage.run; the steps
+both share are in steps.py).
 
 1. Block means (tile by tile) of the heights feed geological time on its
    own grid (geological_cell_m): one solve over 1/f^2 of the cells, its
@@ -33,6 +34,9 @@ from pipeline.grid import Grid
 from pipeline.tiles import TileOutput
 from worldlib.terrain.hillshade import hillshade
 
+from . import steps as st
+from .params import physics_for, plan_for
+
 THERMAL_ROUND = 32  # talus-rule iterations per round: a halo of 64 cells (1.27x the cells of a 1024 tile)
 
 
@@ -59,14 +63,13 @@ def whole_reason(params, shape: tuple[int, int], dx: float, tile_cells: int) -> 
 def run(ctx, src, params, progress) -> tuple[dict[str, Any], dict[str, Any]]:
     """The tiled run of stage.run on the input heights `src` (a GridFile):
     the outputs as TileArrays, and the metrics."""
-    from . import stage as st
     from .coarse_grid import coarse_factor
 
     t_start = time.perf_counter()
     shape, dx = tuple(src.shape), float(src.cell_size_m)
     tiles, T = ctx.tiles, ctx.tiles.tile_cells
-    ph = st.physics_for(params, dx)
-    plan = st.plan_for(params, dx, ph)
+    ph = physics_for(params, dx)
+    plan = plan_for(params, dx, ph)
     fg = coarse_factor(*shape, dx, params.geological_cell_m) if params.geological_years > 0 else 0
     fs = coarse_factor(*shape, dx, params.storm_cell_m)
     inputs = {"height": src}
@@ -181,7 +184,7 @@ def _drop(arrays, work: Path) -> None:
 
 
 def _heights(tctx, inputs: dict[str, Any], geology, halo: int) -> tuple[tuple[int, int, int, int], np.ndarray]:
-    """The tile's window(halo) and its heights after geological time (float32), cell by cell as stage.geology."""
+    """The tile's window(halo) and its heights after geological time (float32), cell by cell as steps.geology."""
     window = tctx.tile.window(halo)
     h = np.asarray(inputs["height"].read(*window, channel=inputs["height"].channels[0]), np.float32)
     if geology is not None:
@@ -190,7 +193,7 @@ def _heights(tctx, inputs: dict[str, Any], geology, halo: int) -> tuple[tuple[in
 
 
 def prepare_tile(tctx, inputs: dict[str, Any], params, fg: int) -> TileOutput:
-    """The input checks of stage.check_input on the tile, and its block means for geology."""
+    """The input checks of steps.check_input on the tile, and its block means for geology."""
     from .coarse_grid import block_mean
 
     src = inputs["height"]
@@ -213,7 +216,6 @@ def prepare_tile(tctx, inputs: dict[str, Any], params, fg: int) -> TileOutput:
 def thermal_tile(tctx, inputs: dict[str, Any], params, shared: dict) -> TileOutput:
     """`iterations` of the talus rule on the tile and a halo of 2 cells per
     iteration, from the change of the round before (none: the first)."""
-    from . import stage as st
     from .device import DeviceSim
     from .physics import talus_thresholds
 
@@ -221,7 +223,7 @@ def thermal_tile(tctx, inputs: dict[str, Any], params, shared: dict) -> TileOutp
     window, h = _heights(tctx, inputs, shared["geology"], 2 * k)
     before = inputs["change"]
     dT = np.zeros_like(h) if before is None else np.asarray(before.read(*window), np.float32)
-    ph = st.physics_for(params, inputs["height"].cell_size_m)
+    ph = physics_for(params, inputs["height"].cell_size_m)
     if not _any_above_talus(h, dT, *talus_thresholds(ph)):
         # no cell sends: every iteration adds 0 to dT, which keeps its bits (dT is never -0)
         out = dT[tctx.tile.inner(2 * k)]
@@ -263,9 +265,8 @@ def _thermal_change(inputs: dict[str, Any], window, h: np.ndarray) -> np.ndarray
 
 
 def maps_tile(tctx, inputs: dict[str, Any], params, shared: dict) -> TileOutput:
-    """The tile's output maps (stage.output_maps) and hillshade from its
+    """The tile's output maps (steps.output_maps) and hillshade from its
     cells and a one-cell halo; its sums and slope pairs for the metrics."""
-    from . import stage as st
 
     src = inputs["height"]
     dx = float(src.cell_size_m)

@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.contract import Params, Stage
 from stages.erosion import STAGE, ErosionParams
-from stages.erosion.stage import physics_for, thermal_iterations
+from stages.erosion.params import physics_for, thermal_iterations
 
 from .helpers import run_stage, world
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pipeline.errors import InputError, StageError
-from stages.erosion.stage import slope_excess
+from stages.erosion.steps import slope_excess
 
 from .helpers import run_stage, world
 

@@ -16,8 +16,8 @@ from stages.erosion import ErosionParams
 from stages.erosion.coarse_grid import (Prolongation, block_mean, block_mean_of_cubic, block_mean_of_linear,
                                         coarse_span, prolong_linear)
 from pipeline.opencl import get_cl
-from stages.erosion.stage import (check, geology, slope_excess, slope_excess_counts, slope_excess_of,
-                                   solve_geology)
+from stages.erosion.stage import check
+from stages.erosion.steps import geology, slope_excess, slope_excess_counts, slope_excess_of, solve_geology
 from stages.erosion.tiled import whole_reason
 
 from .helpers import run_stage, world
@@ -146,7 +146,7 @@ def test_a_tile_with_no_slope_above_the_talus_angle_is_left_as_the_kernels_leave
     the talus threshold: the device's iterations leave its change bit for bit."""
     from stages.erosion.device import DeviceSim
     from stages.erosion.physics import talus_thresholds
-    from stages.erosion.stage import physics_for
+    from stages.erosion.params import physics_for
     from stages.erosion.tiled import _any_above_talus
 
     ph = physics_for(ErosionParams(talus_angle_deg=40.0), 2.0)
