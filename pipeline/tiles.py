@@ -286,6 +286,17 @@ class TileRunner:
     def tiles(self, shape: tuple[int, int]) -> list[Tile]:
         return tiles_of(shape, self.tile_cells)
 
+    def discard(self, arrays: TileArrays | None) -> None:
+        """Delete the files of a pass not kept as units (keep=False) once no
+        later pass reads them: rounds of a pass would otherwise pile up in
+        the work folder. Files in the store (kept units) stay."""
+        if arrays is None:
+            return
+        work = self.work.resolve()
+        for path in arrays.files.values():
+            if Path(path).resolve().is_relative_to(work):
+                Path(path).unlink(missing_ok=True)
+
     def kept(self, pass_name: str, shape: tuple[int, int]) -> bool:
         """Whether every tile of a kept pass is in the store: a resumed run
         may skip the passes that only led to it."""

@@ -69,23 +69,6 @@ def block_mean(a: np.ndarray, f: int) -> np.ndarray:
     return total / (f * f)
 
 
-def _block_mean_of_linear_1d(c: np.ndarray, f: int, axis: int) -> np.ndarray:
-    """Along one axis, the block means of the cell-centred linear
-    interpolation of c (prolong_linear): c + alpha (c[-1] - 2 c + c[+1]), the
-    outer cells held (alpha = the mean offset of a block's cells towards a
-    neighbour: 1/8 for even f, (f^2 - 1) / (8 f^2) for odd)."""
-    alpha = sum(abs(k + 0.5 - f / 2.0) / f for k in range(f) if k + 0.5 > f / 2.0) / f
-    lo = np.concatenate([np.take(c, [0], axis=axis), np.take(c, np.arange(c.shape[axis] - 1), axis=axis)], axis=axis)
-    hi = np.concatenate([np.take(c, np.arange(1, c.shape[axis]), axis=axis), np.take(c, [-1], axis=axis)], axis=axis)
-    return c + alpha * ((lo - c) + (hi - c))
-
-
-def block_mean_of_linear(c: np.ndarray, f: int) -> np.ndarray:
-    """block_mean(prolong_linear(c, f), f), computed on the coarse grid."""
-    c = np.asarray(c, np.float64)
-    return _block_mean_of_linear_1d(_block_mean_of_linear_1d(c, f, 0), f, 1)
-
-
 def _cubic_weights(t: np.ndarray) -> tuple[np.ndarray, ...]:
     """Catmull-Rom weights of the taps i - 1, i, i + 1, i + 2 at t in [0, 1) past tap i."""
     t2, t3 = t * t, t * t * t
@@ -93,13 +76,19 @@ def _cubic_weights(t: np.ndarray) -> tuple[np.ndarray, ...]:
             0.5 * (t3 - t2))
 
 
-def _block_mean_of_cubic_1d(c: np.ndarray, f: int, axis: int) -> np.ndarray:
-    """Along one axis, the block means of the Catmull-Rom interpolation of c
-    (the outer cells repeated): a 5-tap stencil from the f cells' weights."""
+def _linear_weights(t: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Linear weights of the same four taps (the outer two unused)."""
+    return (0.0 * t, 1.0 - t, t, 0.0 * t)
+
+
+def _block_mean_1d(c: np.ndarray, f: int, axis: int, weights) -> np.ndarray:
+    """Along one axis, the block means of the interpolation of c with these
+    tap weights, the outer cells repeated beyond the map (as both
+    interpolations hold them): a 5-tap stencil from the f cells' weights."""
     taps = np.zeros(5)
     x = (np.arange(f) + 0.5) / f - 0.5
     i = np.floor(x).astype(int)
-    for k, w in enumerate(_cubic_weights(x - i)):
+    for k, w in enumerate(weights(x - i)):
         np.add.at(taps, i + k + 1, w / f)  # tap i - 1 + k of cell 0 sits at index i + k + 1 of taps[-2 .. 2]
     pad = [(0, 0)] * c.ndim
     pad[axis] = (2, 2)
@@ -108,10 +97,16 @@ def _block_mean_of_cubic_1d(c: np.ndarray, f: int, axis: int) -> np.ndarray:
     return sum(taps[d] * np.take(e, np.arange(d, d + n), axis=axis) for d in range(5))
 
 
+def block_mean_of_linear(c: np.ndarray, f: int) -> np.ndarray:
+    """block_mean(prolong_linear(c, f), f), computed on the coarse grid."""
+    c = np.asarray(c, np.float64)
+    return _block_mean_1d(_block_mean_1d(c, f, 0, _linear_weights), f, 1, _linear_weights)
+
+
 def block_mean_of_cubic(c: np.ndarray, f: int) -> np.ndarray:
     """block_mean(Prolongation(c, cubic).whole(), f), computed on the coarse grid."""
     c = np.asarray(c, np.float64)
-    return _block_mean_of_cubic_1d(_block_mean_of_cubic_1d(c, f, 0), f, 1)
+    return _block_mean_1d(_block_mean_1d(c, f, 0, _cubic_weights), f, 1, _cubic_weights)
 
 
 def _cubic_1d(c: np.ndarray, f: int, axis: int, start: int, count: int, n: int, c_start: int) -> np.ndarray:

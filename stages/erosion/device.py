@@ -128,7 +128,8 @@ class DeviceSim:
         self.tmp2 = buf(pz)  # thermal receiver shares r
         if thermal_only:  # the talus rule alone (the tiled rounds): no storm state
             self.W = [buf(pw)]
-            return self._scalars(ph)
+            self._scalars(ph)
+            return
         self.W = [buf(pw), buf(pw)]
         ps = pz if sediment is None else P(s0)
         self.S = [buf(ps), buf(ps)]

@@ -26,15 +26,24 @@ def check_input(height: Grid) -> np.ndarray:
     h = height.channel(height.channels[0])
     if h.ndim != 2 or min(h.shape) < 3:
         raise InputError(f"erosion: the height grid must be 2-D with at least 3 x 3 cells, got {h.shape}")
+    problem = input_problem(h, (0, 0))
+    if problem:
+        raise InputError(problem)
+    return np.ascontiguousarray(h, dtype=np.float32)
+
+
+def input_problem(h: np.ndarray, origin: tuple[int, int]) -> str:
+    """What is wrong with input heights (a tile of them at `origin`: its rows
+    and columns named in the world), or ''."""
     bad = ~np.isfinite(h)
     if bad.any():
         r, c = np.argwhere(bad)[0]
-        raise InputError(f"erosion: the input height has {int(bad.sum())} NaN or infinite cells (first at row {r}, "
-                         f"column {c}); fix the heightmap before eroding it")
+        return (f"erosion: the input height has {int(bad.sum())} NaN or infinite cells (first at row "
+                f"{origin[0] + r}, column {origin[1] + c}); fix the heightmap before eroding it")
     if float(np.max(np.abs(h))) > 1e6:
-        raise InputError(f"erosion: input heights reach {float(np.max(np.abs(h))):.3g} m; heights beyond 1e6 m are "
-                         f"not terrain (wrong units?)")
-    return np.ascontiguousarray(h, dtype=np.float32)
+        return (f"erosion: input heights reach {float(np.max(np.abs(h))):.3g} m; heights beyond 1e6 m are not "
+                f"terrain (wrong units?)")
+    return ""
 
 
 def slope_excess(h: np.ndarray, dx: float, talus_deg: float, periodic: bool) -> dict[str, float]:

@@ -5,7 +5,8 @@ both share are in steps.py).
 
 1. Block means (tile by tile) of the heights feed geological time on its
    own grid (geological_cell_m): one solve over 1/f^2 of the cells, its
-   change a Prolongation each tile evaluates on its own cells.
+   result (steps.FineGeology) evaluated once per tile on the tile's cells,
+   the heights every later pass reads.
 2. The talus rule on the fine cells in rounds of THERMAL_ROUND iterations:
    a tile runs them on its cells and a halo of 2 cells per iteration (an
    iteration reads the neighbours' send factors, which read theirs), read
@@ -24,7 +25,6 @@ metrics): those solves span every cell.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -63,33 +63,60 @@ def whole_reason(params, shape: tuple[int, int], dx: float, tile_cells: int) -> 
 def run(ctx, src, params, progress) -> tuple[dict[str, Any], dict[str, Any]]:
     """The tiled run of stage.run on the input heights `src` (a GridFile):
     the outputs as TileArrays, and the metrics."""
-    from .coarse_grid import coarse_factor
-
     t_start = time.perf_counter()
     shape, dx = tuple(src.shape), float(src.cell_size_m)
-    tiles, T = ctx.tiles, ctx.tiles.tile_cells
-    ph = physics_for(params, dx)
-    plan = plan_for(params, dx, ph)
-    fg = coarse_factor(*shape, dx, params.geological_cell_m) if params.geological_years > 0 else 0
-    fs = coarse_factor(*shape, dx, params.storm_cell_m)
-    inputs = {"height": src}
+    progress(0.0, f"erosion {shape[1]}x{shape[0]} cells of {dx:g} m in tiles of {ctx.tiles.tile_cells}")
     metrics: dict[str, Any] = {}
+    heights = _geology(ctx, src, params, progress, metrics)
+    inputs = {"height": src, "heights": heights}
+    change = _talus_rounds(ctx.tiles, inputs, params, metrics, progress)
+    inputs["change"] = change
+    storm = _storm(ctx, inputs, params, progress, metrics)
+    # each tile gets the few coarse cells of the storm's state its window reads, not the whole grid
+    per_tile = {t.name: storm and {k: p.part(*t.window(1)) for k, p in storm.items()} for t in ctx.tiles.tiles(shape)}
+    grids, parts = ctx.tiles.map(maps_tile, "maps", shape, inputs, params, per_tile=per_tile,
+                                 grids={**st.CHANNELS, "hillshade": ("r", "g", "b")},
+                                 cell_size_m=dx, origin_m=src.origin_m)
+    ctx.tiles.discard(change)
+    bad = [p for p in parts if p["error"]]
+    if bad:
+        raise StageError(bad[0]["error"].format(steps=metrics.get("steps", 0)))
+    metrics.update(_map_metrics(parts, metrics["thermal_iterations"], dx), total_seconds=time.perf_counter() - t_start)
+    outputs = {f"erosion.{name}": grids[name] for name in st.CHANNELS}
+    outputs["erosion.hillshade"] = grids["hillshade"]
+    return outputs, metrics
 
-    progress(0.0, f"erosion {shape[1]}x{shape[0]} cells of {dx:g} m in tiles of {T}")
-    _, parts = tiles.map(prepare_tile, "prepare", shape, inputs, params, fg)
+
+def _geology(ctx, src, params, progress, metrics: dict):
+    """The input checked per tile, then geological time on its own grid from
+    the tiles' block means; the heights after it (TileArrays, each tile's
+    own cells, steps.FineGeology), or the input's when there is none."""
+    from .coarse_grid import coarse_factor
+
+    tiles, shape, dx = ctx.tiles, tuple(src.shape), float(src.cell_size_m)
+    fg = coarse_factor(*shape, dx, params.geological_cell_m) if params.geological_years > 0 else 0
+    _, parts = tiles.map(prepare_tile, "prepare", shape, {"height": src}, params, fg)
     bad = [p for p in parts if p["error"]]
     if bad:
         raise StageError(bad[0]["error"])
-    geology = None
-    if fg:
-        coarse = _assemble(tiles.tiles(shape), parts, "block_mean", fg)
-        res = st.solve_geology(ctx.cl, coarse, dx * fg, params, lambda f, m: progress(0.4 * f, m))
-        geology = st.FineGeology.of(res.height, coarse, fg, params, dx)
-        del coarse, res.height
-        metrics.update(res.stats, geological_cell_factor=fg, geological_detail_kept=geology.keep)
+    if not fg:
+        return src
+    coarse = _assemble(tiles.tiles(shape), parts, "block_mean", fg)
+    res = st.solve_geology(ctx.cl, coarse, dx * fg, params, lambda f, m: progress(0.4 * f, m))
+    geology = st.FineGeology.of(res.height, coarse, fg, params, dx)
+    metrics.update(res.stats, geological_cell_factor=fg, geological_detail_kept=geology.keep)
+    grids, _ = tiles.map(heights_tile, "heights", shape, {"height": src}, params,
+                         per_tile={t.name: geology.part(*t.window()) for t in tiles.tiles(shape)},
+                         grids={"heights": ("height",)}, cell_size_m=dx)
+    return grids["heights"]
 
-    # the talus rule in rounds, each reading the round before's change from a halo
+
+def _talus_rounds(tiles, inputs: dict, params, metrics: dict, progress):
+    """The talus rule in rounds, each reading the round before's change from
+    a halo; the final change (TileArrays), or None when no iteration is due."""
     t0 = time.perf_counter()
+    shape, dx = tuple(inputs["height"].shape), float(inputs["height"].cell_size_m)
+    plan = plan_for(params, dx, physics_for(params, dx))
     n_th, change = plan.thermal_iterations, None
     last_round = (n_th - 1) // THERMAL_ROUND * THERMAL_ROUND if n_th else 0
     # a resumed run whose last round is in the store takes it from there (the rounds before are not kept)
@@ -97,47 +124,45 @@ def run(ctx, src, params, progress) -> tuple[dict[str, Any], dict[str, Any]]:
     idle = 0  # tile rounds in which no slope was above the talus angle
     while done < n_th:
         k = min(THERMAL_ROUND, n_th - done)
-        last = done + k == n_th
-        shared = {t.name: {"geology": _part(geology, t, 2 * k), "iterations": k, "cfrac": plan.thermal_c}
-                  for t in tiles.tiles(shape)}
         grids, parts = tiles.map(thermal_tile, f"thermal{done}", shape, {**inputs, "change": change}, params,
-                                 per_tile=shared, grids={"change": ("change",)}, cell_size_m=dx, keep=last)
+                                 {"iterations": k, "cfrac": plan.thermal_c}, grids={"change": ("change",)},
+                                 cell_size_m=dx, keep=done + k == n_th)
         nonfinite = sum(p["nonfinite"] for p in parts)
-        idle += sum(p["idle"] for p in parts)
         if nonfinite:
             raise StageError(f"erosion: thermal weathering blew up at iteration {done + k} (talus_angle_deg): "
                              f"{nonfinite} non-finite cells")
-        _drop(change, tiles.work)
+        idle += sum(p["idle"] for p in parts)
+        tiles.discard(change)
         change, done = grids["change"], done + k
         progress(0.4 + 0.2 * done / n_th, f"thermal weathering {done}/{n_th}")
     metrics.update(thermal_iterations=n_th, thermal_c=plan.thermal_c, thermal_seconds=time.perf_counter() - t0,
                    thermal_rounds=-(-n_th // THERMAL_ROUND), thermal_idle_tile_rounds=idle)
+    return change
 
-    storm = None
-    if fs > 1:
-        per_tile = {t.name: {"geology": _part(geology, t, 0)} for t in tiles.tiles(shape)}
-        _, parts = tiles.map(storm_input_tile, "storm_input", shape, {**inputs, "change": change}, params,
-                             per_tile=per_tile, keep=False)
-        coarse_h = _assemble(tiles.tiles(shape), parts, "block_mean", fs)
-        simc, fc, storm_metrics = st.coarse_storm(ctx.cl, coarse_h, params, dx * fs,
-                                                  lambda f, m: progress(0.6 + 0.3 * f, m))
-        del coarse_h
-        storm = st.storm_fields(fc, fs)
-        del fc
-        metrics.update({k: v for k, v in storm_metrics.items() if k not in st.THERMAL_METRICS}, storm_cell_factor=fs, storm_cell_size_m=dx * fs,
-                       opencl_storm_tile=[simc.nr, simc.tile_vectors], opencl_storm_avx512=simc.avx512)
-        simc.finish()
-        del simc
 
-    per_tile = {t.name: {"geology": _part(geology, t, 1), "storm": _parts(storm, t, 1)} for t in tiles.tiles(shape)}
-    grids, parts = tiles.map(maps_tile, "maps", shape, {**inputs, "change": change}, params, per_tile=per_tile,
-                             grids={**{name: chans for name, chans in st.CHANNELS.items()},
-                                    "hillshade": ("r", "g", "b")},
-                             cell_size_m=dx, origin_m=src.origin_m)
-    _drop(change, tiles.work)
-    bad = [p for p in parts if p["error"]]
-    if bad:
-        raise StageError(bad[0]["error"].format(steps=metrics.get("steps", 0)))
+def _storm(ctx, inputs: dict, params, progress, metrics: dict) -> dict | None:
+    """The storm on its own grid from the tiles' block means of the
+    weathered heights; its final state as Prolongations (None: no storm grid)."""
+    from .coarse_grid import coarse_factor
+
+    src = inputs["height"]
+    shape, dx = tuple(src.shape), float(src.cell_size_m)
+    fs = coarse_factor(*shape, dx, params.storm_cell_m)
+    if fs == 1:
+        return None
+    _, parts = ctx.tiles.map(storm_input_tile, "storm_input", shape, inputs, params, fs, keep=False)
+    coarse_h = _assemble(ctx.tiles.tiles(shape), parts, "block_mean", fs)
+    simc, fc, storm_metrics = st.coarse_storm(ctx.cl, coarse_h, params, dx * fs, lambda f, m: progress(0.6 + 0.3 * f, m))
+    metrics.update({k: v for k, v in storm_metrics.items() if k not in st.THERMAL_METRICS}, storm_cell_factor=fs,
+                   storm_cell_size_m=dx * fs, opencl_storm_tile=[simc.nr, simc.tile_vectors],
+                   opencl_storm_avx512=simc.avx512)
+    simc.finish()
+    return st.storm_fields(fc, fs)
+
+
+def _map_metrics(parts: list[dict], n_th: int, dx: float) -> dict:
+    """The final metrics from the tiles' sums and slope pairs (steps.final_metrics)."""
+    metrics = {}
     if n_th:
         moved = sum(p["thermal_abs_sum"] for p in parts)
         metrics["thermal_mass_residual_rel"] = abs(sum(p["thermal_sum"] for p in parts)) / max(moved, 1e-30)
@@ -148,10 +173,7 @@ def run(ctx, src, params, progress) -> tuple[dict[str, Any], dict[str, Any]]:
     after = st.slope_excess_of(*[p["after_thermal"] for p in parts]) if n_th else {}
     final = st.slope_excess_of(*[p["final"] for p in parts])
     metrics.update(st.final_metrics(sums, after, final, dx))
-    metrics["total_seconds"] = time.perf_counter() - t_start
-    outputs = {f"erosion.{name}": grids[name] for name in st.CHANNELS}
-    outputs["erosion.hillshade"] = grids["hillshade"]
-    return outputs, metrics
+    return metrics
 
 
 def _assemble(tiles, parts: list[dict], key: str, f: int) -> np.ndarray:
@@ -164,53 +186,35 @@ def _assemble(tiles, parts: list[dict], key: str, f: int) -> np.ndarray:
     return out
 
 
-def _part(pro, tile, halo: int):
-    """The coarse data of a Prolongation (or FineGeology) the tile's window(halo) reads (None: none)."""
-    return None if pro is None else pro.part(*tile.window(halo))
+def _read(handle, window: tuple[int, int, int, int]) -> np.ndarray:
+    """A window of a one-channel grid (the input's GridFile or a pass's TileArrays), float32."""
+    return np.asarray(handle.read(*window, channel=handle.channels[0]), np.float32)
 
 
-def _parts(pros: dict | None, tile, halo: int) -> dict | None:
-    return None if pros is None else {k: _part(p, tile, halo) for k, p in pros.items()}
-
-
-def _drop(arrays, work: Path) -> None:
-    """Delete a finished round's tile files from the run's work folder (a
-    round not kept as units: only the next one reads them)."""
-    if arrays is None:
-        return
-    for path in arrays.files.values():
-        if Path(path).resolve().is_relative_to(Path(work).resolve()):
-            Path(path).unlink(missing_ok=True)
-
-
-def _heights(tctx, inputs: dict[str, Any], geology, halo: int) -> tuple[tuple[int, int, int, int], np.ndarray]:
-    """The tile's window(halo) and its heights after geological time (float32), cell by cell as steps.geology."""
+def _heights_and_change(tctx, inputs: dict[str, Any], halo: int):
+    """The tile's window(halo), its heights after geological time and the
+    talus rule's change so far (zeros before the first round)."""
     window = tctx.tile.window(halo)
-    h = np.asarray(inputs["height"].read(*window, channel=inputs["height"].channels[0]), np.float32)
-    if geology is not None:
-        h = geology.heights(h, window)
-    return window, h
+    h = _read(inputs["heights"], window)
+    before = inputs.get("change")
+    return window, h, (np.zeros_like(h) if before is None else _read(before, window))
 
 
 def prepare_tile(tctx, inputs: dict[str, Any], params, fg: int) -> TileOutput:
     """The input checks of steps.check_input on the tile, and its block means for geology."""
     from .coarse_grid import block_mean
 
-    src = inputs["height"]
-    h = np.asarray(src.read_tile(tctx.tile, channel=src.channels[0]), np.float32)
-    summary: dict[str, Any] = {"error": ""}
-    bad = ~np.isfinite(h)
-    if bad.any():
-        r, c = np.argwhere(bad)[0]
-        summary["error"] = (f"erosion: the input height has {int(bad.sum())} NaN or infinite cells in tile "
-                            f"{tctx.tile.name} (first at row {tctx.tile.row0 + r}, column {tctx.tile.col0 + c}); "
-                            f"fix the heightmap before eroding it")
-    elif float(np.max(np.abs(h))) > 1e6:
-        summary["error"] = (f"erosion: input heights reach {float(np.max(np.abs(h))):.3g} m; heights beyond 1e6 m "
-                            f"are not terrain (wrong units?)")
-    elif fg:
+    h = _read(inputs["height"], tctx.tile.window())
+    summary: dict[str, Any] = {"error": st.input_problem(h, (tctx.tile.row0, tctx.tile.col0))}
+    if fg and not summary["error"]:
         summary["block_mean"] = block_mean(h, fg)
     return TileOutput({}, summary)
+
+
+def heights_tile(tctx, inputs: dict[str, Any], params, geology) -> TileOutput:
+    """The tile's heights after geological time on its own grid (steps.FineGeology), computed once for every pass."""
+    window = tctx.tile.window()
+    return TileOutput({"heights": geology.heights(_read(inputs["height"], window), window)})
 
 
 def thermal_tile(tctx, inputs: dict[str, Any], params, shared: dict) -> TileOutput:
@@ -220,21 +224,18 @@ def thermal_tile(tctx, inputs: dict[str, Any], params, shared: dict) -> TileOutp
     from .physics import talus_thresholds
 
     k = shared["iterations"]
-    window, h = _heights(tctx, inputs, shared["geology"], 2 * k)
-    before = inputs["change"]
-    dT = np.zeros_like(h) if before is None else np.asarray(before.read(*window), np.float32)
+    _, h, dT = _heights_and_change(tctx, inputs, 2 * k)
     ph = physics_for(params, inputs["height"].cell_size_m)
-    if not _any_above_talus(h, dT, *talus_thresholds(ph)):
-        # no cell sends: every iteration adds 0 to dT, which keeps its bits (dT is never -0)
+    idle = not _any_above_talus(h, dT, *talus_thresholds(ph))
+    if idle:  # no cell sends: every iteration adds 0 to dT, which keeps its bits (dT is never -0)
         out = dT[tctx.tile.inner(2 * k)]
-        return TileOutput({"change": np.ascontiguousarray(out)}, {"nonfinite": int((~np.isfinite(out)).sum()),
-                                                                  "idle": True})
-    sim = DeviceSim(tctx.cl, h, ph, change=dT, thermal_only=True)
-    sim.thermal(k, cfrac=shared["cfrac"])
-    out = sim.change()[tctx.tile.inner(2 * k)]
-    sim.finish()
+    else:
+        sim = DeviceSim(tctx.cl, h, ph, change=dT, thermal_only=True)
+        sim.thermal(k, cfrac=shared["cfrac"])
+        out = sim.change()[tctx.tile.inner(2 * k)]
+        sim.finish()
     return TileOutput({"change": np.ascontiguousarray(out)}, {"nonfinite": int((~np.isfinite(out)).sum()),
-                                                              "idle": False})
+                                                              "idle": idle})
 
 
 def _any_above_talus(Tb: np.ndarray, dT: np.ndarray, t_ax: np.float32, t_dg: np.float32) -> bool:
@@ -248,37 +249,27 @@ def _any_above_talus(Tb: np.ndarray, dT: np.ndarray, t_ax: np.float32, t_dg: np.
     return False
 
 
-def storm_input_tile(tctx, inputs: dict[str, Any], params, shared: dict) -> TileOutput:
+def storm_input_tile(tctx, inputs: dict[str, Any], params, fs: int) -> TileOutput:
     """The tile's block means of the weathered heights: the storm's grid."""
-    from .coarse_grid import coarse_factor, block_mean
+    from .coarse_grid import block_mean
 
-    src = inputs["height"]
-    _, h = _heights(tctx, inputs, shared["geology"], 0)
-    dT = _thermal_change(inputs, tctx.tile.window(0), h)
-    fs = coarse_factor(*src.shape, src.cell_size_m, params.storm_cell_m)
+    _, h, dT = _heights_and_change(tctx, inputs, 0)
     return TileOutput({}, {"block_mean": block_mean(h + dT.astype(np.float64), fs)})
 
 
-def _thermal_change(inputs: dict[str, Any], window, h: np.ndarray) -> np.ndarray:
-    before = inputs["change"]
-    return np.zeros_like(h) if before is None else np.asarray(before.read(*window), np.float32)
-
-
-def maps_tile(tctx, inputs: dict[str, Any], params, shared: dict) -> TileOutput:
+def maps_tile(tctx, inputs: dict[str, Any], params, storm: dict | None) -> TileOutput:
     """The tile's output maps (steps.output_maps) and hillshade from its
     cells and a one-cell halo; its sums and slope pairs for the metrics."""
-
     src = inputs["height"]
     dx = float(src.cell_size_m)
-    window, h = _heights(tctx, inputs, shared["geology"], 1)
-    h_in = np.asarray(src.read(*window, channel=src.channels[0]), np.float32)
-    dT = _thermal_change(inputs, window, h)
+    window, h, dT = _heights_and_change(tctx, inputs, 1)
+    h_in = _read(src, window)
     inner = tctx.tile.inner(1)
     summary: dict[str, Any] = {"error": "", "thermal_sum": float(dT[inner].astype(np.float64).sum()),
                                "thermal_abs_sum": float(np.abs(dT[inner].astype(np.float64)).sum()),
                                "after_thermal": st.slope_excess_counts(h + dT, inner, dx, params.talus_angle_deg)}
-    if shared["storm"] is not None:
-        f = st.fine_fields(shared["storm"], dT, window)
+    if storm is not None:
+        f = st.fine_fields(storm, dT, window)
     else:  # no storm: the fine simulator's fields after the talus rule alone
         zeros = np.zeros_like(h)
         f = {"dT": dT, "W": zeros, "S": zeros, "vx": zeros, "vz": zeros, "M": zeros}
