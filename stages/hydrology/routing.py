@@ -3,6 +3,7 @@ directions, drainage area, rain and discharge."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -101,6 +102,25 @@ def rain_m_per_year(land: Land, params, rain_map_mm: np.ndarray | None) -> np.nd
     rain = np.where(land.data, params.rain_mm_per_year + params.rain_lapse_mm_per_year_per_100m
                     * (np.nan_to_num(land.h, nan=land.hmin) - land.hmin) / 100.0, 0.0)
     return np.maximum(rain, 0.0) / 1000.0
+
+
+def rain_from_map(path: Path, rows: int, cols: int, window: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    """Yearly rain (mm/year, float64) from an image file, stretched over the
+    rows x cols terrain (cell-centred bilinear), on the cells window =
+    (col0, row0, cols, rows) of it (default: all; a window's values are the
+    whole map's there); clear errors for a missing, corrupt, integer,
+    non-finite or negative map."""
+    from worldlib.terrain.dem import read_dem, resample
+
+    try:
+        src = read_dem(path, label="rain map")
+    except InputError as e:
+        raise InputError(f"hydrology: {e}") from None
+    if (src < 0).any():
+        r, c = np.argwhere(src < 0)[0]
+        raise InputError(f"hydrology: rain map {path} has negative rain ({float(src[r, c]):g} mm/year at row {r}, "
+                         f"column {c})")
+    return resample(src, (rows, cols), window or (0, 0, cols, rows)).astype(np.float64)
 
 
 def discharge_m3_s(env, land: Land, flow: Flow, rain: np.ndarray, params, timings: Timings) -> np.ndarray:

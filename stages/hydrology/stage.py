@@ -54,7 +54,7 @@ from .grids import output_grids
 from .moisture import wetness_and_moisture
 from .report_water import draw_water, width_tables
 from .routing import (SECONDS_PER_YEAR, Flow, Land, Surfaces, Timings, condition, discharge_m3_s, flow_directions,
-                      land_of, rain_m_per_year, wetness_area)
+                      land_of, rain_from_map, rain_m_per_year, wetness_area)
 from . import tiled
 
 __all__ = ["SECONDS_PER_YEAR", "STAGE", "HydrologyParams", "rain_from_map", "run", "check"]
@@ -133,23 +133,6 @@ class HydrologyParams(Params):
         return self.rain_lapse_mm_per_year_per_100m == 0.0 and self.rain_map_path is None
 
 
-def rain_from_map(path: Path, rows: int, cols: int) -> np.ndarray:
-    """Yearly rain (mm/year, float64) from an image file, stretched over the
-    rows x cols terrain (cell-centred bilinear); clear errors for a missing,
-    corrupt, integer, non-finite or negative map."""
-    from worldlib.terrain.dem import read_dem, resample
-
-    try:
-        src = read_dem(path, label="rain map")
-    except InputError as e:
-        raise InputError(f"hydrology: {e}") from None
-    if (src < 0).any():
-        r, c = np.argwhere(src < 0)[0]
-        raise InputError(f"hydrology: rain map {path} has negative rain ({float(src[r, c]):g} mm/year at row {r}, "
-                         f"column {c})")
-    return resample(src, (rows, cols), (0, 0, cols, rows)).astype(np.float64)
-
-
 def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dict[str, Any]:
     return _run(ctx, inputs, params)
 
@@ -164,7 +147,12 @@ def run_tiled(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) 
     T = Timings()
     with T.lap("tiled_flow_s"):
         core = tiled.flow_core(ctx.tiles, inputs["terrain"], params, lambda f, m: ctx.progress(0.3 * f, m))
-    ctx.metrics["tiled_steps"] = f"fill, routing surface ({core['rounds']} rounds), directions, accumulation"
+    with T.lap("discharge_s"):
+        rain_map = None if params.rain_map_path is None else ctx.resolve(params.rain_map_path)
+        core["discharge"] = tiled.discharge(ctx.tiles, inputs["terrain"], core, params, rain_map,
+                                            lambda f, m: ctx.progress(0.3, m))
+    ctx.metrics["tiled_steps"] = (f"fill, routing surface ({core['rounds']} rounds), directions, accumulation, "
+                                  "discharge")
     return _run(ctx, whole, params, core, T)
 
 
@@ -187,7 +175,10 @@ def _run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams, core:
     land = land_of(inputs["terrain"])
     surfaces, flow = _surfaces_and_flow(ctx, land, params, T, core)
     rain = _rain(ctx, land, params)
-    discharge = discharge_m3_s(ctx.cl, land, flow, rain, params, T)
+    if core is None:
+        discharge = discharge_m3_s(ctx.cl, land, flow, rain, params, T)
+    else:
+        discharge = core["discharge"].read(0, 0, *land.shape)
     twi_area = _wetness_area(ctx, land, surfaces, flow, params, T)
     ctx.progress(0.45, "lakes")
     with T.lap("lakes_s"):

@@ -18,6 +18,8 @@ from worldlib.flow import reference as ref
 from worldlib.flow import tiled_accum as ta
 from worldlib.flow import tiled_fill as tf
 
+from .routing import SECONDS_PER_YEAR, Land, rain_from_map, rain_m_per_year
+
 MAX_EPS_ROUNDS = 10_000
 
 
@@ -39,7 +41,8 @@ def fill_local(tctx, inputs: dict[str, Any], params, shared) -> TileOutput:
     summary = {f"{side}_{what}": arr for side, pair in zip(("top", "bottom", "left", "right"),
                                                           (p.top, p.bottom, p.left, p.right))
                for what, arr in zip(("z", "label"), pair)}
-    summary.update(n_labels=int(p.n_labels), spill_a=p.spill[0], spill_b=p.spill[1], spill_z=p.spill[2])
+    summary.update(n_labels=int(p.n_labels), spill_a=p.spill[0], spill_b=p.spill[1], spill_z=p.spill[2],
+                   hmin=float(np.nanmin(h)) if (kind != ref.NODATA).any() else float("inf"))
     return TileOutput({"local": t.filled, "labels": t.labels.astype(np.int32)}, summary)
 
 
@@ -110,6 +113,7 @@ def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, 
     progress(0.0, "fill: tiles")
     local, parts = runner.map(fill_local, "fill", shape, {"terrain": terrain}, params,
                               grids={"local": ("filled",), "labels": ("label",)}, **geo)
+    hmin = min(s["hmin"] for s in parts)
     levels = tf.solve_levels(_grid_of(tiles, [_perimeter(s) for s in parts]))
     by_name = {t.name: lv for t, lv in zip(tiles, [lv for row in levels for lv in row])}
     filled, _ = runner.map(fill_finish, "filled", shape, dict(local), params, per_tile=by_name,
@@ -146,4 +150,90 @@ def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, 
     if outlet != data:
         raise StageError(f"hydrology: accumulation at the outlets is {outlet} cells, not {data}")
     return {"filled": filled["filled"], "routing": routing, "code": code["code"], "counts": counts["counts"],
-            "rounds": rnd}
+            "rounds": rnd, "hmin": hmin}
+
+
+# --------------------------------------------------------------------------- discharge
+
+
+def _runoff_weights(tctx, terrain, params, rain: tuple) -> np.ndarray:
+    """The runoff each cell of the tile sends down (m^3/year, float64, 0 on
+    no-data): routing.rain_m_per_year on the tile, from the world's lowest
+    height and rain map (rain = (hmin, the map's path or None, world shape))."""
+    hmin, rain_map, (rows, cols) = rain
+    h, kind, _ = _heights(tctx, terrain)
+    data = kind != ref.NODATA
+    t = tctx.tile
+    land = Land(h, kind, data, float(terrain.cell_size_m), terrain.origin_m, hmin)
+    rain_mm = None if rain_map is None else rain_from_map(rain_map, rows, cols, (t.col0, t.row0, t.cols, t.rows))
+    return rain_m_per_year(land, params, rain_mm) * params.runoff_coefficient * land.cell_area
+
+
+def runoff_total(tctx, inputs: dict[str, Any], params, rain: tuple) -> TileOutput:
+    """The tile's runoff summed exactly (an integer; the world's total is the tiles' sum in any order)."""
+    return TileOutput({}, {"exact_sum": str(ta.exact_sum(_runoff_weights(tctx, inputs["terrain"], params, rain)))})
+
+
+def runoff_quantized(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOutput:
+    """The tile's fixed-point runoff summed at the candidate scale and half of it (ta.quantize_scale)."""
+    rain, scale = shared
+    sums = ta.tile_quantized_sums(_runoff_weights(tctx, inputs["terrain"], params, rain), scale)
+    return TileOutput({}, {"at_scale": str(sums[0]), "at_half": str(sums[1])})
+
+
+def discharge_local(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOutput:
+    """Barnes 2017 pass 1 with the fixed-point runoff as weights."""
+    rain, scale = shared
+    q = ta.quantize_tile(_runoff_weights(tctx, inputs["terrain"], params, rain), scale)
+    code = np.asarray(inputs["code"].tile_array(tctx.tile))
+    p = ta.accumulate_tile(code, (tctx.tile.row0, tctx.tile.col0), q, tctx.cl)
+    return TileOutput({}, {"code": p.code, "exit": p.exit, "local_sum": p.local_sum})
+
+
+def discharge_finish(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOutput:
+    """Barnes 2017 pass 3: the accumulated runoff, as mean discharge (m^3/s, float64)."""
+    rain, scale, inflow = shared
+    q = ta.quantize_tile(_runoff_weights(tctx, inputs["terrain"], params, rain), scale)
+    code = np.asarray(inputs["code"].tile_array(tctx.tile))
+    acc = ta.finish_tile(code, inflow, q, tctx.cl)
+    return TileOutput({"discharge": acc.astype(np.float64) / scale / SECONDS_PER_YEAR})
+
+
+def uniform_discharge(tctx, inputs: dict[str, Any], params, cell_area: float) -> TileOutput:
+    """Uniform rain: the drainage area times the runoff (routing.discharge_m3_s, cell by cell)."""
+    area_m2 = np.asarray(inputs["counts"].tile_array(tctx.tile)).astype(np.float64) * cell_area
+    return TileOutput({"discharge": area_m2 * (params.rain_mm_per_year / 1000.0 * params.runoff_coefficient)
+                       / SECONDS_PER_YEAR})
+
+
+def discharge(runner, terrain, core: dict, params, rain_map, progress=lambda f, m: None):
+    """Mean discharge (m^3/s) per cell as TileArrays: routing.discharge_m3_s
+    tile by tile, bitwise. Rain that varies is accumulated as fixed-point
+    weights at the world's scale (ta.quantize_scale: an exact total, then
+    integer sums), in Barnes' three passes."""
+    shape, dx = terrain.shape, terrain.cell_size_m
+    tiles = runner.tiles(shape)
+    geo = {"cell_size_m": dx, "origin_m": terrain.origin_m}
+    grids = {"discharge": ("discharge",)}
+    if params.uniform_rain:
+        out, _ = runner.map(uniform_discharge, "discharge", shape, {"counts": core["counts"]}, params, dx * dx,
+                            grids=grids, **geo)
+        return out["discharge"]
+    rain = (core["hmin"], rain_map, shape)
+    progress(0.0, "discharge: runoff totals")
+    _, parts = runner.map(runoff_total, "runoff_total", shape, {"terrain": terrain}, params, rain, keep=False, **geo)
+    total = ta.exact_total([int(s["exact_sum"]) for s in parts])
+    _, parts = runner.map(runoff_quantized, "runoff_quantized", shape, {"terrain": terrain}, params,
+                          (rain, ta.first_scale(total)), keep=False, **geo)
+    try:
+        scale = ta.quantize_scale(total, [(int(s["at_scale"]), int(s["at_half"])) for s in parts])
+    except ValueError as e:
+        raise StageError(f"hydrology: discharge: {e}") from None
+    ins = {"terrain": terrain, "code": core["code"]}
+    _, parts = runner.map(discharge_local, "discharge_local", shape, ins, params, (rain, scale), **geo)
+    perims = [ta.Perimeter((t.row0, t.col0), (t.rows, t.cols), s["code"], s["exit"], s["local_sum"])
+              for t, s in zip(tiles, parts)]
+    inflow = ta.solve_inflow(_grid_of(tiles, perims))
+    by_name = {t.name: (rain, scale, f) for t, f in zip(tiles, [f for row in inflow for f in row])}
+    out, _ = runner.map(discharge_finish, "discharge", shape, ins, params, per_tile=by_name, grids=grids, **geo)
+    return out["discharge"]

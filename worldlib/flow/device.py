@@ -312,12 +312,17 @@ def quantize(weights: np.ndarray) -> tuple[np.ndarray, float]:
     """Non-negative float weights as int64 fixed point whose total fits in
     2^62, and the scale (value = integer / scale). Integer sums are exact and
     associative, so accumulation does not depend on any order."""
+    import math
+
+    from .tiled_accum import first_scale
+
     w = np.nan_to_num(np.asarray(weights, np.float64), nan=0.0, posinf=0.0)
     w = np.maximum(w, 0.0)
-    total = float(w.sum())
+    # the correctly rounded total (tiled_accum.exact_total's), so a tiled run finds the same scale
+    total = math.fsum(w.ravel())
     if total <= 0:
         return np.zeros(w.shape, np.int64), 1.0
-    scale = 2.0 ** np.floor(np.log2(2.0 ** 62 / total))
+    scale = first_scale(total)
     q = np.rint(w * scale).astype(np.int64)
     while q.sum() >= 2 ** 62:  # round-up slack
         scale /= 2
