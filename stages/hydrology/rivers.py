@@ -120,40 +120,119 @@ def strahler(rcv: np.ndarray, net: np.ndarray, levels: list) -> np.ndarray:
     return np.where(net, order, 0)
 
 
+@dataclass(frozen=True)
+class Network:
+    """The river network's cells (drainage area >= river_threshold_m2), in
+    ascending flat order, with what the rivers need of each: no array is
+    world-sized, so a tiled run gathers it tile by tile."""
+    cells: np.ndarray  # int64 flat index in the world
+    rcv: np.ndarray  # int64 receiver as an index into cells; -1: none (an outlet, or off the network)
+    code: np.ndarray  # int8 D8 code (its step's length)
+    area_m2: np.ndarray  # float64 drainage area
+    discharge: np.ndarray  # float64 mean discharge (m^3/s)
+    h: np.ndarray  # float64 terrain height
+    lake_level: np.ndarray  # float64 level of the lake the cell is in, NaN where dry
+    lake_full: np.ndarray  # bool: in a lake at its spill level (within LAKE_FULL_TOLERANCE_M)
+    drawn_lake: np.ndarray  # bool: in a lake the USD draws
+
+
+def network_cells(code: np.ndarray, area_m2: np.ndarray, threshold_m2: float) -> np.ndarray:
+    """Flat indices (ascending) of the network's cells in a world or a tile."""
+    return np.flatnonzero((area_m2.ravel() >= threshold_m2) & (code.ravel() != ref.NODATA_CODE))
+
+
+def compact_receivers(cells: np.ndarray, rcv_flat: np.ndarray) -> np.ndarray:
+    """Receivers given as flat world indices (-1 none) as indices into the
+    ascending `cells`; -1 where the receiver is not one of them."""
+    pos = np.searchsorted(cells, rcv_flat)
+    pos_ok = np.minimum(pos, max(cells.size - 1, 0))
+    hit = (rcv_flat >= 0) & (pos < cells.size) & (cells[pos_ok] == rcv_flat) if cells.size else rcv_flat < -1
+    return np.where(hit, pos_ok, -1).astype(np.int64)
+
+
+def network_of(cells: np.ndarray, rcv_flat: np.ndarray, code: np.ndarray, area_m2: np.ndarray,
+               discharge: np.ndarray, h: np.ndarray, lake_depth: np.ndarray, lake_level: np.ndarray,
+               filled: np.ndarray, drawn: np.ndarray) -> Network:
+    """A Network from its cells' values, however gathered: `cells` ascending,
+    rcv_flat their receivers as flat world indices, the lakes' depth and
+    level there, the pure fill (float32: the level a full lake reaches) and
+    whether each is in a lake the USD draws."""
+    in_lake = lake_depth > 0
+    level = np.where(in_lake, lake_level, np.nan)
+    full = in_lake & (level >= filled - LAKE_FULL_TOLERANCE_M)
+    return Network(cells, compact_receivers(cells, rcv_flat), code.astype(np.int8), area_m2.astype(np.float64),
+                   discharge.astype(np.float64), h.astype(np.float64), level, full, drawn.astype(bool))
+
+
+def gather_network(code: np.ndarray, area_m2: np.ndarray, discharge: np.ndarray, h: np.ndarray, lakes,
+                   filled: np.ndarray, drawn: np.ndarray, threshold_m2: float) -> Network:
+    """The network of a whole world. `lakes`: the stage's LakeMaps (depth,
+    level); `filled`: the pure fill; `drawn`: bool per cell, in a lake the USD draws."""
+    cells = network_cells(code, area_m2, threshold_m2)
+    at = lambda a: a.ravel()[cells]
+    return network_of(cells, ref.receivers(code)[cells], at(code), at(area_m2), at(discharge), at(h),
+                      at(lakes.depth), at(lakes.level), at(filled), at(drawn))
+
+
+@dataclass
+class NetworkRivers:
+    """The rivers on a Network's cells (arrays in its order)."""
+    order: np.ndarray  # int32 Strahler order
+    width: np.ndarray  # bankfull width (m)
+    depth: np.ndarray  # bankfull mean depth (m)
+    discharge_bf: np.ndarray  # bankfull discharge (m^3/s)
+    surface: np.ndarray  # water level, non-increasing downstream
+    mask: np.ndarray  # bool: a river the USD draws (not in a drawn lake)
+    stats: dict
+
+
+def solve_network(nw: Network, dx: float, n_data: int, params) -> NetworkRivers:
+    """Strahler order, bankfull discharge, width and depth (channels.py) and
+    water level of the network's cells; the stats (sums over the cells in
+    flat order: the same whatever gathered them). n_data: the world's cells
+    with a height (the drainage density's area)."""
+    levels = topo_levels(nw.rcv)
+    order = strahler(nw.rcv, np.ones(nw.cells.size, bool), levels)
+    q_bf = bankfull_discharge(nw.discharge, params.bankfull_discharge_ratio)
+    width, depth = hydraulic_geometry(q_bf, params.width_coefficient, params.width_exponent,
+                                      params.depth_coefficient, params.depth_exponent)
+    surface = water_level(nw.rcv, np.ones(nw.cells.size, bool), levels, nw.h, nw.lake_level, nw.lake_full)
+    mask = ~nw.drawn_lake
+    k = np.clip(nw.code, 0, 7)
+    dist = np.where(k % 2 == 1, dx * np.sqrt(2.0), dx)
+    some = nw.cells.size > 0
+    stats = {"river_cells": int(mask.sum()), "river_length_m": float(dist[mask].sum()),
+             "strahler_max": int(order.max()) if some else 0,
+             "river_width_max_m": float(width.max()) if some else 0.0,
+             "river_depth_max_m": float(depth.max()) if some else 0.0,
+             "bankfull_discharge_max_m3_s": float(q_bf.max()) if some else 0.0,
+             "drainage_density_per_km": float(dist[mask].sum() / (n_data * dx * dx) * 1e3)}
+    return NetworkRivers(order, width, depth, q_bf, surface, mask, stats)
+
+
 def extract(code: np.ndarray, area_m2: np.ndarray, discharge: np.ndarray, h: np.ndarray, lakes, filled: np.ndarray,
             dx: float, params) -> Rivers:
     """The network (drainage area >= river_threshold_m2), its Strahler
-    order, bankfull discharge, width and depth (channels.py) and water level.
-    `lakes`: the stage's LakeMaps (depth, level); `filled`: the pure fill,
-    whose level a full lake reaches."""
-    rows, cols = code.shape
-    rcv = ref.receivers(code)
-    net = (area_m2.ravel() >= params.river_threshold_m2) & (code.ravel() != ref.NODATA_CODE)
-    cells = np.flatnonzero(net)
-    levels = topo_levels(rcv, cells)
-    order = strahler(rcv, net, levels)
-    q_bf = np.where(net, bankfull_discharge(discharge.ravel(), params.bankfull_discharge_ratio), 0.0)
-    width, depth = hydraulic_geometry(q_bf, params.width_coefficient, params.width_exponent,
-                                      params.depth_coefficient, params.depth_exponent)
-    width, depth = np.where(net, width, 0.0), np.where(net, depth, 0.0)
-    in_lake = lakes.depth.ravel() > 0
-    lake_level = np.where(in_lake, lakes.level.ravel(), np.nan)
-    full = in_lake & (lake_level >= filled.ravel() - LAKE_FULL_TOLERANCE_M)
-    hf = h.ravel().astype(np.float64)
-    surface = water_level(rcv, net, levels, hf, lake_level, full)
+    order, bankfull discharge, width and depth (channels.py) and water level
+    on a whole world: gather_network, solve_network, the results as maps.
+    `lakes`: the stage's LakeMaps (depth, level, lake_id); `filled`: the pure
+    fill, whose level a full lake reaches."""
     # lakes too small for the USD are pools the river runs through
-    drawn = drawn_lakes(lakes.lake_id, dx * dx, params.lake_min_area_m2).ravel()
-    mask = net & ~drawn
-    k = np.clip(code.ravel(), 0, 7)
-    dist = np.where(k % 2 == 1, dx * np.sqrt(2.0), dx)
-    stats = {"river_cells": int(mask.sum()), "river_length_m": float(dist[mask].sum()),
-             "strahler_max": int(order.max()) if cells.size else 0,
-             "river_width_max_m": float(width.max()) if cells.size else 0.0,
-             "river_depth_max_m": float(depth.max()) if cells.size else 0.0,
-             "bankfull_discharge_max_m3_s": float(q_bf.max()) if cells.size else 0.0,
-             "drainage_density_per_km": float(dist[mask].sum() / (np.isfinite(hf).sum() * dx * dx) * 1e3)}
+    drawn = drawn_lakes(lakes.lake_id, dx * dx, params.lake_min_area_m2)
+    nw = gather_network(code, area_m2, discharge, h, lakes, filled, drawn, params.river_threshold_m2)
+    return rivers_of(nw, code.shape, dx, int(np.isfinite(h).sum()), drawn, params)
 
-    def grid(a):
-        return a.reshape(rows, cols)
-    return Rivers(grid(mask), grid(width), grid(depth), grid(q_bf), grid(order), grid(surface), grid(net), grid(drawn),
-                  stats)
+
+def rivers_of(nw: Network, shape: tuple[int, int], dx: float, n_data: int, drawn: np.ndarray, params) -> Rivers:
+    """The network solved (solve_network) and its results as maps of the
+    world; `drawn`: bool per cell, in a lake the USD draws."""
+    rows, cols = shape
+    sol = solve_network(nw, dx, n_data, params)
+
+    def grid(values, fill, dtype):
+        out = np.full(rows * cols, fill, dtype)
+        out[nw.cells] = values
+        return out.reshape(rows, cols)
+    return Rivers(grid(sol.mask, False, bool), grid(sol.width, 0.0, np.float64), grid(sol.depth, 0.0, np.float64),
+                  grid(sol.discharge_bf, 0.0, np.float64), grid(sol.order, 0, np.int32),
+                  grid(sol.surface, np.nan, np.float64), grid(True, False, bool), drawn, sol.stats)

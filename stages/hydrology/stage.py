@@ -151,8 +151,10 @@ def run_tiled(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) 
         rain_map = None if params.rain_map_path is None else ctx.resolve(params.rain_map_path)
         core["discharge"] = tiled.discharge(ctx.tiles, inputs["terrain"], core, params, rain_map,
                                             lambda f, m: ctx.progress(0.3, m))
+    with T.lap("network_s"):
+        core["network"] = tiled.network(ctx.tiles, inputs["terrain"], core, params)
     ctx.metrics["tiled_steps"] = (f"fill, routing surface ({core['rounds']} rounds), directions, accumulation, "
-                                  "discharge")
+                                  "discharge, the river network's cells")
     return _run(ctx, whole, params, core, T)
 
 
@@ -185,7 +187,7 @@ def _run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams, core:
         lakes = lakes_mod.lake_maps(ctx.cl, land, surfaces.filled, flow.code, rain, params)
     ctx.progress(0.6, "rivers")
     with T.lap("rivers_s"):
-        riv = rivers_mod.extract(flow.code, flow.area_m2, discharge, land.h, lakes, surfaces.filled, land.dx, params)
+        riv = _rivers(land, flow, discharge, lakes, surfaces.filled, params, core and core["network"])
     with T.lap("river_beds_s"):
         water = water_layer.river_water(land, flow.code, riv, lakes.lake_id, lakes.level, params)
     ctx.progress(0.7, "wetness and moisture")
@@ -210,6 +212,19 @@ def _run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams, core:
     out["hydrology.stats"] = stats
     ctx.progress(1.0, "done")
     return out
+
+
+def _rivers(land: Land, flow, discharge: np.ndarray, lakes, filled: np.ndarray, params: HydrologyParams,
+            network: dict | None) -> rivers_mod.Rivers:
+    """The rivers from the whole maps, or from the network's cells a tiled run gathered (the lakes still whole)."""
+    if network is None:
+        return rivers_mod.extract(flow.code, flow.area_m2, discharge, land.h, lakes, filled, land.dx, params)
+    drawn = channels.drawn_lakes(lakes.lake_id, land.cell_area, params.lake_min_area_m2)
+    cells = network["cells"]
+    at = lambda a: a.ravel()[cells]
+    nw = rivers_mod.network_of(cells, network["rcv"], network["code"], network["area_m2"], network["discharge"],
+                               network["h"], at(lakes.depth), at(lakes.level), at(filled), at(drawn))
+    return rivers_mod.rivers_of(nw, land.shape, land.dx, land.n_data, drawn, params)
 
 
 def _rain(ctx: RunContext, land: Land, params: HydrologyParams) -> np.ndarray:

@@ -18,6 +18,7 @@ from worldlib.flow import reference as ref
 from worldlib.flow import tiled_accum as ta
 from worldlib.flow import tiled_fill as tf
 
+from . import rivers
 from .routing import SECONDS_PER_YEAR, Land, rain_from_map, rain_m_per_year
 
 MAX_EPS_ROUNDS = 10_000
@@ -237,3 +238,37 @@ def discharge(runner, terrain, core: dict, params, rain_map, progress=lambda f, 
     by_name = {t.name: (rain, scale, f) for t, f in zip(tiles, [f for row in inflow for f in row])}
     out, _ = runner.map(discharge_finish, "discharge", shape, ins, params, per_tile=by_name, grids=grids, **geo)
     return out["discharge"]
+
+
+# --------------------------------------------------------------------------- the river network
+
+
+def network_tile(tctx, inputs: dict[str, Any], params, cell_area: float) -> TileOutput:
+    """The tile's network cells (rivers.network_cells) with their receivers
+    as flat world indices and what rivers.Network holds of each but the lakes'."""
+    t, (rows, cols) = tctx.tile, inputs["code"].shape
+    code = np.asarray(inputs["code"].tile_array(t))
+    area = np.asarray(inputs["counts"].tile_array(t)).astype(np.float64) * cell_area
+    local = rivers.network_cells(code, area, params.river_threshold_m2)
+    r, c = np.divmod(local, t.cols)
+    k = code.ravel()[local].astype(np.int64)
+    kk = np.clip(k, 0, 7)
+    cells = (r + t.row0) * cols + (c + t.col0)
+    rcv = np.where(k >= 0, cells + ref.DR[kk] * cols + ref.DC[kk], -1)
+    h, _, _ = _heights(tctx, inputs["terrain"])
+    at = lambda a: np.asarray(a).ravel()[local]
+    return TileOutput({}, {"cells": cells, "rcv": rcv, "code": at(code), "area_m2": at(area),
+                           "discharge": at(inputs["discharge"].tile_array(t)), "h": at(h)})
+
+
+def network(runner, terrain, core: dict, params) -> dict[str, np.ndarray]:
+    """The river network's cells of the whole world (rivers.Network's
+    fields but the lakes'), ascending: gathered tile by tile, nothing
+    world-sized. `core`: flow_core's results and the discharge."""
+    shape, dx = terrain.shape, terrain.cell_size_m
+    ins = {"terrain": terrain, "code": core["code"], "counts": core["counts"], "discharge": core["discharge"]}
+    _, parts = runner.map(network_tile, "network", shape, ins, params, dx * dx, keep=False,
+                          cell_size_m=dx, origin_m=terrain.origin_m)
+    out = {k: np.concatenate([p[k] for p in parts]) for k in ("cells", "rcv", "code", "area_m2", "discharge", "h")}
+    order = np.argsort(out["cells"], kind="stable")
+    return {k: v[order] for k, v in out.items()}

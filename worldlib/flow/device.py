@@ -308,13 +308,19 @@ def accumulate(env, code: np.ndarray, weights: np.ndarray | None = None, tile: i
     return out
 
 
+def first_scale(total: float) -> float:
+    """quantize's scale before its round-up check: the largest power of two
+    that keeps the total weight at or below 2^62."""
+    if total <= 0:
+        return 1.0
+    return float(2.0 ** np.floor(np.log2(2.0 ** 62 / total)))
+
+
 def quantize(weights: np.ndarray) -> tuple[np.ndarray, float]:
     """Non-negative float weights as int64 fixed point whose total fits in
     2^62, and the scale (value = integer / scale). Integer sums are exact and
     associative, so accumulation does not depend on any order."""
     import math
-
-    from .tiled_accum import first_scale
 
     w = np.nan_to_num(np.asarray(weights, np.float64), nan=0.0, posinf=0.0)
     w = np.maximum(w, 0.0)

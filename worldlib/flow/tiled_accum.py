@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import reference as ref
+from .device import first_scale
 from .tiled_fill import tile_kind, tile_slices
 
 EXACT_UNIT = 1126  # exact_sum counts units of 2^-1126: the subnormal 2^-1074 is a 53-bit mantissa times 2^-1126
@@ -290,14 +291,6 @@ def exact_total(sums: list[int]) -> float:
     rounded to float64 (Python's int division rounds correctly): math.fsum
     of every weight."""
     return sum(sums) / (1 << EXACT_UNIT) if sum(sums) else 0.0
-
-
-def first_scale(total: float) -> float:
-    """device.quantize's scale before its round-up check: the largest power
-    of two that keeps the total weight at or below 2^62."""
-    if total <= 0:
-        return 1.0
-    return float(2.0 ** np.floor(np.log2(2.0 ** 62 / total)))
 
 
 def tile_quantized_sums(weights: np.ndarray, scale: float) -> tuple[int, int]:

@@ -124,3 +124,51 @@ def test_the_tiled_discharge_equals_the_untiled(tmp_path, rain):
     got = tiled.discharge(runner, GridFile(tmp_path / "h.exr"), core, params, rain_map).read(0, 0, *land.shape)
     assert got.dtype == np.float64 and np.array_equal(got, want)
     assert params.uniform_rain == (rain == "uniform") and np.ptp(want[land.data]) > 0
+
+
+def test_the_tiled_river_network_is_the_whole_worlds(tmp_path):
+    """The network's cells gathered tile by tile (part tiles, no-data across
+    borders, rivers crossing tiles) are the whole world's, with the same
+    receivers, codes, areas, discharges and heights, and solve to the same rivers."""
+    from pipeline import exr
+    from pipeline.grid import Grid
+    from pipeline.opencl import get_cl
+    from pipeline.tiles import GridFile, TileRunner
+    from pipeline.timing import StepTimes
+    from stages.hydrology import STAGE, HydrologyParams
+    from stages.hydrology import rivers, tiled
+    from stages.hydrology.routing import condition, discharge_m3_s, flow_directions, land_of, rain_m_per_year
+    from tests.worldlib.flow.worlds import fractal
+
+    yy, xx = np.mgrid[0:300, 0:270] / 300.0
+    h = (fractal(300, seed=4)[:, :270] * 20 + 300 * xx + 60 * np.sin(9 * xx) * np.cos(7 * yy)).astype(np.float32)
+    h[100:140, 120:135] = np.nan
+    exr.write_grid(tmp_path / "h.exr", Grid(h, 8.0))
+    params = HydrologyParams(depression="fill", river_threshold_m2=2e4, rain_lapse_mm_per_year_per_100m=100.0)
+    env = get_cl()
+    land = land_of(exr.read_grid(tmp_path / "h.exr"))
+    surfaces = condition(env, land, "fill", StepTimes())
+    flow = flow_directions(env, land, surfaces.routing, StepTimes())
+    q = discharge_m3_s(env, land, flow, rain_m_per_year(land, params, None), params, StepTimes())
+    no_lakes = type("NoLakes", (), {"depth": np.zeros(land.shape), "level": np.full(land.shape, np.nan)})
+    dry = np.zeros(land.shape, bool)
+    want = rivers.gather_network(flow.code, flow.area_m2, q, land.h, no_lakes, surfaces.filled, dry,
+                                 params.river_threshold_m2)
+    runner = TileRunner(128, stage=STAGE, run_key="k", seed=0, project_root=tmp_path, units=None,
+                        work=tmp_path / "work")
+    terrain = GridFile(tmp_path / "h.exr")
+    core = tiled.flow_core(runner, terrain, params)
+    core["discharge"] = tiled.discharge(runner, terrain, core, params, None)
+    got = tiled.network(runner, terrain, core, params)
+    cells = got["cells"]
+    assert np.array_equal(cells, want.cells) and cells.size > 1000
+    assert np.array_equal(rivers.compact_receivers(cells, got["rcv"]), want.rcv)
+    for name in ("code", "area_m2", "discharge", "h"):
+        assert np.array_equal(got[name], getattr(want, name)), name
+    assert (want.rcv >= 0).sum() == cells.size - (got["code"] == -1).sum()  # the network is closed downstream
+    nw = rivers.network_of(cells, got["rcv"], got["code"], got["area_m2"], got["discharge"], got["h"],
+                           np.zeros(cells.size), np.full(cells.size, np.nan), surfaces.filled.ravel()[cells],
+                           np.zeros(cells.size, bool))
+    a, b = rivers.solve_network(nw, land.dx, land.n_data, params), rivers.solve_network(want, land.dx, land.n_data,
+                                                                                       params)
+    assert np.array_equal(a.order, b.order) and a.order.max() >= 3 and a.stats == b.stats

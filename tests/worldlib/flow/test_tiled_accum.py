@@ -231,13 +231,10 @@ def test_quantized_discharge_tiled_equals_untiled(cl_env, worlds):
 
 
 def test_a_numpy_total_across_the_scale_step():
-    """device.quantize sums in numpy's order, the tiles exactly. Here the
-    two totals fall on either side of first_scale's step (4 + 11 ulps and
-    4 + 12 ulps: scales 2^60 and 2^59); quantize's round-up check halves
-    its scale, and the results agree. They could differ only if the
-    rounding of the cells' integers pulled the total back below 2^62 there
-    (tiny weights in tens of thousands of cells); quantize summing exactly
-    (exact_sum) would rule it out."""
+    """A total that numpy's pairwise sum and the exact sum put on either
+    side of first_scale's step (4 + 11 ulps and 4 + 12 ulps: scales 2^60
+    and 2^59): device.quantize sums exactly (math.fsum), as the tiles do
+    (exact_sum), so both find 2^59 and the same integers."""
     four = 4.0
     step = four
     while ta.first_scale(step) == 2.0 ** 60:
