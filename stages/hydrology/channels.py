@@ -91,12 +91,15 @@ class Reach:
 
 
 def reaches(rcv: np.ndarray, shown: np.ndarray, in_lake: np.ndarray, shape: tuple[int, int], dx: float,
-            origin: tuple[float, float], level, width, depth, q_bf, order, smooth_passes: int = 2) -> list[Reach]:
+            origin: tuple[float, float], level, width, depth, q_bf, order, smooth_passes: int = 2,
+            cells_of: np.ndarray | None = None) -> list[Reach]:
     """Polylines over the shown cells (closed downstream but for lakes):
     from heads, confluences and lake outlets down to the next confluence, a
     lake cell (kept as the last vertex) or the edge. Centrelines are the
     cell centres smoothed by `smooth_passes` passes of (1, 2, 1) / 4 with the
-    ends fixed, so reaches meet at their shared cells."""
+    ends fixed, so reaches meet at their shared cells. The arrays are per
+    cell of the world, or per cell of a subset closed downstream (the river
+    network: rcv then indexes the subset, cells_of maps it to flat world indices)."""
     rows, cols = shape
     r_sh = np.where(shown & (rcv >= 0), rcv, -1)
     r_sh = np.where((r_sh >= 0) & shown[np.maximum(r_sh, 0)], r_sh, -1)
@@ -115,18 +118,19 @@ def reaches(rcv: np.ndarray, shown: np.ndarray, in_lake: np.ndarray, shape: tupl
             c = t
         if len(seg) < 2:
             continue
-        cells = np.array(seg, np.int64)
+        at = np.array(seg, np.int64)
+        cells = at if cells_of is None else cells_of[at]
         xz = np.stack([origin[0] + (cells % cols + 0.5) * dx, origin[1] + (cells // cols + 0.5) * dx], 1)
         for _ in range(smooth_passes):
             if len(xz) > 2:
                 xz[1:-1] = 0.25 * xz[:-2] + 0.5 * xz[1:-1] + 0.25 * xz[2:]
-        lv = np.minimum.accumulate(level[cells])
-        w = np.maximum.accumulate(width[cells])
-        d = np.maximum.accumulate(depth[cells])
-        q = np.maximum.accumulate(q_bf[cells])
-        if in_lake[cells[-1]]:  # the last vertex stands in the lake: the reach upstream's width
+        lv = np.minimum.accumulate(level[at])
+        w = np.maximum.accumulate(width[at])
+        d = np.maximum.accumulate(depth[at])
+        q = np.maximum.accumulate(q_bf[at])
+        if in_lake[at[-1]]:  # the last vertex stands in the lake: the reach upstream's width
             w[-1], d[-1], q[-1] = w[-2], d[-2], q[-2]
-        out.append(Reach(cells, xz, lv, w, d, q, int(order[cells[0]])))
+        out.append(Reach(cells, xz, lv, w, d, q, int(order[at[0]])))
     return out
 
 
@@ -173,7 +177,7 @@ def ribbons(rs: list[Reach]) -> Ribbons:
                    np.concatenate(st).astype(np.float32), np.concatenate(q).astype(np.float32), np.concatenate(cells))
 
 
-def _segments(rs: list[Reach]) -> dict:
+def segments(rs: list[Reach]) -> dict:
     """Every reach segment's ends: a (k, 2), b (k, 2) and per end level, half width, centre depth."""
     keys = ("a", "b", "la", "lb", "ha", "hb", "da", "db")
     parts = {k_: [] for k_ in keys}
@@ -186,8 +190,32 @@ def _segments(rs: list[Reach]) -> dict:
     return {k_: (np.concatenate(v) if v else np.zeros((0, 2) if k_ in "ab" else 0)) for k_, v in parts.items()}
 
 
-def carve(h: np.ndarray, dx: float, origin: tuple[float, float], rs: list[Reach], floor_m: float, bank_m: float,
-          chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+def carve_reach_cells(seg: dict, dx: float, floor_m: float, bank_m: float) -> int:
+    """How many cells from a segment's first end a cell may be and still be
+    carved by it: its reach (half width, floor, bank) plus the longest segment."""
+    if not len(seg["a"]):
+        return 0
+    reach = max(float(np.maximum(seg["ha"], seg["hb"]).max()), BED_MIN_HALF_CELLS * dx) + floor_m + bank_m
+    seg_len = float(np.linalg.norm(seg["b"] - seg["a"], axis=1).max())
+    return int(np.ceil((reach + seg_len) / dx)) + 1
+
+
+def segments_near(seg: dict, dx: float, origin: tuple[float, float], window: tuple[int, int, int, int],
+                  k: int) -> dict:
+    """The segments (segments()) whose first end's cell lies within k cells of
+    window = (row0, col0, rows, cols): every segment that can carve it."""
+    if not len(seg["a"]):
+        return seg
+    row0, col0, rows, cols = window
+    r = np.floor((seg["a"][:, 1] - origin[1]) / dx).astype(np.int64)
+    c = np.floor((seg["a"][:, 0] - origin[0]) / dx).astype(np.int64)
+    near = (r >= row0 - k) & (r < row0 + rows + k) & (c >= col0 - k) & (c < col0 + cols + k)
+    return {key: v[near] for key, v in seg.items()}
+
+
+def carve(h: np.ndarray, dx: float, origin: tuple[float, float], rs: list[Reach] | dict, floor_m: float,
+          bank_m: float, chunk: int = 4096, window: tuple[int, int, int, int] | None = None
+          ) -> tuple[np.ndarray, np.ndarray]:
     """The ground with the reaches' beds (float64, NaN kept) and the cells
     under the water (bool: centre within the bankfull half width).
 
@@ -197,16 +225,19 @@ def carve(h: np.ndarray, dx: float, origin: tuple[float, float], rs: list[Reach]
     (r - B) beyond it; the ground is lowered to the target out to B + floor_m
     and by a share of the same cut that falls smoothly to 0 at B + floor_m +
     bank_m (the bank). Each cell takes
-    the cut of its nearest segment; the ground is never above the terrain."""
-    rows, cols = h.shape
+    the cut of its nearest segment; the ground is never above the terrain.
+
+    rs: the reaches, or their segments(); window = (row0, col0, world rows,
+    world cols) when h is the part of a world from (row0, col0) on: its
+    cells come out as the whole world's would (given every segment near it)."""
+    row0, col0, rows, cols = window if window is not None else (0, 0, *h.shape)
+    t_rows, t_cols = h.shape
     g = h.astype(np.float64).copy()
     wet = np.zeros(h.shape, bool)
-    s = _segments(rs)
+    s = rs if isinstance(rs, dict) else segments(rs)
     if not len(s["a"]):
         return g, wet
-    reach = max(float(np.maximum(s["ha"], s["hb"]).max()), BED_MIN_HALF_CELLS * dx) + floor_m + bank_m
-    seg_len = float(np.linalg.norm(s["b"] - s["a"], axis=1).max())
-    k = int(np.ceil((reach + seg_len) / dx)) + 1
+    k = carve_reach_cells(s, dx, floor_m, bank_m)
     off_r, off_c = np.mgrid[-k:k + 1, -k:k + 1]
     off_r, off_c = off_r.ravel(), off_c.ravel()
     hf = h.astype(np.float64).ravel()
@@ -218,8 +249,9 @@ def carve(h: np.ndarray, dx: float, origin: tuple[float, float], rs: list[Reach]
         r0 = np.floor((a[:, 1] - origin[1]) / dx).astype(np.int64)
         c0 = np.floor((a[:, 0] - origin[0]) / dx).astype(np.int64)
         rr, cc = r0[:, None] + off_r, c0[:, None] + off_c
-        inside = (rr >= 0) & (rr < rows) & (cc >= 0) & (cc < cols)
-        cell = np.where(inside, rr * cols + cc, 0)
+        inside = (rr >= max(row0, 0)) & (rr < min(row0 + t_rows, rows)) & (cc >= max(col0, 0)) & \
+            (cc < min(col0 + t_cols, cols))
+        cell = np.where(inside, (rr - row0) * t_cols + (cc - col0), 0)
         px, pz = origin[0] + (cc + 0.5) * dx, origin[1] + (rr + 0.5) * dx
         ab = b - a
         L2 = np.maximum((ab ** 2).sum(1), 1e-12)[:, None]
@@ -241,11 +273,13 @@ def carve(h: np.ndarray, dx: float, origin: tuple[float, float], rs: list[Reach]
     # each cell takes the cut of its nearest segment (ties: the lower), so a steep reach's lower segments
     # do not undercut the banks beside its higher ones
     cell, r, cand = (np.concatenate(v) for v in zip(*found))
+    if not cell.size:
+        return g, wf.reshape(t_rows, t_cols)
     order = np.lexsort((cand, r, cell))
     first = np.r_[True, cell[order][1:] != cell[order][:-1]]
     pick = order[first]
     gf[cell[pick]] = np.minimum(hf[cell[pick]], cand[pick])
-    return gf.reshape(rows, cols), wf.reshape(rows, cols)
+    return gf.reshape(t_rows, t_cols), wf.reshape(t_rows, t_cols)
 
 
 def bilinear_at(grid: np.ndarray, dx: float, origin: tuple[float, float], x: np.ndarray, z: np.ndarray) -> np.ndarray:

@@ -87,6 +87,8 @@ class Rivers:
     net: np.ndarray  # bool, every network cell (lakes included)
     drawn_lake: np.ndarray  # bool, cells of the lakes the USD draws (the rest are pools of the rivers)
     stats: dict
+    network: Network | None = None  # the network's cells ...
+    solved: NetworkRivers | None = None  # ... and the rivers on them
 
 
 def strahler(rcv: np.ndarray, net: np.ndarray, levels: list) -> np.ndarray:
@@ -133,6 +135,7 @@ class Network:
     h: np.ndarray  # float64 terrain height
     lake_level: np.ndarray  # float64 level of the lake the cell is in, NaN where dry
     lake_full: np.ndarray  # bool: in a lake at its spill level (within LAKE_FULL_TOLERANCE_M)
+    lake_id: np.ndarray  # int32 the lake the cell is in, 0 where dry
     drawn_lake: np.ndarray  # bool: in a lake the USD draws
 
 
@@ -152,16 +155,17 @@ def compact_receivers(cells: np.ndarray, rcv_flat: np.ndarray) -> np.ndarray:
 
 def network_of(cells: np.ndarray, rcv_flat: np.ndarray, code: np.ndarray, area_m2: np.ndarray,
                discharge: np.ndarray, h: np.ndarray, lake_depth: np.ndarray, lake_level: np.ndarray,
-               filled: np.ndarray, drawn: np.ndarray) -> Network:
+               lake_id: np.ndarray, filled: np.ndarray, drawn: np.ndarray) -> Network:
     """A Network from its cells' values, however gathered: `cells` ascending,
-    rcv_flat their receivers as flat world indices, the lakes' depth and
-    level there, the pure fill (float32: the level a full lake reaches) and
+    rcv_flat their receivers as flat world indices, the lakes' depth, level
+    and id there, the pure fill (float32: the level a full lake reaches) and
     whether each is in a lake the USD draws."""
     in_lake = lake_depth > 0
     level = np.where(in_lake, lake_level, np.nan)
     full = in_lake & (level >= filled - LAKE_FULL_TOLERANCE_M)
     return Network(cells, compact_receivers(cells, rcv_flat), code.astype(np.int8), area_m2.astype(np.float64),
-                   discharge.astype(np.float64), h.astype(np.float64), level, full, drawn.astype(bool))
+                   discharge.astype(np.float64), h.astype(np.float64), level, full, lake_id.astype(np.int32),
+                   drawn.astype(bool))
 
 
 def gather_network(code: np.ndarray, area_m2: np.ndarray, discharge: np.ndarray, h: np.ndarray, lakes,
@@ -171,7 +175,7 @@ def gather_network(code: np.ndarray, area_m2: np.ndarray, discharge: np.ndarray,
     cells = network_cells(code, area_m2, threshold_m2)
     at = lambda a: a.ravel()[cells]
     return network_of(cells, ref.receivers(code)[cells], at(code), at(area_m2), at(discharge), at(h),
-                      at(lakes.depth), at(lakes.level), at(filled), at(drawn))
+                      at(lakes.depth), at(lakes.level), at(lakes.lake_id), at(filled), at(drawn))
 
 
 @dataclass
@@ -235,4 +239,4 @@ def rivers_of(nw: Network, shape: tuple[int, int], dx: float, n_data: int, drawn
         return out.reshape(rows, cols)
     return Rivers(grid(sol.mask, False, bool), grid(sol.width, 0.0, np.float64), grid(sol.depth, 0.0, np.float64),
                   grid(sol.discharge_bf, 0.0, np.float64), grid(sol.order, 0, np.int32),
-                  grid(sol.surface, np.nan, np.float64), grid(True, False, bool), drawn, sol.stats)
+                  grid(sol.surface, np.nan, np.float64), grid(True, False, bool), drawn, sol.stats, nw, sol)

@@ -153,8 +153,9 @@ def run_tiled(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) 
                                             lambda f, m: ctx.progress(0.3, m))
     with T.lap("network_s"):
         core["network"] = tiled.network(ctx.tiles, inputs["terrain"], core, params)
+    core["terrain"] = inputs["terrain"]
     ctx.metrics["tiled_steps"] = (f"fill, routing surface ({core['rounds']} rounds), directions, accumulation, "
-                                  "discharge, the river network's cells")
+                                  "discharge, the river network's cells, the carved ground")
     return _run(ctx, whole, params, core, T)
 
 
@@ -189,7 +190,8 @@ def _run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams, core:
     with T.lap("rivers_s"):
         riv = _rivers(land, flow, discharge, lakes, surfaces.filled, params, core and core["network"])
     with T.lap("river_beds_s"):
-        water = water_layer.river_water(land, flow.code, riv, lakes.lake_id, lakes.level, params)
+        water = water_layer.river_water(land, flow.code, riv, lakes.lake_id, lakes.level, params,
+                                        None if core is None else _tiled_grounds(ctx, core, lakes, params, land))
     ctx.progress(0.7, "wetness and moisture")
     with T.lap("wetness_s"):
         twi, moisture = wetness_and_moisture(ctx.cl, land, twi_area, riv.mask | water.wet | (lakes.depth > 0),
@@ -223,8 +225,17 @@ def _rivers(land: Land, flow, discharge: np.ndarray, lakes, filled: np.ndarray, 
     cells = network["cells"]
     at = lambda a: a.ravel()[cells]
     nw = rivers_mod.network_of(cells, network["rcv"], network["code"], network["area_m2"], network["discharge"],
-                               network["h"], at(lakes.depth), at(lakes.level), at(filled), at(drawn))
+                               network["h"], at(lakes.depth), at(lakes.level), at(lakes.lake_id), at(filled),
+                               at(drawn))
     return rivers_mod.rivers_of(nw, land.shape, land.dx, land.n_data, drawn, params)
+
+
+def _tiled_grounds(ctx: RunContext, core: dict, lakes, params: HydrologyParams, land: Land):
+    """water_layer.river_water's carving tile by tile (tiled.carved_ground), read back whole."""
+    def grounds(seg: dict, pool_ids: np.ndarray):
+        out, stats = tiled.carved_ground(ctx.tiles, core["terrain"], seg, pool_ids, lakes, params)
+        return out["ground"].read(0, 0, *land.shape), out["wet"].read(0, 0, *land.shape), stats
+    return grounds
 
 
 def _rain(ctx: RunContext, land: Land, params: HydrologyParams) -> np.ndarray:

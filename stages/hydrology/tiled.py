@@ -18,7 +18,7 @@ from worldlib.flow import reference as ref
 from worldlib.flow import tiled_accum as ta
 from worldlib.flow import tiled_fill as tf
 
-from . import rivers
+from . import channels, rivers, water_layer
 from .routing import SECONDS_PER_YEAR, Land, rain_from_map, rain_m_per_year
 
 MAX_EPS_ROUNDS = 10_000
@@ -272,3 +272,36 @@ def network(runner, terrain, core: dict, params) -> dict[str, np.ndarray]:
     out = {k: np.concatenate([p[k] for p in parts]) for k in ("cells", "rcv", "code", "area_m2", "discharge", "h")}
     order = np.argsort(out["cells"], kind="stable")
     return {k: v[order] for k, v in out.items()}
+
+
+# --------------------------------------------------------------------------- the carved ground
+
+
+def ground_tile(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOutput:
+    """The tile's ground with the beds of the segments near it carved
+    (water_layer.carved_ground on the tile: its cells as the whole world's)."""
+    seg, pool_ids, lake_id, lake_level = shared
+    terrain, t = inputs["terrain"], tctx.tile
+    h, kind, _ = _heights(tctx, terrain)
+    ground, wet, pools = water_layer.carved_ground(h, lake_id, lake_level, seg, pool_ids, terrain.cell_size_m,
+                                                   tuple(terrain.origin_m), params,
+                                                   window=(t.row0, t.col0, *terrain.shape))
+    return TileOutput({"ground": ground, "wet": wet},
+                      {"has_data": bool((kind != ref.NODATA).any()), **water_layer.ground_stats(h, ground, wet, pools)})
+
+
+def carved_ground(runner, terrain, seg: dict, pool_ids: np.ndarray, lakes, params) -> tuple[dict, dict]:
+    """The carved ground and the cells under the rivers as TileArrays, and
+    water_layer.ground_stats of the world. Each tile gets the segments that
+    can reach it (channels.segments_near) and its part of the lakes' maps
+    (`lakes`: the stage's LakeMaps, whole)."""
+    shape, dx, origin = terrain.shape, terrain.cell_size_m, tuple(terrain.origin_m)
+    k = channels.carve_reach_cells(seg, dx, params.river_floor_m, params.river_bank_m)
+    shared = {}
+    for t in runner.tiles(shape):
+        sl = np.s_[t.row0:t.row0 + t.rows, t.col0:t.col0 + t.cols]
+        near = channels.segments_near(seg, dx, origin, (t.row0, t.col0, t.rows, t.cols), k)
+        shared[t.name] = (near, pool_ids, lakes.lake_id[sl], lakes.level[sl])
+    out, parts = runner.map(ground_tile, "ground", shape, {"terrain": terrain}, params, per_tile=shared,
+                            grids={"ground": ("height",), "wet": ("wet",)}, cell_size_m=dx, origin_m=origin)
+    return out, water_layer.tiles_ground_stats([(s.pop("has_data"), s) for s in parts])

@@ -5,8 +5,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from worldlib.flow import reference as ref
-
 from . import channels
 from . import rivers as rivers_mod
 from .routing import Land
@@ -24,36 +22,70 @@ class RiverWater:
 
 
 def river_water(land: Land, code: np.ndarray, riv: rivers_mod.Rivers, lake_id: np.ndarray, lake_level: np.ndarray,
-                params) -> RiverWater:
+                params, grounds=None) -> RiverWater:
     """Reaches of the rivers at least river_mesh_min_width_m wide, their
-    ribbons, the carved ground and how well the ribbons sit on it."""
-    rcv = ref.receivers(code)
-    in_lake = riv.drawn_lake.ravel()
-    shown = riv.mask.ravel() & (riv.width.ravel() >= params.river_mesh_min_width_m)
-    rs = channels.reaches(rcv, shown, in_lake & riv.net.ravel(), land.shape, land.dx, tuple(land.origin_m),
-                          riv.surface.ravel(), riv.width.ravel(), riv.depth.ravel(), riv.discharge_bf.ravel(),
-                          riv.order.ravel())
-    pools = _pools(lake_id, shown)  # filled up to their level (sediment), so the river runs over them
-    base = np.where(pools, np.fmax(land.h, lake_level), land.h)
-    ground, wet = channels.carve(base, land.dx, tuple(land.origin_m), rs, params.river_floor_m, params.river_bank_m)
+    ribbons, the carved ground and how well the ribbons sit on it.
+    grounds(segments, pool ids) -> (ground, wet, ground_stats): the carving
+    done elsewhere (a tiled run's, tile by tile); default: here, on the whole world."""
+    rs, pool_ids = river_reaches(land, riv, params)
+    seg = channels.segments(rs)
+    if grounds is None:
+        ground, wet, pools = carved_ground(land.h, lake_id, lake_level, seg, pool_ids, land.dx, tuple(land.origin_m),
+                                           params)
+        gstats = ground_stats(land.h, ground, wet, pools)
+    else:
+        ground, wet, gstats = grounds(seg, pool_ids)
     rib = channels.ribbons(rs)
-    stats = {"river_reaches": len(rs), "river_mesh_vertices": int(len(rib.points)),
-             "river_mesh_quads": int(len(rib.counts)),
-             "river_mesh_min_width_m": params.river_mesh_min_width_m,
-             "river_carve_max_m": float(np.nanmax(land.h - ground)) if land.data.any() else 0.0,
-             "river_carved_cells": int((np.nan_to_num(land.h - ground) > 1e-6).sum()),
-             "river_wet_cells": int(wet.sum()),
-             "river_segments_climbing": int(sum((np.diff(r.level) > 0).sum() for r in rs)),
-             "river_pool_cells_filled": int(pools.sum()),
-             **bed_fit(rib, np.where(riv.drawn_lake, lake_level, ground), land, in_lake, params.mesh_max_vertices)}
+    stats = {**reach_stats(rs, rib, params), **gstats,
+             **bed_fit(rib, np.where(riv.drawn_lake, lake_level, ground), land, riv.drawn_lake.ravel(),
+                       params.mesh_max_vertices)}
     return RiverWater(rs, rib, ground, wet, stats)
 
 
-def _pools(lake_id: np.ndarray, shown: np.ndarray) -> np.ndarray:
-    """Cells of the lakes the USD leaves out (pools) that a shown river passes."""
-    ids = np.unique(lake_id.ravel()[shown])
-    ids = ids[ids > 0]
-    return np.isin(lake_id, ids)
+def river_reaches(land: Land, riv: rivers_mod.Rivers, params) -> tuple[list, np.ndarray]:
+    """The reaches of the rivers the USD draws (on the network's cells), and
+    the ids of the pools (lakes it leaves out) they pass."""
+    nw, sol = riv.network, riv.solved
+    shown = sol.mask & (sol.width >= params.river_mesh_min_width_m)
+    rs = channels.reaches(nw.rcv, shown, nw.drawn_lake, land.shape, land.dx, tuple(land.origin_m), sol.surface,
+                          sol.width, sol.depth, sol.discharge_bf, sol.order, cells_of=nw.cells)
+    ids = np.unique(nw.lake_id[shown])
+    return rs, ids[ids > 0]
+
+
+def carved_ground(h: np.ndarray, lake_id: np.ndarray, lake_level: np.ndarray, seg: dict, pool_ids: np.ndarray,
+                  dx: float, origin: tuple[float, float], params, window=None):
+    """The ground (float64) with the beds carved into it, the cells under a
+    river (bool) and the pools' cells (bool): pools are filled up to their
+    level (sediment) so the river runs over them. window: as channels.carve's,
+    when the arrays are the part of a world from (row0, col0) on."""
+    pools = np.isin(lake_id, pool_ids)
+    base = np.where(pools, np.fmax(h, lake_level), h)
+    ground, wet = channels.carve(base, dx, origin, seg, params.river_floor_m, params.river_bank_m, window=window)
+    return ground, wet, pools
+
+
+def reach_stats(rs: list, rib: channels.Ribbons, params) -> dict:
+    return {"river_reaches": len(rs), "river_mesh_vertices": int(len(rib.points)),
+            "river_mesh_quads": int(len(rib.counts)),
+            "river_mesh_min_width_m": params.river_mesh_min_width_m,
+            "river_segments_climbing": int(sum((np.diff(r.level) > 0).sum() for r in rs))}
+
+
+def ground_stats(h: np.ndarray, ground: np.ndarray, wet: np.ndarray, pools: np.ndarray) -> dict:
+    """How deep and where the beds cut (of a world, or of a tile: tiles_ground_stats adds them up)."""
+    cut = h - ground
+    return {"river_carve_max_m": float(np.nanmax(cut)) if np.isfinite(h).any() else 0.0,
+            "river_carved_cells": int((np.nan_to_num(cut) > 1e-6).sum()),
+            "river_wet_cells": int(wet.sum()), "river_pool_cells_filled": int(pools.sum())}
+
+
+def tiles_ground_stats(parts: list[tuple[bool, dict]]) -> dict:
+    """ground_stats of a world from its tiles' (whether the tile has a height, its ground_stats)."""
+    data = [s for has, s in parts if has]
+    return {"river_carve_max_m": max((s["river_carve_max_m"] for s in data), default=0.0),
+            **{k: sum(s[k] for _, s in parts) for k in ("river_carved_cells", "river_wet_cells",
+                                                         "river_pool_cells_filled")}}
 
 
 def bed_fit(rib: channels.Ribbons, ground: np.ndarray, land: Land, in_lake: np.ndarray, mesh_max_vertices: int) -> dict:

@@ -150,7 +150,8 @@ def test_the_tiled_river_network_is_the_whole_worlds(tmp_path):
     surfaces = condition(env, land, "fill", StepTimes())
     flow = flow_directions(env, land, surfaces.routing, StepTimes())
     q = discharge_m3_s(env, land, flow, rain_m_per_year(land, params, None), params, StepTimes())
-    no_lakes = type("NoLakes", (), {"depth": np.zeros(land.shape), "level": np.full(land.shape, np.nan)})
+    no_lakes = type("NoLakes", (), {"depth": np.zeros(land.shape), "level": np.full(land.shape, np.nan),
+                                    "lake_id": np.zeros(land.shape, np.int32)})
     dry = np.zeros(land.shape, bool)
     want = rivers.gather_network(flow.code, flow.area_m2, q, land.h, no_lakes, surfaces.filled, dry,
                                  params.river_threshold_m2)
@@ -167,7 +168,8 @@ def test_the_tiled_river_network_is_the_whole_worlds(tmp_path):
         assert np.array_equal(got[name], getattr(want, name)), name
     assert (want.rcv >= 0).sum() == cells.size - (got["code"] == -1).sum()  # the network is closed downstream
     nw = rivers.network_of(cells, got["rcv"], got["code"], got["area_m2"], got["discharge"], got["h"],
-                           np.zeros(cells.size), np.full(cells.size, np.nan), surfaces.filled.ravel()[cells],
+                           np.zeros(cells.size), np.full(cells.size, np.nan), np.zeros(cells.size, np.int32),
+                           surfaces.filled.ravel()[cells],
                            np.zeros(cells.size, bool))
     a, b = rivers.solve_network(nw, land.dx, land.n_data, params), rivers.solve_network(want, land.dx, land.n_data,
                                                                                        params)
