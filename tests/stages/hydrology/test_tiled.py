@@ -174,3 +174,48 @@ def test_the_tiled_river_network_is_the_whole_worlds(tmp_path):
     a, b = rivers.solve_network(nw, land.dx, land.n_data, params), rivers.solve_network(want, land.dx, land.n_data,
                                                                                        params)
     assert np.array_equal(a.order, b.order) and a.order.max() >= 3 and a.stats == b.stats
+
+
+@pytest.mark.parametrize("tile", [64, 100])
+def test_the_beds_carved_window_by_window_are_the_whole_carve(cl_env, tile):
+    """channels.carve on windows of a world (with the segments near each:
+    segments_near) gives the whole carve's ground and wet cells bitwise, with
+    pools filled, reaches crossing windows and beds wider than a cell."""
+    from pipeline.grid import Grid
+    from pipeline.timing import StepTimes
+    from stages.hydrology import HydrologyParams, channels, water_layer
+    from stages.hydrology import lakes as lakes_mod
+    from stages.hydrology import rivers
+    from stages.hydrology.routing import condition, discharge_m3_s, flow_directions, land_of, rain_m_per_year
+    from tests.worldlib.flow.worlds import fractal
+
+    yy, xx = np.mgrid[0:300, 0:270] / 300.0
+    h = (fractal(300, seed=7)[:, :270] * 20 + 300 * xx + 60 * np.sin(9 * xx) * np.cos(7 * yy)).astype(np.float32)
+    params = HydrologyParams(river_threshold_m2=2e4, lake_min_area_m2=192.0, lake_runoff_depth_m=3.0,
+                             river_mesh_min_width_m=0.5)
+    land = land_of(Grid(h, 8.0))
+    s = condition(cl_env, land, "fill", StepTimes())
+    f = flow_directions(cl_env, land, s.routing, StepTimes())
+    rain = rain_m_per_year(land, params, None)
+    lk = lakes_mod.lake_maps(cl_env, land, s.filled, f.code, rain, params)
+    riv = rivers.extract(f.code, f.area_m2, discharge_m3_s(cl_env, land, f, rain, params, StepTimes()), land.h, lk,
+                         s.filled, land.dx, params)
+    whole = water_layer.river_water(land, f.code, riv, lk.lake_id, lk.level, params)
+    assert whole.stats["river_reaches"] >= 2 and whole.stats["river_pool_cells_filled"] > 0
+    rs, pool_ids = water_layer.river_reaches(land, riv, params)
+    seg, origin = channels.segments(rs), tuple(land.origin_m)
+    k = channels.carve_reach_cells(seg, land.dx, params.river_floor_m, params.river_bank_m)
+    ground, wet = np.empty(land.shape), np.empty(land.shape, bool)
+    parts = []
+    for r0 in range(0, land.shape[0], tile):
+        for c0 in range(0, land.shape[1], tile):
+            sl = np.s_[r0:r0 + tile, c0:c0 + tile]
+            near = channels.segments_near(seg, land.dx, origin, (r0, c0, tile, tile), k)
+            assert len(near["a"]) < len(seg["a"]) or len(seg["a"]) < 50
+            ground[sl], wet[sl], pools = water_layer.carved_ground(land.h[sl], lk.lake_id[sl], lk.level[sl], near,
+                                                                   pool_ids, land.dx, origin, params,
+                                                                   window=(r0, c0, *land.shape))
+            parts.append((True, water_layer.ground_stats(land.h[sl], ground[sl], wet[sl], pools)))
+    assert np.array_equal(ground, whole.ground, equal_nan=True) and np.array_equal(wet, whole.wet)
+    stats = water_layer.tiles_ground_stats(parts)
+    assert stats == {k_: whole.stats[k_] for k_ in stats}
