@@ -10,14 +10,26 @@ from worldlib.flow import device as dev
 from .routing import Land
 
 
+# open water moistens the ground out to this many decay lengths (exp(-8) = 3e-4) and no farther: a tile then
+# needs the water within a bounded halo (water_reach_cells), not the whole world's
+WATER_REACH_DECAYS = 8.0
+
+
+def water_reach_cells(dx: float, decay_m: float) -> int:
+    """The halo (cells) within which a cell's moistening water lies."""
+    return int(np.ceil(WATER_REACH_DECAYS * decay_m / dx))
+
+
 def water_proximity(open_water: np.ndarray, dx: float, decay_m: float) -> np.ndarray:
-    """Moisture from open water: exp(-distance / decay_m), 0 everywhere without water."""
+    """Moisture from open water: exp(-distance / decay_m) within
+    WATER_REACH_DECAYS decay lengths of it, else 0. On a window with a halo
+    of water_reach_cells, the window's inner cells get the whole world's values."""
     if not open_water.any():
         return np.zeros(open_water.shape)
     from scipy import ndimage
 
     dist = ndimage.distance_transform_edt(~open_water) * dx
-    return np.exp(-dist / decay_m)
+    return np.where(dist <= WATER_REACH_DECAYS * decay_m, np.exp(-dist / decay_m), 0.0)
 
 
 def erosion_moisture(ext, shape: tuple[int, int]) -> np.ndarray:

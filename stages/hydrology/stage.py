@@ -153,9 +153,10 @@ def run_tiled(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) 
                                             lambda f, m: ctx.progress(0.3, m))
     with T.lap("network_s"):
         core["network"] = tiled.network(ctx.tiles, inputs["terrain"], core, params)
-    core["terrain"] = inputs["terrain"]
+    core.update(terrain=inputs["terrain"], erosion_moisture=inputs.get("erosion_moisture"))
     ctx.metrics["tiled_steps"] = (f"fill, routing surface ({core['rounds']} rounds), directions, accumulation, "
-                                  "discharge, the river network's cells, the carved ground")
+                                  "discharge, the river network's cells, the carved ground, "
+                                  + ("wetness and moisture" if params.flow == "d8" else "(mfd wetness whole)"))
     return _run(ctx, whole, params, core, T)
 
 
@@ -194,8 +195,14 @@ def _run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams, core:
                                         None if core is None else _tiled_grounds(ctx, core, lakes, params, land))
     ctx.progress(0.7, "wetness and moisture")
     with T.lap("wetness_s"):
-        twi, moisture = wetness_and_moisture(ctx.cl, land, twi_area, riv.mask | water.wet | (lakes.depth > 0),
-                                             inputs.get("erosion_moisture"), params)
+        open_water = riv.mask | water.wet | (lakes.depth > 0)
+        if core is None or params.flow == "mfd":
+            twi, moisture = wetness_and_moisture(ctx.cl, land, twi_area, open_water, inputs.get("erosion_moisture"),
+                                                 params)
+        else:
+            out = tiled.wetness(ctx.tiles, core["terrain"], core["counts"], core["erosion_moisture"], open_water,
+                                params)
+            twi, moisture = (out[k].read(0, 0, *land.shape) for k in ("wetness", "moisture"))
     hack, terrain_stats = _network_statistics(land, surfaces, flow, params, T)
     ctx.progress(0.8, "water layer")
     width_table = channels.width_table(flow.area_m2, riv.width, riv.net)

@@ -12,13 +12,14 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.errors import StageError
+from pipeline.errors import InputError, StageError
 from pipeline.tiles import TileOutput
 from worldlib.flow import reference as ref
 from worldlib.flow import tiled_accum as ta
 from worldlib.flow import tiled_fill as tf
 
 from . import channels, rivers, water_layer
+from .moisture import water_proximity, water_reach_cells
 from .routing import SECONDS_PER_YEAR, Land, rain_from_map, rain_m_per_year
 
 MAX_EPS_ROUNDS = 10_000
@@ -305,3 +306,55 @@ def carved_ground(runner, terrain, seg: dict, pool_ids: np.ndarray, lakes, param
     out, parts = runner.map(ground_tile, "ground", shape, {"terrain": terrain}, params, per_tile=shared,
                             grids={"ground": ("height",), "wet": ("wet",)}, cell_size_m=dx, origin_m=origin)
     return out, water_layer.tiles_ground_stats([(s.pop("has_data"), s) for s in parts])
+
+
+# --------------------------------------------------------------------------- wetness and moisture
+
+
+def window(a: np.ndarray, tile, halo: int, fill) -> np.ndarray:
+    """Tile `tile` of the whole-world array a with a halo, `fill` beyond the world."""
+    rows, cols = a.shape
+    r0, c0 = tile.row0 - halo, tile.col0 - halo
+    out = np.full((tile.rows + 2 * halo, tile.cols + 2 * halo), fill, a.dtype)
+    rs, cs = slice(max(r0, 0), min(r0 + out.shape[0], rows)), slice(max(c0, 0), min(c0 + out.shape[1], cols))
+    out[rs.start - r0:rs.stop - r0, cs.start - c0:cs.stop - c0] = a[rs, cs]
+    return out
+
+
+def wetness_tile(tctx, inputs: dict[str, Any], params, open_water: np.ndarray) -> TileOutput:
+    """moisture.wetness_and_moisture on the tile: the kernel on the tile with
+    a one-cell halo (its slopes), the moisture from the open water within
+    water_reach_cells of it (open_water: the tile with that halo)."""
+    from worldlib.flow import device as dev
+
+    terrain, t = inputs["terrain"], tctx.tile
+    dx = float(terrain.cell_size_m)
+    halo = ref.canonical(terrain.read_padded(t, 1, channel=terrain.channels[0]))
+    reach = water_reach_cells(dx, params.moisture_water_distance_m)
+    m_water = water_proximity(open_water, dx, params.moisture_water_distance_m)[reach - 1:-(reach - 1) or None,
+                                                                                 reach - 1:-(reach - 1) or None]
+    area = inputs["counts"].read_padded(t, 1, fill=0).astype(np.float64) * (dx * dx)
+    ext = inputs.get("erosion_moisture")
+    m_ext = np.zeros(halo.shape) if ext is None else \
+        np.clip(np.nan_to_num(ext.read_padded(t, 1, fill=0.0, channel=ext.channels[0]).astype(np.float64), nan=0.0),
+                0.0, 1.0)
+    twi, moist = dev.wetness(tctx.cl, np.where(np.isfinite(halo), halo, np.float32(np.nan)), ref.cell_kinds(halo),
+                             area, m_water, m_ext, dx, params.wetness_min_slope, params.wetness_dry,
+                             params.wetness_wet)
+    return TileOutput({"wetness": twi[1:-1, 1:-1], "moisture": moist[1:-1, 1:-1]})
+
+
+def wetness(runner, terrain, counts, erosion_moisture, open_water: np.ndarray, params) -> dict:
+    """The wetness index and moisture as TileArrays (D8 drainage area);
+    open_water: bool, the whole world's (rivers, the water under their
+    surfaces, lakes), each tile sent its part with the water's reach."""
+    shape, dx = terrain.shape, terrain.cell_size_m
+    if erosion_moisture is not None and tuple(erosion_moisture.shape) != tuple(shape):
+        raise InputError(f"hydrology: erosion moisture is {tuple(erosion_moisture.shape)}, the terrain {tuple(shape)}")
+    reach = water_reach_cells(dx, params.moisture_water_distance_m)
+    ins = {"terrain": terrain, "counts": counts, **({"erosion_moisture": erosion_moisture} if erosion_moisture else {})}
+    out, _ = runner.map(wetness_tile, "wetness", shape, ins, params,
+                        per_tile={t.name: window(open_water, t, reach, False) for t in runner.tiles(shape)},
+                        grids={"wetness": ("wetness",), "moisture": ("moisture",)}, cell_size_m=dx,
+                        origin_m=terrain.origin_m)
+    return out

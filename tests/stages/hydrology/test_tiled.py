@@ -219,3 +219,46 @@ def test_the_beds_carved_window_by_window_are_the_whole_carve(cl_env, tile):
     assert np.array_equal(ground, whole.ground, equal_nan=True) and np.array_equal(wet, whole.wet)
     stats = water_layer.tiles_ground_stats(parts)
     assert stats == {k_: whole.stats[k_] for k_ in stats}
+
+
+def test_the_tiled_wetness_and_moisture_equal_the_whole(tmp_path):
+    """Wetness and moisture tile by tile (a one-cell halo for the slopes, the
+    open water within its reach, the erosion stage's moisture by window) are
+    the whole run's bitwise, with no-data across tile borders and water
+    beyond a tile's reach."""
+    from pipeline import exr
+    from pipeline.grid import Grid
+    from pipeline.opencl import get_cl
+    from pipeline.tiles import GridFile, TileRunner
+    from pipeline.timing import StepTimes
+    from stages.hydrology import STAGE, HydrologyParams
+    from stages.hydrology import tiled
+    from stages.hydrology.moisture import water_reach_cells, wetness_and_moisture
+    from stages.hydrology.routing import condition, flow_directions, land_of
+    from tests.worldlib.flow.worlds import fractal
+
+    h = (fractal(300, seed=2)[:, :290] * 300.0).astype(np.float32)
+    h[100:140, 120:135] = np.nan
+    h[250, :40] = -np.inf
+    exr.write_grid(tmp_path / "h.exr", Grid(h, 8.0))
+    rng = np.random.default_rng(5)
+    ext = rng.uniform(-0.2, 1.2, h.shape).astype(np.float32)
+    ext[5:9, 5:9] = np.nan
+    exr.write_grid(tmp_path / "m.exr", Grid(ext, 8.0, ("moisture",)))
+    water = np.zeros(h.shape, bool)
+    water[20:23, 30:200] = True  # a river across tiles
+    water[280, 280] = True
+    params = HydrologyParams(moisture_water_distance_m=60.0)
+    assert water_reach_cells(8.0, 60.0) == 60
+    env = get_cl()
+    land = land_of(exr.read_grid(tmp_path / "h.exr"))
+    flow = flow_directions(env, land, condition(env, land, "fill", StepTimes()).routing, StepTimes())
+    want = wetness_and_moisture(env, land, flow.area_m2, water, exr.read_grid(tmp_path / "m.exr"), params)
+    runner = TileRunner(128, stage=STAGE, run_key="k", seed=0, project_root=tmp_path, units=None,
+                        work=tmp_path / "work")
+    terrain = GridFile(tmp_path / "h.exr")
+    core = tiled.flow_core(runner, terrain, params)
+    out = tiled.wetness(runner, terrain, core["counts"], GridFile(tmp_path / "m.exr"), water, params)
+    for name, w in zip(("wetness", "moisture"), want):
+        assert np.array_equal(out[name].read(0, 0, *h.shape), w, equal_nan=True), name
+    assert (want[1][150:, :100] > 0).any() and np.nanmin(want[1]) >= 0.0
