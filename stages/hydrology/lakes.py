@@ -21,9 +21,16 @@ Structure:
    exit, which strictly decreases downstream); each tree top-down: a node
    holding at least its children's capacities is one lake whose flat level
    holds the water; otherwise the fuller child spills into the other.
+
+Steps 3 and 4 read only the depression cells (DepressionCells: per cell, per
+depression exit or scalar, nothing world-sized): gather_depressions collects
+them from whole maps, a tiled world can collect the same set tile by tile,
+and solve_depressions solves them. Its sums are math.fsum (correctly
+rounded), so they do not depend on how the cells were split.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -57,37 +64,160 @@ def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.nd
                 runoff_m3: np.ndarray, cell_area: float, accumulate, merge_sweep=None) -> LakeResult:
     """h canonical float32 heights; F pure fill; code_main D8 on the routing
     surface; code_raw D8 on h; runoff_m3 water each cell sends to the basins
-    (m^3); accumulate(code, int64 weights) -> int64 sums and merge_sweep(cells,
-    h, term, cols) -> MergeTree: the device's or the references (default:
-    merge_tree_reference)."""
+    (m^3); accumulate(code, int64 weights) -> int64 sums and merge_sweep(order,
+    h, term, nbr) -> MergeTree: the device's or the reference (default:
+    merge_tree_reference). The depression cells gathered, solved, and
+    written into whole maps."""
     rows, cols = h.shape
-    h64 = h.astype(np.float64)
+    dc = gather_depressions(h, kind, F, code_main, code_raw, runoff_m3, accumulate)
+    sol = solve_depressions(dc, cell_area, merge_sweep)
+    level = np.full(rows * cols, np.nan)
+    depth = np.zeros(rows * cols)
+    lake_id = np.zeros(rows * cols, np.int32)
+    level[dc.cells], depth[dc.cells], lake_id[dc.cells] = sol.level, sol.depth, sol.lake_id
+    return LakeResult(level.reshape(rows, cols), depth.reshape(rows, cols), lake_id.reshape(rows, cols),
+                      sol.stats, sol.spills)
+
+
+@dataclass(frozen=True)
+class DepressionCells:
+    """Everything the lake solve reads: the depression cells D (interior,
+    F > h) and, per cell, per depression exit or as a scalar, only what the
+    solve needs: nothing world-sized, so a tiled world can gather it tile by
+    tile. Per-cell arrays follow `cells`; a cell's sparse index is its
+    position there (ascending flat index, so sparse order is raster order)."""
+    cols: int  # the world's columns (flat index = row * cols + col)
+    n_cells: int  # the world's cells
+    total_in: float  # runoff of the whole map (m^3, math.fsum: the same however it is split)
+    out_direct: float  # runoff that reaches the map's edge cells on the lake routing (m^3, math.fsum)
+    cells: np.ndarray  # int64 flat index of each depression cell, ascending
+    h: np.ndarray  # float32 terrain height
+    F: np.ndarray  # fill level (F's dtype)
+    rcv: np.ndarray  # int64 flat index of the receiver on the lake routing, -1 at a pit
+    pit: np.ndarray  # bool: the lake routing ends here
+    acc: np.ndarray  # float64 runoff accumulated on the lake routing arriving at the cell (m^3)
+    nbr: np.ndarray  # int32 (cells, 8): the 8 neighbours (ref.DR/DC order) as sparse indices, -1 outside D
+    exit: np.ndarray  # int64 flat index of the first non-D cell on the main routing (or the D cell where it ends)
+    exits: np.ndarray  # int64 per exit: the distinct values of `exit`, ascending
+    exit_term: np.ndarray  # int64 per exit: the flat index where its path on the lake routing ends
+    exit_term_in: np.ndarray  # bool per exit: that end cell is a depression cell
+
+    PER_CELL = ("cells", "h", "F", "rcv", "pit", "acc", "nbr", "exit")
+    PER_EXIT = ("exits", "exit_term", "exit_term_in")
+
+    def __post_init__(self):
+        m, k = self.cells.size, self.exits.size
+        for name in self.PER_CELL + self.PER_EXIT:
+            n = m if name in self.PER_CELL else k
+            if getattr(self, name).shape[0] != n:
+                raise ValueError(f"DepressionCells.{name} has {getattr(self, name).shape[0]} rows, not {n}")
+
+    @property
+    def size(self) -> int:
+        return int(self.cells.size)
+
+
+def _no_depressions(cols: int, n_cells: int, total_in: float) -> DepressionCells:
+    i8, f4 = np.zeros(0, np.int64), np.zeros(0, np.float32)
+    return DepressionCells(cols, n_cells, total_in, total_in, i8, f4, f4, i8, np.zeros(0, bool), np.zeros(0),
+                           np.zeros((0, 8), np.int32), i8, i8, i8, np.zeros(0, bool))
+
+
+def gather_depressions(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.ndarray, code_raw: np.ndarray,
+                       runoff_m3: np.ndarray, accumulate) -> DepressionCells:
+    """The depression cells of whole maps (solve_lakes' inputs), with the lake
+    routing's accumulation, terminals and exits computed on the whole maps."""
+    rows, cols = h.shape
     D = (kind == ref.INTERIOR) & (F > h)
     runoff = np.where(kind == ref.NODATA, 0.0, np.nan_to_num(runoff_m3, nan=0.0)).astype(np.float64)
-    total_in = float(runoff.sum())
+    total_in = math.fsum(runoff.ravel().tolist())
     if not D.any():
-        return _no_lakes(rows, cols, total_in)
+        return _no_depressions(cols, rows * cols, total_in)
     routing = _lake_routing(D, code_main, code_raw, runoff, accumulate)  # 2.
-    cells = _sweep_order(routing.in_depression, h64)  # 3.
-    tree = (merge_sweep or merge_tree_reference)(cells, h, routing.term, cols)
-    nodes = _node_table(tree, cells, h64, F, cell_area)
-    direct = _pit_inflow(nodes, routing)
-    order = _depressions_upstream_first(nodes, routing)  # 4.
-    lake_level, stored, out_ocean, spills = _fill_depressions(nodes, order, direct, h64, cell_area)
+    cells = np.flatnonzero(routing.in_depression)
+    code = code_raw.ravel()[cells].astype(np.int64)
+    k = np.clip(code, 0, 7)
+    rcv = np.where(code >= 0, cells + ref.DR[k] * cols + ref.DC[k], -1)
+    exit_ = routing.exit[cells]
+    exits = np.unique(exit_)
+    term = routing.term[exits]
+    out_direct = math.fsum(routing.acc[kind.ravel() == ref.EDGE].tolist())
+    return DepressionCells(cols, rows * cols, total_in, out_direct, cells, h.ravel()[cells], F.ravel()[cells], rcv,
+                           routing.pit[cells], routing.acc[cells], ref.sparse_neighbours(cells, cols, rows * cols),
+                           exit_, exits, term, routing.in_depression[term])
+
+
+@dataclass(frozen=True)
+class DepressionLakes:
+    """The lakes on the depression cells (per cell of DepressionCells.cells); every other cell is dry."""
+    level: np.ndarray  # float64 water level, NaN where dry
+    depth: np.ndarray  # float64 water depth (0 where dry)
+    lake_id: np.ndarray  # int32 connected lake label (8-connected, numbered in raster order), 0 where dry
+    stats: dict
+    spills: list  # (depression exit cell, target cell or -1, volume m^3), flat indices
+
+
+def solve_depressions(dc: DepressionCells, cell_area: float, merge_sweep=None) -> DepressionLakes:
+    """Fill-Spill-Merge on the depression cells alone (steps 3 and 4)."""
+    m = dc.size
+    if m == 0:
+        return DepressionLakes(np.zeros(0), np.zeros(0), np.zeros(0, np.int32), _no_lakes_stats(dc.total_in), [])
+    h64 = dc.h.astype(np.float64)
+    order = np.lexsort((np.arange(m), h64))  # 3. increasing height, ties by index
+    tree = (merge_sweep or merge_tree_reference)(order, dc.h, _sparse_terminals(dc), dc.nbr)
+    nodes = _node_table(tree, order, h64, dc.F, cell_area)
+    direct = _pit_inflow(nodes, dc)
+    dorder = _depressions_upstream_first(nodes, dc)  # 4.
+    lake_level, stored, out_ocean, spills = _fill_depressions(nodes, dorder, direct, h64, cell_area)
     level, depth = _cell_levels(nodes, lake_level, h64)
-    level, depth = level.reshape(rows, cols), depth.reshape(rows, cols)
-    from scipy import ndimage
-
-    lake_id, nlakes = ndimage.label(depth > 0, structure=np.ones((3, 3), bool))
-    out_direct = float(routing.acc[(kind.ravel() == ref.EDGE)].sum())
-    stats = _lake_stats(nodes, depth, cell_area, int(nlakes), total_in, stored, out_direct + out_ocean, len(spills))
-    return LakeResult(level, depth, lake_id.astype(np.int32), stats, spills)
+    lake_id, nlakes = _label_lakes(depth > 0, dc.nbr)
+    stats = _lake_stats(nodes, depth, cell_area, nlakes, dc.total_in, stored, dc.out_direct + out_ocean, len(spills))
+    return DepressionLakes(level, depth, lake_id, stats, spills)
 
 
-def _no_lakes(rows: int, cols: int, total_in: float) -> LakeResult:
-    return LakeResult(np.full((rows, cols), np.nan), np.zeros((rows, cols)), np.zeros((rows, cols), np.int32),
-                      {"lakes": 0, "depressions": 0, "volume_in_m3": total_in, "volume_stored_m3": 0.0,
-                       "volume_out_m3": total_in, "budget_relative_error": 0.0})
+def _sparse_terminals(dc: DepressionCells) -> np.ndarray:
+    """Sparse index of the end of each depression cell's path on the lake
+    routing (a pit: steepest descent from a depression cell stays in D), -1
+    if a path left D."""
+    m = dc.size
+    pos = np.minimum(np.searchsorted(dc.cells, dc.rcv), m - 1)
+    t = np.where(dc.rcv < 0, np.arange(m), np.where(dc.cells[pos] == dc.rcv, pos, -1))
+    while True:
+        nt = np.where(t >= 0, t[np.maximum(t, 0)], -1)
+        if np.array_equal(nt, t):
+            return t
+        t = nt
+
+
+def _label_lakes(wet: np.ndarray, nbr: np.ndarray) -> tuple[np.ndarray, int]:
+    """8-connected components of the wet cells, numbered 1.. in raster order
+    of each component's first cell (scipy.ndimage.label's numbering)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    lake_id = np.zeros(wet.size, np.int32)
+    idx = np.flatnonzero(wet)
+    if idx.size == 0:
+        return lake_id, 0
+    pos = np.full(wet.size, -1, np.int64)
+    pos[idx] = np.arange(idx.size)
+    a = np.repeat(np.arange(idx.size), 8)
+    b = nbr[idx].ravel().astype(np.int64)
+    ok = b >= 0
+    ok[ok] = wet[b[ok]]
+    g = coo_matrix((np.ones(int(ok.sum()), np.int8), (a[ok], pos[b[ok]])), shape=(idx.size, idx.size))
+    n, comp = connected_components(g, directed=False)
+    first = np.full(n, idx.size, np.int64)
+    np.minimum.at(first, comp, np.arange(idx.size))
+    rank = np.empty(n, np.int64)
+    rank[np.argsort(first)] = np.arange(n)
+    lake_id[idx] = (rank[comp] + 1).astype(np.int32)
+    return lake_id, int(n)
+
+
+def _no_lakes_stats(total_in: float) -> dict:
+    return {"lakes": 0, "depressions": 0, "volume_in_m3": total_in, "volume_stored_m3": 0.0,
+            "volume_out_m3": total_in, "budget_relative_error": 0.0}
 
 
 @dataclass(frozen=True)
@@ -122,12 +252,6 @@ def _lake_routing(D: np.ndarray, code_main: np.ndarray, code_raw: np.ndarray, ru
     return _LakeRouting(Df, acc, term, pit, nxt)
 
 
-def _sweep_order(Df: np.ndarray, h64: np.ndarray) -> np.ndarray:
-    """Depression cells in increasing height (stable by cell index): the union-find sweep's order."""
-    cells = np.flatnonzero(Df)
-    return cells[np.lexsort((cells, h64.ravel()[cells]))]
-
-
 @dataclass(frozen=True)
 class _NodeTable:
     """The merge tree with what the filling needs per node."""
@@ -139,7 +263,7 @@ class _NodeTable:
     top: np.ndarray  # float64 level at which each node's basin spills (its parent's birth, a root's fill level)
     cap: np.ndarray  # float64 capacity of each node's basin (m^3)
     roots: np.ndarray  # the roots, one per depression
-    rep_cell: np.ndarray  # any cell of each node's subtree
+    rep_cell: np.ndarray  # any cell of each node's subtree (sparse index, as own_sorted)
     tin: np.ndarray  # Euler intervals for "is e in the subtree of nd"
     tout: np.ndarray
 
@@ -155,6 +279,7 @@ class _NodeTable:
 
 
 def _node_table(tree: MergeTree, cells: np.ndarray, h64: np.ndarray, F: np.ndarray, cell_area: float) -> _NodeTable:
+    """cells: the sweep order (sparse indices); h64 and F per depression cell."""
     parent_n, child_a, birth, cell_node = tree.parent, tree.child_a, tree.birth, tree.cell_node
     nn_ = parent_n.size
     own_node = cell_node[cells]
@@ -211,11 +336,11 @@ def _euler_intervals(tree: MergeTree, roots_idx: np.ndarray) -> tuple[np.ndarray
     return tin, tout
 
 
-def _pit_inflow(nodes: _NodeTable, routing: _LakeRouting) -> np.ndarray:
+def _pit_inflow(nodes: _NodeTable, dc: DepressionCells) -> np.ndarray:
     """Direct water per node: inflow at pits (terminals of the lake routing)."""
     direct = np.zeros(nodes.size)
-    pit_cells = np.flatnonzero(routing.pit)
-    np.add.at(direct, nodes.tree.cell_node[pit_cells], routing.acc[pit_cells])
+    pit_cells = np.flatnonzero(dc.pit)
+    np.add.at(direct, nodes.tree.cell_node[pit_cells], dc.acc[pit_cells])
     return direct
 
 
@@ -223,13 +348,14 @@ def _pit_inflow(nodes: _NodeTable, routing: _LakeRouting) -> np.ndarray:
 class _DepressionOrder:
     """Step 4's order: depressions upstream first, and where each spills."""
     nodes_of_tree: list  # node ids of each depression's tree, ascending
-    exit_cell: np.ndarray  # each depression's spill cell
-    tgt_cell: np.ndarray  # where its spill water lands
+    exit_cell: np.ndarray  # each depression's spill cell (flat index)
+    tgt_cell: np.ndarray  # where its spill water lands (flat index)
+    tgt_sparse: np.ndarray  # that cell's sparse index, -1 outside D
     tgt_tree: np.ndarray  # the depression it spills into, -1 off the map
     order: list  # depression indices, upstream first
 
 
-def _depressions_upstream_first(nodes: _NodeTable, routing: _LakeRouting) -> _DepressionOrder:
+def _depressions_upstream_first(nodes: _NodeTable, dc: DepressionCells) -> _DepressionOrder:
     """Kahn's order on the graph "spills into"."""
     parent_n, cell_node, roots_idx = nodes.tree.parent, nodes.tree.cell_node, nodes.roots
     nn_ = nodes.size
@@ -242,12 +368,14 @@ def _depressions_upstream_first(nodes: _NodeTable, routing: _LakeRouting) -> _De
     nodes_of_tree = [[] for _ in roots_idx]
     for nd in range(nn_):
         nodes_of_tree[tree_of[nd]].append(nd)
-    exit_cell = routing.exit[nodes.rep_cell[roots_idx]]
-    tgt_cell = routing.term[exit_cell]
-    tgt_tree = np.where(routing.in_depression[tgt_cell] & (cell_node[tgt_cell] >= 0),
-                        tree_of[np.maximum(cell_node[tgt_cell], 0)], -1)
+    exit_cell = dc.exit[nodes.rep_cell[roots_idx]]
+    k = np.searchsorted(dc.exits, exit_cell)
+    tgt_cell, tgt_in = dc.exit_term[k], dc.exit_term_in[k]
+    tgt_sparse = np.where(tgt_in, np.searchsorted(dc.cells, tgt_cell), -1)
+    tgt_node = np.where(tgt_in, cell_node[np.maximum(tgt_sparse, 0)], -1)
+    tgt_tree = np.where(tgt_node >= 0, tree_of[np.maximum(tgt_node, 0)], -1)
     tgt_tree[tgt_tree == np.arange(len(roots_idx))] = -1
-    return _DepressionOrder(nodes_of_tree, exit_cell, tgt_cell, tgt_tree, _kahn_order(tgt_tree))
+    return _DepressionOrder(nodes_of_tree, exit_cell, tgt_cell, tgt_sparse, tgt_tree, _kahn_order(tgt_tree))
 
 
 def _kahn_order(tgt_tree: np.ndarray) -> list:
@@ -321,7 +449,7 @@ def _fill_depressions(nodes: _NodeTable, order: _DepressionOrder, direct: np.nda
             x = int(order.exit_cell[ti])
             t = int(order.tgt_cell[ti])
             if order.tgt_tree[ti] >= 0:
-                direct[cell_node[t]] += excess
+                direct[cell_node[order.tgt_sparse[ti]]] += excess
                 spills.append((x, t, excess))
             else:
                 out_ocean += excess
@@ -369,7 +497,7 @@ def _fill_tree(nodes: _NodeTable, r0: int, tree_nodes: list, direct: np.ndarray,
 
 
 def _cell_levels(nodes: _NodeTable, lake_level: np.ndarray, h64: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Levels per cell (flat): the topmost single-lake ancestor's; NaN where dry. And depths."""
+    """Levels per depression cell: the topmost single-lake ancestor's; NaN where dry. And depths."""
     parent_n, cell_node = nodes.tree.parent, nodes.tree.cell_node
     nn_ = nodes.size
     lake_top = np.full(nn_, -1, np.int64)
@@ -391,7 +519,7 @@ def _cell_levels(nodes: _NodeTable, lake_level: np.ndarray, h64: np.ndarray) -> 
 
 def _lake_stats(nodes: _NodeTable, depth: np.ndarray, cell_area: float, nlakes: int, total_in: float,
                 stored: float, out_total: float, n_spills: int) -> dict:
-    vol_cells = float(depth.sum() * cell_area)
+    vol_cells = float(math.fsum(depth.tolist()) * cell_area)  # correctly rounded: the same however D is split
     resid = total_in - stored - out_total
     return {
         "lakes": nlakes, "depressions": int(len(nodes.roots)), "basins": int((nodes.tree.child_a < 0).sum()),
@@ -426,7 +554,8 @@ def lake_maps(env, land, filled: np.ndarray, code: np.ndarray, rain: np.ndarray,
                         {"lakes": 0})
     data, cell_area = land.data, land.cell_area
     code_raw = dev.d8(env, np.where(data, land.h, np.float32(0)), land.kind, land.dx)
-    mean_rain = float(rain[data].mean()) if rain[data].mean() > 0 else 1.0
+    mean_rain = math.fsum(rain[data].tolist()) / int(data.sum())  # correctly rounded sum: tiling cannot change it
+    mean_rain = mean_rain if mean_rain > 0 else 1.0
     lake_in = params.lake_runoff_depth_m * cell_area * rain / mean_rain
     lk = solve_lakes(land.h, land.kind, filled, code, code_raw, lake_in, cell_area,
                      functools.partial(dev.accumulate, env), functools.partial(dev.merge_sweep, env))

@@ -202,25 +202,25 @@ def breach(env, h: np.ndarray, kind: np.ndarray) -> np.ndarray:
     return out
 
 
-def merge_sweep(env, cells: np.ndarray, h: np.ndarray, term: np.ndarray, cols: int):
+def merge_sweep(env, order: np.ndarray, h: np.ndarray, term: np.ndarray, nbr: np.ndarray):
     """The depressions' union-find sweep (reference.merge_tree_reference,
     node for node) as one serial work-item: inherently serial, and far
-    faster compiled than the Python loop."""
+    faster compiled than the Python loop. Every argument and buffer is per
+    depression cell (sparse indices, int32: fewer than 2**31 cells)."""
     import pyopencl as cl
 
     prg = _program(env)
-    n = h.size
-    m = max(int(cells.size), 1)
+    m = max(int(order.size), 1)
     mf = cl.mem_flags
-    d_cells = _buf(env, np.ascontiguousarray(cells, np.int32) if cells.size else np.zeros(1, np.int32))
+    d_order = _buf(env, np.ascontiguousarray(order, np.int32))
     d_h = _buf(env, np.ascontiguousarray(h, np.float32).ravel())
     d_term = _buf(env, np.ascontiguousarray(term, np.int32))
-    uf, comp, cell_node = (cl.Buffer(env.ctx, mf.READ_WRITE, n * 4) for _ in range(3))
+    d_nbr = _buf(env, np.ascontiguousarray(nbr, np.int32).ravel())
+    uf, comp, cell_node = (cl.Buffer(env.ctx, mf.READ_WRITE, m * 4) for _ in range(3))
     node_bufs = [cl.Buffer(env.ctx, mf.READ_WRITE, 2 * m * 4) for _ in range(6)]  # at most 2 nodes per cell
     d_count = cl.Buffer(env.ctx, mf.READ_WRITE, 4)
     k = cl.Kernel(prg, "merge_sweep")
-    k.set_args(d_cells, np.int32(cells.size), d_h, d_term, uf, comp, cell_node, *node_bufs, d_count,
-               np.int32(n), np.int32(cols))
+    k.set_args(d_order, np.int32(order.size), d_h, d_term, d_nbr, uf, comp, cell_node, *node_bufs, d_count)
     cl.enqueue_nd_range_kernel(env.queue, k, (1,), None)
     count = np.zeros(1, np.int32)
     cl.enqueue_copy(env.queue, count, d_count)
@@ -230,12 +230,12 @@ def merge_sweep(env, cells: np.ndarray, h: np.ndarray, term: np.ndarray, cols: i
         a = np.empty(2 * m, dt)
         cl.enqueue_copy(env.queue, a, b)
         out.append(a[:nodes])
-    cn = np.empty(n, np.int32)
+    cn = np.empty(m, np.int32)
     cl.enqueue_copy(env.queue, cn, cell_node)
     parent, child_a, child_b, birth, entry_a, entry_b = out
     i64 = np.int64
     return ref.MergeTree(parent.astype(i64), child_a.astype(i64), child_b.astype(i64), birth.astype(np.float64),
-                     entry_a.astype(i64), entry_b.astype(i64), cn.astype(i64))
+                         entry_a.astype(i64), entry_b.astype(i64), cn[:order.size].astype(i64))
 
 
 def d8(env, z: np.ndarray, kind: np.ndarray, dx: float, local: tuple[int, int] | None = None) -> np.ndarray:

@@ -563,11 +563,14 @@ __kernel void breach_serial(__global float* z, __global const uchar* kind, __glo
 }
 
 // ---- The depressions' merge tree: union-find sweep, serial (one work-item) ----
-// reference.merge_tree_reference step for step: cells in increasing (height,
-// index); each joins the components of its already swept 8-neighbours (it is
-// an interior cell, so every neighbour is on the map), which merge pairwise
-// in node order at its height. Path compression as in the reference, so the
-// tree is the same whatever the machine.
+// reference.merge_tree_reference step for step on the depression cells
+// alone (sparse indices: position in the ascending list of the cells' flat
+// indices, so comparing them compares flat indices; every buffer has one
+// slot per depression cell, none per map cell): cells in increasing (height,
+// index); each joins the components of its already swept 8-neighbours (nbr,
+// -1 outside the depressions), which merge pairwise in node order at its
+// height. Path compression as in the reference, so the tree is the same
+// whatever the machine.
 
 inline int uf_find(__global int* uf, int x)
 {
@@ -581,24 +584,24 @@ inline int uf_find(__global int* uf, int x)
     return root;
 }
 
-__kernel void merge_sweep(__global const int* cells, int ncells, __global const float* h, __global const int* term,
-                          __global int* uf, __global int* comp_node, __global int* cell_node,
+__kernel void merge_sweep(__global const int* order, int ncells, __global const float* h, __global const int* term,
+                          __global const int* nbr, __global int* uf, __global int* comp_node, __global int* cell_node,
                           __global int* parent, __global int* child_a, __global int* child_b, __global float* birth,
-                          __global int* entry_a, __global int* entry_b, __global int* node_count, int n, int cols)
+                          __global int* entry_a, __global int* entry_b, __global int* node_count)
 {
     if (get_global_id(0) != 0) return;
-    for (int i = 0; i < n; ++i) {
+    for (int i = 0; i < ncells; ++i) {
         uf[i] = -1;
         cell_node[i] = -1;
     }
     int nodes = 0;
     for (int q = 0; q < ncells; ++q) {
-        int c = cells[q];
+        int c = order[q];
         float hc = h[c];
         int roots[8], low[8], nroots = 0;
         for (int k = 0; k < 8; ++k) {
-            int nb = c + DR[k] * cols + DC[k];
-            if (uf[nb] < 0) continue;
+            int nb = nbr[8 * (long)c + k];
+            if (nb < 0 || uf[nb] < 0) continue;
             int root = uf_find(uf, nb);
             int j = 0;
             while (j < nroots && roots[j] != root) ++j;
@@ -631,8 +634,9 @@ __kernel void merge_sweep(__global const int* cells, int ncells, __global const 
                 int other = comp_node[roots[j]];
                 int p = nodes++;
                 parent[p] = -1; child_a[p] = node; child_b[p] = other; birth[p] = hc;
-                entry_a[p] = cell_node[term[low[0]]];
-                entry_b[p] = cell_node[term[low[j]]];
+                int ta = term[low[0]], tb = term[low[j]];  // -1: the path leaves the depressions
+                entry_a[p] = ta < 0 ? -1 : cell_node[ta];
+                entry_b[p] = tb < 0 ? -1 : cell_node[tb];
                 parent[node] = p;
                 parent[other] = p;
                 node = p;

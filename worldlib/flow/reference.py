@@ -287,21 +287,43 @@ class MergeTree:
     birth: np.ndarray  # float64 height at which the node is born
     entry_a: np.ndarray  # int64 node where spill water from b enters a's side (-1 at leaves)
     entry_b: np.ndarray  # int64 node where spill water from a enters b's side
-    cell_node: np.ndarray  # int64 per cell: the node it joined, -1 outside depressions
+    cell_node: np.ndarray  # int64 per depression cell (sparse index): the node it joined
 
 
-def merge_tree_reference(cells: np.ndarray, h: np.ndarray, term: np.ndarray, cols: int) -> MergeTree:
-    """The union-find sweep in pure Python: cells (depression cells, interior
-    only) in increasing (height, index); a cell joins the components of its
-    already swept 8-neighbours, merging them pairwise in node order at its
-    height; spill water between two merged basins enters each at the node of
-    the pit that the lowest neighbour of the saddle cell drains to (term)."""
+def sparse_neighbours(cells: np.ndarray, cols: int, n_cells: int) -> np.ndarray:
+    """int32 (len(cells), 8): each cell's 8 neighbours (DR/DC order) as
+    positions in `cells` (flat indices, ascending), -1 where the neighbour is
+    off the map or not in `cells`."""
+    cells = np.asarray(cells, np.int64)
+    r, c = cells // cols, cells % cols
+    out = np.full((cells.size, 8), -1, np.int32)
+    for k in range(8):
+        rr, cc = r + DR[k], c + DC[k]
+        nb = rr * cols + cc
+        ok = (rr >= 0) & (cc >= 0) & (cc < cols) & (nb < n_cells)
+        pos = np.minimum(np.searchsorted(cells, nb), max(cells.size - 1, 0))
+        ok &= cells[pos] == nb if cells.size else ok
+        out[ok, k] = pos[ok]
+    return out
+
+
+def merge_tree_reference(order: np.ndarray, h: np.ndarray, term: np.ndarray, nbr: np.ndarray) -> MergeTree:
+    """The union-find sweep in pure Python on the depression cells alone
+    (sparse indices: positions in the ascending list of their flat indices):
+    order visits them in increasing (height, index); a cell joins the
+    components of its already swept 8-neighbours (nbr, -1 outside), merging
+    them pairwise in node order at its height; spill water between two
+    merged basins enters each at the node of the pit that the lowest
+    neighbour of the saddle cell drains to (term, -1 when its path leaves
+    the depressions: no entry)."""
     hl = np.asarray(h, np.float64).ravel().tolist()
-    n = len(hl)
-    uf = {}
-    comp_node = {}
+    nbl = np.asarray(nbr).tolist()
+    terml = np.asarray(term).tolist()
+    m = len(hl)
+    uf = [-1] * m
+    comp_node = [0] * m
+    cell_node = [-1] * m
     parent_n, child_a, child_b, birth, entry_a, entry_b = [], [], [], [], [], []
-    cell_node_l = {}
 
     def find(x):
         root = x
@@ -320,15 +342,16 @@ def merge_tree_reference(cells: np.ndarray, h: np.ndarray, term: np.ndarray, col
         entry_b.append(eb)
         return len(parent_n) - 1
 
-    offs = [(int(dr), int(dc)) for dr, dc in zip(DR, DC)]
-    for c in cells.tolist():
-        r, cc = divmod(c, cols)
+    def entry(c):
+        t = terml[c]
+        return cell_node[t] if t >= 0 else -1
+
+    for c in np.asarray(order).tolist():
         hc = hl[c]
         roots = []
         low = {}  # per neighbouring component: its lowest neighbour of c (entry for spill water)
-        for dr, dc in offs:
-            nb = (r + dr) * cols + cc + dc
-            if nb in uf:
+        for nb in nbl[c]:
+            if nb >= 0 and uf[nb] >= 0:
                 k = find(nb)
                 if k not in low:
                     roots.append(k)
@@ -344,9 +367,7 @@ def merge_tree_reference(cells: np.ndarray, h: np.ndarray, term: np.ndarray, col
             node = comp_node[k0]
             for k in roots[1:]:
                 other = comp_node[k]
-                ea = cell_node_l[int(term[low[k0]])]
-                eb = cell_node_l[int(term[low[k]])]
-                p = new_node(node, other, hc, ea, eb)
+                p = new_node(node, other, hc, entry(low[k0]), entry(low[k]))
                 parent_n[node] = p
                 parent_n[other] = p
                 node = p
@@ -354,13 +375,10 @@ def merge_tree_reference(cells: np.ndarray, h: np.ndarray, term: np.ndarray, col
                 uf[k] = c
             uf[c] = c
         comp_node[find(c)] = node
-        cell_node_l[c] = node
-    cell_node = np.full(n, -1, np.int64)
-    if cell_node_l:
-        cell_node[np.fromiter(cell_node_l.keys(), np.int64, len(cell_node_l))] = np.fromiter(
-            cell_node_l.values(), np.int64, len(cell_node_l))
+        cell_node[c] = node
+
     def i64(x):
         return np.array(x, np.int64)
 
     return MergeTree(i64(parent_n), i64(child_a), i64(child_b), np.array(birth, np.float64), i64(entry_a),
-                     i64(entry_b), cell_node)
+                     i64(entry_b), i64(cell_node))

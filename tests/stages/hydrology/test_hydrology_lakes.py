@@ -125,19 +125,6 @@ def test_hack_exponent_matches_brute_force():
     assert got["longest_flow_path_m"] == pytest.approx(L.max())
 
 
-def merge_inputs(cl_env, h):
-    h = ref.canonical(h)
-    kind = ref.cell_kinds(h)
-    F = dev.fill(cl_env, h, kind, False)
-    D = (kind == ref.INTERIOR) & (F > h)
-    code = dev.d8(cl_env, np.nan_to_num(dev.fill(cl_env, h, kind, True), nan=0.0), kind, 2.0)
-    code_lake = np.where(D, dev.d8(cl_env, np.nan_to_num(h, nan=0.0), kind, 2.0), code).astype(np.int8)
-    term = lakes.terminals(ref.receivers(code_lake))
-    cells = np.flatnonzero(D.ravel())
-    cells = cells[np.lexsort((cells, h.astype(np.float64).ravel()[cells]))]
-    return cells, h, term, h.shape[1]
-
-
 def merge_cases():
     rng = np.random.default_rng(11)
     yield "two_basins", two_basins()
@@ -152,12 +139,139 @@ def merge_cases():
 
 
 @pytest.mark.parametrize("name,h", list(merge_cases()), ids=[c[0] for c in merge_cases()])
-def test_merge_sweep_kernel_equals_reference(cl_env, name, h):
-    args = merge_inputs(cl_env, h)
-    want = lakes.merge_tree_reference(*args)
-    got = dev.merge_sweep(cl_env, *args)
-    for f in ("parent", "child_a", "child_b", "birth", "entry_a", "entry_b", "cell_node"):
-        np.testing.assert_array_equal(getattr(got, f), getattr(want, f), err_msg=f)
+def test_solve_with_kernel_sweep_equals_reference_sweep(cl_env, name, h):
     res_dev, _, _ = solve(cl_env, h, 0.5)
     res_ref, _, _ = solve(cl_env, h, 0.5, merge_sweep=lakes.merge_tree_reference)
-    np.testing.assert_array_equal(res_dev.depth, res_ref.depth)
+    for f in ("level", "depth", "lake_id"):
+        assert getattr(res_dev, f).tobytes() == getattr(res_ref, f).tobytes(), f
+    assert res_dev.spills == res_ref.spills and res_dev.stats == res_ref.stats
+
+
+# --------------------------------------------------------------------------- the sparse solve
+
+
+def holey_fractal(n, seed, beta):
+    """Fractal terrain with NaN cells, an inf block and a NaN strip at the left edge; varying runoff."""
+    from tests.worldlib.flow.worlds import fractal
+
+    h = fractal(n, seed, beta)
+    r = np.random.default_rng(seed + 100)
+    h[r.random(h.shape) < 0.01] = np.nan
+    a, b = (int(x) for x in r.integers(10, n - 30, 2))
+    h[a:a + 12, b:b + 9] = np.inf
+    h[n // 3: n // 3 + 5, :7] = np.nan
+    return h, r.random(h.shape) * 2.0
+
+
+def prepared(cl_env, h, depth_m, weights=None, area=4.0):
+    """solve_lakes' inputs as lake_maps builds them (no-data NaN, code_raw on the data heights)."""
+    h = ref.canonical(h)
+    kind = ref.cell_kinds(h)
+    h[kind == ref.NODATA] = np.nan
+    F = dev.fill(cl_env, h, kind, False)
+    code = dev.d8(cl_env, np.nan_to_num(dev.fill(cl_env, h, kind, True), nan=0.0), kind, 2.0)
+    code_raw = dev.d8(cl_env, np.where(np.isfinite(h), h, np.float32(0)), kind, 2.0)
+    runoff = np.where(np.isfinite(h), depth_m * area, 0.0) * (1.0 if weights is None else weights)
+    return h, kind, F, code, code_raw, runoff, area
+
+
+def solve_prepared(cl_env, args):
+    return lakes.solve_lakes(*args, functools.partial(dev.accumulate, cl_env),
+                             functools.partial(dev.merge_sweep, cl_env))
+
+
+def digest(res) -> str:
+    import hashlib
+
+    d = hashlib.sha256()
+    for f in ("level", "depth", "lake_id"):
+        d.update(getattr(res, f).tobytes())
+    d.update(repr([(int(x), int(t), float(v)) for x, t, v in res.spills]).encode())
+    return d.hexdigest()[:16]
+
+
+def golden_worlds():
+    yield "two_basins", two_basins(), 3.0, None, "7f7d24f07900c2e1"
+    rng = np.random.default_rng(2)
+    h = (rng.random((25, 31)) * 10).astype(np.float32)
+    h[rng.random(h.shape) < 0.03] = np.nan
+    yield "random_nan", h, 0.7, None, "50d089a49c135ffa"
+    hf, wf = holey_fractal(100, 1, 2.2)
+    yield "fractal", hf, 0.3, wf, "7863fa2dbcaa2ada"
+
+
+@pytest.mark.parametrize("name,h,depth_m,w,want", list(golden_worlds()), ids=[c[0] for c in golden_worlds()])
+def test_sparse_solve_is_bitwise_the_whole_array_solve(cl_env, name, h, depth_m, w, want):
+    """Levels, depths, labels and spills bitwise those of the whole-array
+    solve the sparse one replaced (digests of its results at commit
+    b62f1c3); the float sums of the stats are correctly rounded now."""
+    assert digest(solve_prepared(cl_env, prepared(cl_env, h, depth_m, w))) == want
+
+
+@pytest.mark.parametrize("n,seed,beta", [(120, 4, 1.6), (90, 5, 2.4)])
+def test_sparse_solve_equals_its_whole_maps(cl_env, n, seed, beta):
+    """solve_depressions on the gathered cells is solve_lakes' whole maps at
+    those cells, dry elsewhere; the labels are scipy's on the whole map."""
+    from scipy import ndimage
+
+    h, w = holey_fractal(n, seed, beta)
+    args = prepared(cl_env, h, 0.4, w)
+    whole = solve_prepared(cl_env, args)
+    dc = lakes.gather_depressions(*args[:-1], functools.partial(dev.accumulate, cl_env))
+    sol = lakes.solve_depressions(dc, args[-1], functools.partial(dev.merge_sweep, cl_env))
+    assert dc.size > 100 and sol.stats["lakes"] > 10
+    for f in ("level", "depth", "lake_id"):
+        full = getattr(whole, f).ravel()
+        assert full[dc.cells].tobytes() == getattr(sol, f).tobytes(), f
+        rest = np.delete(full, dc.cells)
+        assert (np.isnan(rest) if f == "level" else rest == 0).all(), f
+    want_id, nlakes = ndimage.label(whole.depth > 0, structure=np.ones((3, 3), bool))
+    np.testing.assert_array_equal(whole.lake_id, want_id)
+    assert sol.stats == whole.stats and sol.stats["lakes"] == nlakes and sol.spills == whole.spills
+    check(whole, args[0], args[2])
+
+
+def test_depression_cells_hold_nothing_world_sized(cl_env):
+    h, w = holey_fractal(100, 1, 2.2)
+    args = prepared(cl_env, h, 0.3, w)
+    dc = lakes.gather_depressions(*args[:-1], functools.partial(dev.accumulate, cl_env))
+    m, k = dc.size, dc.exits.size
+    assert 0 < m < h.size // 4 and 0 < k <= m and dc.n_cells == h.size and dc.cols == h.shape[1]
+    arrays = {f: getattr(dc, f) for f in dc.__dataclass_fields__ if isinstance(getattr(dc, f), np.ndarray)}
+    assert set(arrays) == set(dc.PER_CELL) | set(dc.PER_EXIT)
+    for f, a in arrays.items():
+        assert a.shape[0] == (m if f in dc.PER_CELL else k), f
+    assert np.all(np.diff(dc.cells) > 0) and dc.cells.dtype == np.int64 and dc.exit.dtype == np.int64
+    assert set(np.unique(dc.exit).tolist()) == set(dc.exits.tolist())
+    with pytest.raises(ValueError, match="rows"):
+        lakes.DepressionCells(**{**{f: getattr(dc, f) for f in dc.__dataclass_fields__}, "acc": np.zeros(h.size)})
+
+
+def test_sparse_solve_of_a_world_without_depressions(cl_env):
+    yy, xx = np.mgrid[0:10, 0:12]
+    args = prepared(cl_env, (xx + yy).astype(np.float32), 1.0)
+    dc = lakes.gather_depressions(*args[:-1], functools.partial(dev.accumulate, cl_env))
+    sol = lakes.solve_depressions(dc, args[-1])
+    assert dc.size == 0 and dc.exits.size == 0 and sol.level.size == sol.depth.size == sol.lake_id.size == 0
+    assert sol.stats["lakes"] == 0 and sol.stats["volume_out_m3"] == sol.stats["volume_in_m3"] == 120 * 4.0
+    res = solve_prepared(cl_env, args)
+    assert (res.depth == 0).all() and np.isnan(res.level).all() and res.stats == sol.stats
+
+
+def test_depression_spilling_into_no_data(cl_env):
+    """A basin whose lowest rim is the edge ring around a no-data hole: it
+    fills to that ring's height and spills into the hole (off the map)."""
+    h = np.full((30, 30), 10.0, np.float32)
+    h[5:25, 5:25] = 0.0  # basin floor 0, rim 10
+    h[12:18, 12:18] = 5.0  # a mound in the basin ...
+    h[14:16, 14:16] = np.nan  # ... around a hole: the mound's cells next to it are outlets at 5 m
+    args = prepared(cl_env, h, 20.0)
+    res = solve_prepared(cl_env, args)
+    dc = lakes.gather_depressions(*args[:-1], functools.partial(dev.accumulate, cl_env))
+    assert (dc.F == 5.0).all() and dc.size == 20 * 20 - 36
+    assert res.stats["lakes"] == 1 and res.level[6, 6] == 5.0 and np.nanmax(res.level) == 5.0
+    assert len(res.spills) == 1 and res.spills[0][1] == -1  # the excess leaves through the hole
+    x = res.spills[0][0]
+    assert args[0].ravel()[x] == 5.0 and 12 <= x // 30 < 18 and 12 <= x % 30 < 18  # a mound cell
+    check(res, args[0], args[2])
+    assert res.stats["volume_stored_m3"] == pytest.approx(364 * 5.0 * 4.0, rel=1e-12)
