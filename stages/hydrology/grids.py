@@ -10,9 +10,12 @@ from worldlib.terrain.hillshade import hillshade
 from .routing import Flow, Land, Surfaces
 
 
-def preview(h: Grid, lake_depth: np.ndarray, river: np.ndarray) -> np.ndarray:
-    img = hillshade(Grid(np.nan_to_num(h.data, nan=float(np.nanmin(h.data)) if np.isfinite(h.data).any() else 0.0),
-                         h.cell_size_m)).astype(np.float32)
+def preview(h: Grid, lake_depth: np.ndarray, river: np.ndarray, hmin: float | None = None) -> np.ndarray:
+    """Hillshade with lakes and rivers; no-data shaded as the lowest height
+    (hmin: the world's, when h is a window of it)."""
+    if hmin is None:
+        hmin = float(np.nanmin(h.data)) if np.isfinite(h.data).any() else 0.0
+    img = hillshade(Grid(np.nan_to_num(h.data, nan=hmin), h.cell_size_m)).astype(np.float32)
     water = np.array([40, 90, 160], np.float32)
     lake = (lake_depth > 0)[..., None]
     img = np.where(lake, 0.3 * img + 0.7 * water, img)
@@ -33,28 +36,50 @@ def flow_vectors(code: np.ndarray, data: np.ndarray) -> np.ndarray:
 
 def output_grids(land: Land, surfaces: Surfaces, flow: Flow, discharge: np.ndarray, lakes, riv, twi: np.ndarray,
                  moisture: np.ndarray, usd_path, water) -> dict:
-    """Every artifact but the stats, in the declaration's order; the river
-    mask holds the network and every cell under a river surface (water.wet)."""
-    def grid(a, channels):
-        return Grid(np.ascontiguousarray(np.asarray(a), dtype=np.float32), land.dx, channels, land.origin_m)
+    """Every artifact but the stats, in the declaration's order."""
+    arrays = grid_arrays(land.data, surfaces.filled, surfaces.routing, flow.code, flow.area_m2, discharge,
+                         lakes.depth, lakes.level, lakes.lake_id, riv.mask, riv.width, riv.order, water.wet, twi,
+                         moisture, water.ground)
+    out = {name: Grid(a, land.dx, GRID_CHANNELS[name], land.origin_m) for name, a in arrays.items()}
+    out["hydrology.water"] = usd_path
+    out["hydrology.preview"] = preview(Grid(land.h, land.dx, ("height",), land.origin_m), lakes.depth,
+                                       river_shown(riv.mask, water.wet, lakes.depth))
+    return {name: out[name] for name in ARTIFACT_ORDER}
+
+
+GRID_CHANNELS = {
+    "hydrology.filled": ("height",), "hydrology.conditioned": ("height",),
+    "hydrology.flow": ("flow.x", "flow.z", "flow.d8"), "hydrology.accumulation": ("flow.accumulation", "flow.discharge"),
+    "hydrology.lakes": ("lake.depth", "lake.level", "lake.id"), "hydrology.rivers": ("river.mask", "river.width", "river.order"),
+    "hydrology.wetness": ("wetness",), "hydrology.moisture": ("moisture",), "hydrology.ground": ("height",),
+}
+ARTIFACT_ORDER = (*GRID_CHANNELS, "hydrology.water", "hydrology.preview")
+
+
+def river_shown(river_mask: np.ndarray, wet: np.ndarray, lake_depth: np.ndarray) -> np.ndarray:
+    """The river mask's cells: the network and every cell under a river surface off the lakes."""
+    return river_mask | (wet & (lake_depth <= 0))
+
+
+def grid_arrays(data, filled, routing, code, area_m2, discharge, lake_depth, lake_level, lake_id, river_mask,
+                river_width, river_order, wet, twi, moisture, ground) -> dict[str, np.ndarray]:
+    """The stage's grids as float32 arrays (NaN on no-data cells), of a
+    world or of a tile of it: cell by cell, so a tile's are the world's there."""
+    def f32(a):
+        return np.ascontiguousarray(np.asarray(a), dtype=np.float32)
 
     nan = np.float32(np.nan)
-    data, lake_depth = land.data, lakes.depth
-    depth32 = np.where(data, lake_depth, nan)
-    lakes_grid = np.stack([depth32, np.where(lake_depth > 0, lakes.level, nan), lakes.lake_id.astype(np.float32)], -1)
-    wet = riv.mask | (water.wet & (lake_depth <= 0))
-    rivers_grid = np.stack([wet.astype(np.float32), np.where(riv.mask, riv.width, 0.0), riv.order.astype(np.float32)], -1)
-    acc_grid = np.stack([np.where(data, flow.area_m2, nan), np.where(data, discharge, nan)], -1)
+    shown = river_shown(river_mask, wet, lake_depth)
     return {
-        "hydrology.filled": grid(np.where(data, surfaces.filled, nan), ("height",)),
-        "hydrology.conditioned": grid(np.where(data, surfaces.routing, nan), ("height",)),
-        "hydrology.flow": grid(flow_vectors(flow.code, data), ("flow.x", "flow.z", "flow.d8")),
-        "hydrology.accumulation": grid(acc_grid, ("flow.accumulation", "flow.discharge")),
-        "hydrology.lakes": grid(lakes_grid, ("lake.depth", "lake.level", "lake.id")),
-        "hydrology.rivers": grid(rivers_grid, ("river.mask", "river.width", "river.order")),
-        "hydrology.wetness": grid(twi, ("wetness",)),
-        "hydrology.moisture": grid(moisture, ("moisture",)),
-        "hydrology.ground": grid(np.where(data, water.ground, nan), ("height",)),
-        "hydrology.water": usd_path,
-        "hydrology.preview": preview(grid(land.h, ("height",)), lake_depth, wet),
+        "hydrology.filled": f32(np.where(data, filled, nan)),
+        "hydrology.conditioned": f32(np.where(data, routing, nan)),
+        "hydrology.flow": f32(flow_vectors(code, data)),
+        "hydrology.accumulation": f32(np.stack([np.where(data, area_m2, nan), np.where(data, discharge, nan)], -1)),
+        "hydrology.lakes": f32(np.stack([np.where(data, lake_depth, nan), np.where(lake_depth > 0, lake_level, nan),
+                                         lake_id.astype(np.float32)], -1)),
+        "hydrology.rivers": f32(np.stack([shown.astype(np.float32), np.where(river_mask, river_width, 0.0),
+                                          river_order.astype(np.float32)], -1)),
+        "hydrology.wetness": f32(twi),
+        "hydrology.moisture": f32(moisture),
+        "hydrology.ground": f32(np.where(data, ground, nan)),
     }

@@ -200,15 +200,19 @@ def _run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams, core:
             twi, moisture = wetness_and_moisture(ctx.cl, land, twi_area, open_water, inputs.get("erosion_moisture"),
                                                  params)
         else:
-            out = tiled.wetness(ctx.tiles, core["terrain"], core["counts"], core["erosion_moisture"], open_water,
-                                params)
-            twi, moisture = (out[k].read(0, 0, *land.shape) for k in ("wetness", "moisture"))
+            core["wetness"] = tiled.wetness(ctx.tiles, core["terrain"], core["counts"], core["erosion_moisture"],
+                                            open_water, params)
+            twi, moisture = (core["wetness"][k].read(0, 0, *land.shape) for k in ("wetness", "moisture"))
     hack, terrain_stats = _network_statistics(land, surfaces, flow, params, T)
     ctx.progress(0.8, "water layer")
     width_table = channels.width_table(flow.area_m2, riv.width, riv.net)
     with T.lap("usd_s"):
         usd_path, uinfo = _write_water_layer(ctx, land, water, width_table, lakes, params)
     out = output_grids(land, surfaces, flow, discharge, lakes, riv, twi, moisture, usd_path, water)
+    if core is not None and "wetness" in core:  # the maps written tile by tile
+        with T.lap("maps_s"):
+            out.update(tiled.maps(ctx.tiles, core["terrain"], core, {**core["grounds"], **core["wetness"]}, lakes,
+                                  riv))
     for name, g in out.items():
         if isinstance(g, Grid) and np.isinf(g.data).any():
             raise StageError(f"hydrology: {name} has infinite values")
@@ -240,8 +244,9 @@ def _rivers(land: Land, flow, discharge: np.ndarray, lakes, filled: np.ndarray, 
 def _tiled_grounds(ctx: RunContext, core: dict, lakes, params: HydrologyParams, land: Land):
     """water_layer.river_water's carving tile by tile (tiled.carved_ground), read back whole."""
     def grounds(seg: dict, pool_ids: np.ndarray):
-        out, stats = tiled.carved_ground(ctx.tiles, core["terrain"], seg, pool_ids, lakes, params)
-        return out["ground"].read(0, 0, *land.shape), out["wet"].read(0, 0, *land.shape), stats
+        core["grounds"], stats = tiled.carved_ground(ctx.tiles, core["terrain"], seg, pool_ids, lakes, params)
+        ground, wet = (core["grounds"][k].read(0, 0, *land.shape) for k in ("ground", "wet"))
+        return ground, wet, stats
     return grounds
 
 

@@ -19,6 +19,7 @@ from worldlib.flow import tiled_accum as ta
 from worldlib.flow import tiled_fill as tf
 
 from . import channels, rivers, water_layer
+from .grids import GRID_CHANNELS, grid_arrays, preview, river_shown
 from .moisture import water_proximity, water_reach_cells
 from .routing import SECONDS_PER_YEAR, Land, rain_from_map, rain_m_per_year
 
@@ -358,3 +359,48 @@ def wetness(runner, terrain, counts, erosion_moisture, open_water: np.ndarray, p
                         grids={"wetness": ("wetness",), "moisture": ("moisture",)}, cell_size_m=dx,
                         origin_m=terrain.origin_m)
     return out
+
+
+# --------------------------------------------------------------------------- the stage's maps
+
+
+def maps_tile(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOutput:
+    """The stage's grids and preview on the tile (grids.grid_arrays, preview
+    from a one-cell halo). shared: the world's lowest height and the lakes'
+    and rivers' maps on the tile's window(1)."""
+    from pipeline.grid import Grid
+
+    hmin, (lake_depth, lake_level, lake_id, river_mask, river_width, river_order) = shared
+    terrain, t = inputs["terrain"], tctx.tile
+    dx = float(terrain.cell_size_m)
+    h = ref.canonical(terrain.read(*t.window(1), channel=terrain.channels[0]))
+    h[~np.isfinite(h)] = np.nan
+    inner = t.inner(1)
+    own = lambda name: np.asarray(inputs[name].tile_array(t))
+    wet = inputs["wet"].read(*t.window(1))
+    arrays = grid_arrays(np.isfinite(h[inner]), own("filled"), own("routing"), own("code"),
+                         own("counts").astype(np.float64) * (dx * dx), own("discharge"), lake_depth[inner],
+                         lake_level[inner], lake_id[inner], river_mask[inner], river_width[inner], river_order[inner],
+                         wet[inner], own("wetness"), own("moisture"), own("ground"))
+    shade = preview(Grid(h, dx, ("height",)), lake_depth, river_shown(river_mask, wet, lake_depth), hmin)
+    return TileOutput({**{name.removeprefix("hydrology."): a for name, a in arrays.items()},
+                       "preview": np.ascontiguousarray(shade[inner])})
+
+
+def maps(runner, terrain, core: dict, grids: dict, lakes, riv) -> dict:
+    """The stage's grids and preview as TileArrays, by artifact name. grids:
+    the tiled passes' wet, ground, wetness and moisture; lakes and riv: the
+    lakes' (LakeMaps) and rivers' (rivers.Rivers) maps of the whole world."""
+    shape, dx = terrain.shape, terrain.cell_size_m
+    ins = {"terrain": terrain, **{k: core[k] for k in ("filled", "routing", "code", "counts", "discharge")}, **grids}
+
+    def part(t):
+        r0, c0, rows, cols = t.window(1)
+        sl = np.s_[r0:r0 + rows, c0:c0 + cols]
+        return core["hmin"], tuple(a[sl] for a in (lakes.depth, lakes.level, lakes.lake_id, riv.mask, riv.width,
+                                                    riv.order))
+    out, _ = runner.map(maps_tile, "maps", shape, ins, None, per_tile={t.name: part(t) for t in runner.tiles(shape)},
+                        grids={**{name.removeprefix("hydrology."): chans for name, chans in GRID_CHANNELS.items()},
+                               "preview": ("r", "g", "b")},
+                        cell_size_m=dx, origin_m=terrain.origin_m)
+    return {f"hydrology.{name}": arrays for name, arrays in out.items()}
