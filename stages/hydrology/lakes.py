@@ -68,15 +68,25 @@ def solve_lakes(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main: np.nd
     h, term, nbr) -> MergeTree: the device's or the reference (default:
     merge_tree_reference). The depression cells gathered, solved, and
     written into whole maps."""
-    rows, cols = h.shape
     dc = gather_depressions(h, kind, F, code_main, code_raw, runoff_m3, accumulate)
     sol = solve_depressions(dc, cell_area, merge_sweep)
+    maps = lake_maps_of(dc, sol, h.shape)
+    return LakeResult(maps.level, maps.depth, maps.lake_id, sol.stats, sol.spills)
+
+
+def lake_maps_of(dc: DepressionCells, sol: DepressionLakes, shape: tuple[int, int]) -> LakeMaps:
+    """The lakes on the depression cells as maps of the world (dry elsewhere)."""
+    rows, cols = shape
     level = np.full(rows * cols, np.nan)
     depth = np.zeros(rows * cols)
     lake_id = np.zeros(rows * cols, np.int32)
     level[dc.cells], depth[dc.cells], lake_id[dc.cells] = sol.level, sol.depth, sol.lake_id
-    return LakeResult(level.reshape(rows, cols), depth.reshape(rows, cols), lake_id.reshape(rows, cols),
-                      sol.stats, sol.spills)
+    return LakeMaps(depth.reshape(rows, cols), level.reshape(rows, cols), lake_id.reshape(rows, cols), sol.stats)
+
+
+def no_lakes(shape: tuple[int, int]) -> LakeMaps:
+    """params.lakes off: every cell dry."""
+    return LakeMaps(np.zeros(shape), np.full(shape, np.nan), np.zeros(shape, np.int32), {"lakes": 0})
 
 
 @dataclass(frozen=True)
@@ -117,7 +127,7 @@ class DepressionCells:
         return int(self.cells.size)
 
 
-def _no_depressions(cols: int, n_cells: int, total_in: float) -> DepressionCells:
+def no_depressions(cols: int, n_cells: int, total_in: float) -> DepressionCells:
     i8, f4 = np.zeros(0, np.int64), np.zeros(0, np.float32)
     return DepressionCells(cols, n_cells, total_in, total_in, i8, f4, f4, i8, np.zeros(0, bool), np.zeros(0),
                            np.zeros((0, 8), np.int32), i8, i8, i8, np.zeros(0, bool))
@@ -132,7 +142,7 @@ def gather_depressions(h: np.ndarray, kind: np.ndarray, F: np.ndarray, code_main
     runoff = np.where(kind == ref.NODATA, 0.0, np.nan_to_num(runoff_m3, nan=0.0)).astype(np.float64)
     total_in = math.fsum(runoff.ravel().tolist())
     if not D.any():
-        return _no_depressions(cols, rows * cols, total_in)
+        return no_depressions(cols, rows * cols, total_in)
     routing = _lake_routing(D, code_main, code_raw, runoff, accumulate)  # 2.
     cells = np.flatnonzero(routing.in_depression)
     code = code_raw.ravel()[cells].astype(np.int64)
@@ -548,10 +558,8 @@ def lake_maps(env, land, filled: np.ndarray, code: np.ndarray, rain: np.ndarray,
     from pipeline.errors import StageError
     from worldlib.flow import device as dev
 
-    rows, cols = land.shape
     if not params.lakes:
-        return LakeMaps(np.zeros((rows, cols)), np.full((rows, cols), np.nan), np.zeros((rows, cols), np.int32),
-                        {"lakes": 0})
+        return no_lakes(land.shape)
     data, cell_area = land.data, land.cell_area
     code_raw = dev.d8(env, np.where(data, land.h, np.float32(0)), land.kind, land.dx)
     mean_rain = math.fsum(rain[data].tolist()) / int(data.sum())  # correctly rounded sum: tiling cannot change it

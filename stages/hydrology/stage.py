@@ -55,7 +55,7 @@ from .moisture import wetness_and_moisture
 from .report_water import draw_water, width_tables
 from .routing import (SECONDS_PER_YEAR, Flow, Land, Surfaces, Timings, condition, discharge_m3_s, flow_directions,
                       land_of, rain_from_map, rain_m_per_year, wetness_area)
-from . import tiled
+from . import tiled, tiled_lakes
 
 __all__ = ["SECONDS_PER_YEAR", "STAGE", "HydrologyParams", "rain_from_map", "run", "check"]
 # Channel heads: 0.1 km^2. Source areas measured at channel heads in steep soil-mantled land reach 1e2 .. 1e5
@@ -186,7 +186,10 @@ def _run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams, core:
     twi_area = _wetness_area(ctx, land, surfaces, flow, params, T)
     ctx.progress(0.45, "lakes")
     with T.lap("lakes_s"):
-        lakes = lakes_mod.lake_maps(ctx.cl, land, surfaces.filled, flow.code, rain, params)
+        if core is None:
+            lakes = lakes_mod.lake_maps(ctx.cl, land, surfaces.filled, flow.code, rain, params)
+        else:
+            lakes = _tiled_lakes(ctx, core, params, land.shape)
     ctx.progress(0.6, "rivers")
     with T.lap("rivers_s"):
         riv = _rivers(land, flow, discharge, lakes, surfaces.filled, params, core and core["network"])
@@ -239,6 +242,14 @@ def _rivers(land: Land, flow, discharge: np.ndarray, lakes, filled: np.ndarray, 
                                network["h"], at(lakes.depth), at(lakes.level), at(lakes.lake_id), at(filled),
                                at(drawn))
     return rivers_mod.rivers_of(nw, land.shape, land.dx, land.n_data, drawn, params)
+
+
+def _tiled_lakes(ctx: RunContext, core: dict, params: HydrologyParams, shape: tuple[int, int]):
+    """The lakes from the depression cells gathered tile by tile (tiled_lakes), as maps of the world."""
+    rain_map = None if params.rain_map_path is None else ctx.resolve(params.rain_map_path)
+    got = tiled_lakes.lakes(ctx.tiles, core["terrain"], core, params, rain_map, ctx.cl,
+                            lambda f, m: ctx.progress(0.45, m))
+    return lakes_mod.no_lakes(shape) if got is None else lakes_mod.lake_maps_of(*got, shape)
 
 
 def _tiled_grounds(ctx: RunContext, core: dict, lakes, params: HydrologyParams, land: Land):

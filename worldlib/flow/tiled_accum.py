@@ -105,6 +105,14 @@ def _path_ends(rl: np.ndarray) -> np.ndarray:
         nxt = jump
 
 
+def path_ends(code: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For tile-local flat `cells` of a tile's codes: the last in-tile cell
+    of each one's path (tile-local flat) and whether the path leaves the tile there."""
+    rl, leaves = _local_receivers(np.ascontiguousarray(code, np.int8))
+    end = _path_ends(rl)[np.asarray(cells, np.int64)].astype(np.int64)
+    return end, leaves.ravel()[end]
+
+
 def _accumulate(code: np.ndarray, weights: np.ndarray | None, env) -> np.ndarray:
     """The project's accumulation of one array: the device's, or the numpy
     reference when env is None (the same integers; counts as uint32)."""
