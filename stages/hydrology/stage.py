@@ -29,6 +29,7 @@ are edge cells that water leaves the map through, like the map border.
 """
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 from typing import Any, Literal, Optional
@@ -267,7 +268,7 @@ def _rain(ctx: RunContext, land: Land, params: HydrologyParams) -> np.ndarray:
         return rain_m_per_year(land, params, None)
     rows, cols = land.shape
     rain = rain_m_per_year(land, params, rain_from_map(ctx.resolve(params.rain_map_path), rows, cols))
-    ctx.metrics["rain_map_mean_mm_per_year"] = float(rain[land.data].mean() * 1000.0)
+    ctx.metrics["rain_map_mean_mm_per_year"] = math.fsum(rain[land.data].tolist()) / land.n_data * 1000.0
     return rain
 
 
@@ -305,8 +306,13 @@ def _write_water_layer(ctx: RunContext, land: Land, water, width_table: list, la
 def _climate(land: Land, rain: np.ndarray, params: HydrologyParams) -> dict:
     """The climate the discharge comes from: mean rain and runoff (mm/year) and
     the bankfull discharge per km^2 of drainage area (m^3/s)."""
-    runoff_m = float(rain[land.data].mean() * params.runoff_coefficient)
-    return {"rain_mean_mm_per_year": float(rain[land.data].mean() * 1000.0), "runoff_mm_per_year": runoff_m * 1000.0,
+    return climate(math.fsum(rain[land.data].tolist()) / land.n_data, params)
+
+
+def climate(mean_rain_m: float, params: HydrologyParams) -> dict:
+    """_climate from the mean rain (m/year, a correctly rounded sum over the cells with data)."""
+    runoff_m = float(mean_rain_m * params.runoff_coefficient)
+    return {"rain_mean_mm_per_year": float(mean_rain_m * 1000.0), "runoff_mm_per_year": runoff_m * 1000.0,
             "mean_discharge_per_km2_m3_s": runoff_m * 1e6 / SECONDS_PER_YEAR,
             "bankfull_discharge_per_km2_m3_s": runoff_m * 1e6 / SECONDS_PER_YEAR * params.bankfull_discharge_ratio}
 
@@ -321,7 +327,7 @@ def _stats(land: Land, surfaces, flow, discharge: np.ndarray, lstats: dict, rive
         "cells": int(rows * cols), "data_cells": n_data, "cell_size_m": land.dx,
         "depression_cells": int((surfaces.filled > land.h).sum()), "total_area_m2": float(n_data * cell_area),
         "outlet_area_m2": float(flow.outlet_total * cell_area),
-        "discharge_out_m3_s": float(discharge[land.kind == ref.EDGE].sum()),
+        "discharge_out_m3_s": math.fsum(discharge[land.kind == ref.EDGE].tolist()),
         **{f"lake_{k_}" if not k_.startswith("lake") else k_: v for k_, v in lstats.items()},
         **river_stats, **hack, **uinfo, "terrain": terrain_stats,
     }

@@ -121,7 +121,8 @@ def bed_fit(rib: channels.Ribbons, ground: np.ndarray, land: Land, in_lake: np.n
 
 
 def lake_outlines(land: Land, lake_id: np.ndarray, lake_level: np.ndarray, min_area_m2: float) -> list:
-    """(lake id, level, mask grown by one cell onto data cells) of every lake of at least min_area_m2."""
+    """(lake id, level, (rows, cols) of its cells grown by one cell onto
+    data cells) of every lake of at least min_area_m2."""
     from scipy import ndimage
 
     rows, cols = land.shape
@@ -134,7 +135,7 @@ def lake_outlines(land: Land, lake_id: np.ndarray, lake_level: np.ndarray, min_a
         m = lake_id[r0:r1, c0:c1] == lid
         if m.sum() * land.cell_area < min_area_m2:
             continue
-        grown = np.zeros((rows, cols), bool)
-        grown[r0:r1, c0:c1] = ndimage.binary_dilation(m, structure=np.ones((3, 3), bool)) & land.data[r0:r1, c0:c1]
-        lake_list.append((lid, float(np.nanmax(lake_level[r0:r1, c0:c1][m])), grown))
+        grown = ndimage.binary_dilation(m, structure=np.ones((3, 3), bool)) & land.data[r0:r1, c0:c1]
+        rr, cc = np.nonzero(grown)
+        lake_list.append((lid, float(np.nanmax(lake_level[r0:r1, c0:c1][m])), (rr + r0, cc + c0)))
     return lake_list

@@ -20,10 +20,10 @@ from worldlib.materials import water_preview_surface
 WIDTH_TABLE_KEY = "worldbake:width_by_area"
 
 
-def lake_surface(mask: np.ndarray, level: float, dx: float, origin: tuple[float, float]):
-    """(points, counts, indices) of quads covering the mask's cells at y = level,
-    wound counter-clockwise seen from +Y (USD rightHanded)."""
-    rows, cols = np.nonzero(mask)  # (a full-grid mask; only its cells are used)
+def lake_surface(cells: tuple[np.ndarray, np.ndarray], level: float, dx: float, origin: tuple[float, float]):
+    """(points, counts, indices) of quads covering the cells (rows, cols) at
+    y = level, wound counter-clockwise seen from +Y (USD rightHanded)."""
+    rows, cols = (np.asarray(a, np.int64) for a in cells)
     corners = np.stack([np.stack([rows, cols], 1), np.stack([rows + 1, cols], 1),
                         np.stack([rows + 1, cols + 1], 1), np.stack([rows, cols + 1], 1)], 1).reshape(-1, 2)
     uniq, inv = np.unique(corners, axis=0, return_inverse=True)
@@ -52,7 +52,7 @@ def _mesh(stage, path: str, pts: np.ndarray, counts: np.ndarray, idx: np.ndarray
 def write(path: Path, provenance: dict, ribbons, width_table: list, lakes: list[tuple[int, float, np.ndarray]],
           dx: float, origin: tuple[float, float]) -> dict:
     """The layer: the river ribbons (channels.Ribbons), the width table
-    (channels.width_table) and the lakes ((id, level, cell mask) each)."""
+    (channels.width_table) and the lakes ((id, level, (rows, cols) of its cells) each)."""
     from pxr import Kind, Sdf, Usd, UsdGeom, Vt
 
     stage, _ = usdio.create_stage(path, provenance)
@@ -78,8 +78,8 @@ def write(path: Path, provenance: dict, ribbons, width_table: list, lakes: list[
 
     lakes_x = UsdGeom.Xform.Define(stage, "/World/Water/Lakes")
     Usd.ModelAPI(lakes_x).SetKind(Kind.Tokens.component)
-    for lid, level, mask in lakes:
-        pts, counts, idx = lake_surface(mask, level, dx, origin)
+    for lid, level, cells in lakes:
+        pts, counts, idx = lake_surface(cells, level, dx, origin)
         mesh = _mesh(stage, f"/World/Water/Lakes/Lake_{lid:05d}", pts, counts, idx, material)
         mesh.GetPrim().SetCustomDataByKey("worldbake:water_level_m", float(level))
         info["usd_lakes"] += 1
