@@ -48,9 +48,12 @@ def hydraulic_geometry(q_bf: np.ndarray, a: float, b: float, c: float, f: float)
     return a * q ** b, c * q ** f
 
 
-def drawn_lakes(lake_id: np.ndarray, cell_area: float, min_area_m2: float) -> np.ndarray:
-    """bool per cell: in a lake of at least min_area_m2 (the lakes the USD draws)."""
-    counts = np.bincount(lake_id.ravel(), minlength=1)
+def drawn_lakes(lake_id: np.ndarray, cell_area: float, min_area_m2: float,
+                lake_cells: np.ndarray | None = None) -> np.ndarray:
+    """bool per cell of lake_id: in a lake of at least min_area_m2 (the lakes
+    the USD draws); the lakes' areas from lake_cells (the lake id of each of
+    their cells, when lake_id holds only some cells), else from lake_id."""
+    counts = np.bincount((lake_id if lake_cells is None else lake_cells).ravel(), minlength=1)
     big = counts * cell_area >= min_area_m2
     big[0] = False
     return big[lake_id]

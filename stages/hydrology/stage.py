@@ -44,7 +44,6 @@ from pipeline.grid import Grid
 from pipeline.tiles import GridFile
 from worldlib.terrain import TERRAIN_SOURCES
 from worldlib.terrain.hillshade import hillshade
-from worldlib.terrain.stats import terrain_statistics
 
 from . import channels
 from . import lakes as lakes_mod
@@ -54,9 +53,9 @@ from . import water_layer
 from .grids import output_grids
 from .moisture import wetness_and_moisture
 from .report_water import draw_water, width_tables
-from .routing import (SECONDS_PER_YEAR, Flow, Land, Surfaces, Timings, condition, discharge_m3_s, flow_directions,
+from .routing import (SECONDS_PER_YEAR, Land, Timings, condition, discharge_m3_s, flow_directions,
                       land_of, rain_from_map, rain_m_per_year, wetness_area)
-from . import tiled, tiled_lakes
+from . import summary, tiled_run
 
 __all__ = ["SECONDS_PER_YEAR", "STAGE", "HydrologyParams", "rain_from_map", "run", "check"]
 # Channel heads: 0.1 km^2. Source areas measured at channel heads in steep soil-mantled land reach 1e2 .. 1e5
@@ -135,131 +134,74 @@ class HydrologyParams(Params):
 
 
 def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dict[str, Any]:
-    return _run(ctx, inputs, params)
-
-
-def run_tiled(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dict[str, Any]:
-    """run on a tiled world: with depression = fill, steps 1 to 3 per tile
-    (tiled.py, the same values); the steps after them still hold the world."""
-    whole = {role: exr.read_grid(v.path) if isinstance(v, GridFile) else v for role, v in inputs.items()}
-    if params.depression != "fill":
-        ctx.metrics["tiled_steps"] = "none: breaching (depression = breach) is serial; the stage ran whole"
-        return _run(ctx, whole, params)
-    T = Timings()
-    with T.lap("tiled_flow_s"):
-        core = tiled.flow_core(ctx.tiles, inputs["terrain"], params, lambda f, m: ctx.progress(0.3 * f, m))
-    with T.lap("discharge_s"):
-        rain_map = None if params.rain_map_path is None else ctx.resolve(params.rain_map_path)
-        core["discharge"] = tiled.discharge(ctx.tiles, inputs["terrain"], core, params, rain_map,
-                                            lambda f, m: ctx.progress(0.3, m))
-    with T.lap("network_s"):
-        core["network"] = tiled.network(ctx.tiles, inputs["terrain"], core, params)
-    core.update(terrain=inputs["terrain"], erosion_moisture=inputs.get("erosion_moisture"))
-    ctx.metrics["tiled_steps"] = (f"fill, routing surface ({core['rounds']} rounds), directions, accumulation, "
-                                  "discharge, the river network's cells, the carved ground, "
-                                  + ("wetness and moisture" if params.flow == "d8" else "(mfd wetness whole)"))
-    return _run(ctx, whole, params, core, T)
-
-
-def _surfaces_and_flow(ctx: RunContext, land: Land, params: HydrologyParams, T: Timings, core: dict | None):
-    """Steps 1 to 3 on the whole world, or the tiled run's results read whole."""
-    if core is None:
-        ctx.progress(0.0, "depressions")
-        surfaces = condition(ctx.cl, land, params.depression, T)
-        ctx.progress(0.25, "flow directions")
-        return surfaces, flow_directions(ctx.cl, land, surfaces.routing, T)
-    whole = {k: core[k].read(0, 0, *land.shape) for k in ("filled", "routing", "code", "counts")}
-    surfaces = Surfaces(whole["filled"], whole["routing"], {"tiled_routing_rounds": core["rounds"]})
-    return surfaces, Flow(whole["code"], whole["counts"].astype(np.float64) * land.cell_area, land.n_data)
-
-
-def _run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams, core: dict | None = None,
-         T: Timings | None = None) -> dict[str, Any]:
     t_all = time.perf_counter()
-    T = T if T is not None else Timings()
+    T = Timings()
     land = land_of(inputs["terrain"])
-    surfaces, flow = _surfaces_and_flow(ctx, land, params, T, core)
+    ctx.progress(0.0, "depressions")
+    surfaces = condition(ctx.cl, land, params.depression, T)
+    ctx.progress(0.25, "flow directions")
+    flow = flow_directions(ctx.cl, land, surfaces.routing, T)
     rain = _rain(ctx, land, params)
-    if core is None:
-        discharge = discharge_m3_s(ctx.cl, land, flow, rain, params, T)
-    else:
-        discharge = core["discharge"].read(0, 0, *land.shape)
+    discharge = discharge_m3_s(ctx.cl, land, flow, rain, params, T)
     twi_area = _wetness_area(ctx, land, surfaces, flow, params, T)
     ctx.progress(0.45, "lakes")
     with T.lap("lakes_s"):
-        if core is None:
-            lakes = lakes_mod.lake_maps(ctx.cl, land, surfaces.filled, flow.code, rain, params)
-        else:
-            lakes = _tiled_lakes(ctx, core, params, land.shape)
+        lakes = lakes_mod.lake_maps(ctx.cl, land, surfaces.filled, flow.code, rain, params)
     ctx.progress(0.6, "rivers")
     with T.lap("rivers_s"):
-        riv = _rivers(land, flow, discharge, lakes, surfaces.filled, params, core and core["network"])
+        riv = rivers_mod.extract(flow.code, flow.area_m2, discharge, land.h, lakes, surfaces.filled, land.dx, params)
     with T.lap("river_beds_s"):
-        water = water_layer.river_water(land, flow.code, riv, lakes.lake_id, lakes.level, params,
-                                        None if core is None else _tiled_grounds(ctx, core, lakes, params, land))
+        water = water_layer.river_water(land, flow.code, riv, lakes.lake_id, lakes.level, params)
     ctx.progress(0.7, "wetness and moisture")
     with T.lap("wetness_s"):
-        open_water = riv.mask | water.wet | (lakes.depth > 0)
-        if core is None or params.flow == "mfd":
-            twi, moisture = wetness_and_moisture(ctx.cl, land, twi_area, open_water, inputs.get("erosion_moisture"),
-                                                 params)
-        else:
-            core["wetness"] = tiled.wetness(ctx.tiles, core["terrain"], core["counts"], core["erosion_moisture"],
-                                            open_water, params)
-            twi, moisture = (core["wetness"][k].read(0, 0, *land.shape) for k in ("wetness", "moisture"))
-    hack, terrain_stats = _network_statistics(land, surfaces, flow, params, T)
+        twi, moisture = wetness_and_moisture(ctx.cl, land, twi_area, riv.mask | water.wet | (lakes.depth > 0),
+                                             inputs.get("erosion_moisture"), params)
+    hack, terrain_stats = summary.network_statistics(land.h, surfaces.filled, flow.code, flow.area_m2, land.data,
+                                                     land.dx, params, T)
     ctx.progress(0.8, "water layer")
     width_table = channels.width_table(flow.area_m2, riv.width, riv.net)
     with T.lap("usd_s"):
-        usd_path, uinfo = _write_water_layer(ctx, land, water, width_table, lakes, params)
+        lake_list = []
+        if params.lakes and lakes.stats.get("lakes", 0):
+            lake_list = water_layer.lake_outlines(land, lakes.lake_id, lakes.level, params.lake_min_area_m2)
+        usd_path, uinfo = write_water_layer(ctx, water.ribbons, width_table, lake_list, land.dx, land.origin_m)
     out = output_grids(land, surfaces, flow, discharge, lakes, riv, twi, moisture, usd_path, water)
-    if core is not None and "wetness" in core:  # the maps written tile by tile
-        with T.lap("maps_s"):
-            out.update(tiled.maps(ctx.tiles, core["terrain"], core, {**core["grounds"], **core["wetness"]}, lakes,
-                                  riv))
     for name, g in out.items():
         if isinstance(g, Grid) and np.isinf(g.data).any():
             raise StageError(f"hydrology: {name} has infinite values")
     T["total_s"] = time.perf_counter() - t_all
-    stats = _stats(land, surfaces, flow, discharge, lakes.stats, {**riv.stats, **water.stats}, hack, uinfo,
-                   terrain_stats)
-    stats.update(_climate(land, rain, params), river_width_by_area=width_table)
-    # how the fill ran (its kernel's passes, or the tiled rounds): the run's, not the content's
+    stats = summary.stats_json(land.shape, land.n_data, land.dx, int((surfaces.filled > land.h).sum()),
+                               flow.outlet_total, math.fsum(discharge[land.kind == ref.EDGE].tolist()), lakes.stats,
+                               {**riv.stats, **water.stats}, hack, uinfo, terrain_stats)
+    stats.update(summary.climate(math.fsum(rain[land.data].tolist()) / land.n_data, params),
+                 river_width_by_area=width_table)
+    # how the fill ran (its kernel's passes): the run's, not the content's
     ctx.metrics.update(stats, timings=dict(T), fill_run=surfaces.fill_stats)
     out["hydrology.stats"] = stats
     ctx.progress(1.0, "done")
     return out
 
 
-def _rivers(land: Land, flow, discharge: np.ndarray, lakes, filled: np.ndarray, params: HydrologyParams,
-            network: dict | None) -> rivers_mod.Rivers:
-    """The rivers from the whole maps, or from the network's cells a tiled run gathered (the lakes still whole)."""
-    if network is None:
-        return rivers_mod.extract(flow.code, flow.area_m2, discharge, land.h, lakes, filled, land.dx, params)
-    drawn = channels.drawn_lakes(lakes.lake_id, land.cell_area, params.lake_min_area_m2)
-    cells = network["cells"]
-    at = lambda a: a.ravel()[cells]
-    nw = rivers_mod.network_of(cells, network["rcv"], network["code"], network["area_m2"], network["discharge"],
-                               network["h"], at(lakes.depth), at(lakes.level), at(lakes.lake_id), at(filled),
-                               at(drawn))
-    return rivers_mod.rivers_of(nw, land.shape, land.dx, land.n_data, drawn, params)
+def run_tiled(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dict[str, Any]:
+    """run on a tiled world: every step per tile or on the few cells it
+    concerns (tiled_run.py), with the same files; breaching and MFD wetness
+    are serial and run whole."""
+    why = ("breaching (depression = breach) is serial" if params.depression != "fill" else
+           "MFD wetness (flow = mfd) is serial" if params.flow != "d8" else None)
+    if why is None:
+        return tiled_run.run(ctx, inputs, params, write_water_layer)
+    ctx.metrics["tiled_steps"] = f"none: {why}; the stage ran whole"
+    return run(ctx, {role: exr.read_grid(v.path) if isinstance(v, GridFile) else v for role, v in inputs.items()},
+               params)
 
 
-def _tiled_lakes(ctx: RunContext, core: dict, params: HydrologyParams, shape: tuple[int, int]):
-    """The lakes from the depression cells gathered tile by tile (tiled_lakes), as maps of the world."""
-    rain_map = None if params.rain_map_path is None else ctx.resolve(params.rain_map_path)
-    got = tiled_lakes.lakes(ctx.tiles, core["terrain"], core, params, rain_map, ctx.cl,
-                            lambda f, m: ctx.progress(0.45, m))
-    return lakes_mod.no_lakes(shape) if got is None else lakes_mod.lake_maps_of(*got, shape)
+def write_water_layer(ctx: RunContext, ribbons, width_table: list, lake_list: list, dx: float,
+                      origin_m) -> tuple[Path, dict]:
+    """/World/Water: the river ribbons and the lakes (lake_list: water_layer.lake_outlines')."""
+    from . import water_usd
 
-
-def _tiled_grounds(ctx: RunContext, core: dict, lakes, params: HydrologyParams, land: Land):
-    """water_layer.river_water's carving tile by tile (tiled.carved_ground), read back whole."""
-    def grounds(seg: dict, pool_ids: np.ndarray):
-        core["grounds"], stats = tiled.carved_ground(ctx.tiles, core["terrain"], seg, pool_ids, lakes, params)
-        ground, wet = (core["grounds"][k].read(0, 0, *land.shape) for k in ("ground", "wet"))
-        return ground, wet, stats
-    return grounds
+    usd_path = ctx.path("hydrology.water")
+    return usd_path, water_usd.write(usd_path, ctx.provenance, ribbons, width_table, lake_list, dx, tuple(origin_m))
 
 
 def _rain(ctx: RunContext, land: Land, params: HydrologyParams) -> np.ndarray:
@@ -277,61 +219,6 @@ def _wetness_area(ctx: RunContext, land: Land, surfaces, flow, params: Hydrology
     if mfd_error is not None:
         ctx.metrics["mfd_area_relative_error"] = mfd_error
     return twi_area
-
-
-def _network_statistics(land: Land, surfaces, flow, params: HydrologyParams, T: Timings) -> tuple[dict, dict]:
-    """Hack's law and whether the final terrain reads as eroded land (grid
-    anisotropy, depressions, Strahler, Hack, theta ...)."""
-    with T.lap("hack_s"):
-        hack = rivers_mod.hack_exponent(flow.code, flow.area_m2, land.dx, params.hack_min_area_m2)
-    with T.lap("terrain_statistics_s"):
-        terrain_stats = terrain_statistics(land.h, surfaces.filled, flow.code, flow.area_m2, land.dx,
-                                           params.river_threshold_m2, land.data)
-    return hack, terrain_stats
-
-
-def _write_water_layer(ctx: RunContext, land: Land, water, width_table: list, lakes,
-                       params: HydrologyParams) -> tuple[Path, dict]:
-    """/World/Water: the river ribbons and the lakes of at least lake_min_area_m2."""
-    from . import water_usd
-
-    lake_list = []
-    if params.lakes and lakes.stats.get("lakes", 0):
-        lake_list = water_layer.lake_outlines(land, lakes.lake_id, lakes.level, params.lake_min_area_m2)
-    usd_path = ctx.path("hydrology.water")
-    return usd_path, water_usd.write(usd_path, ctx.provenance, water.ribbons, width_table, lake_list, land.dx,
-                                     tuple(land.origin_m))
-
-
-def _climate(land: Land, rain: np.ndarray, params: HydrologyParams) -> dict:
-    """The climate the discharge comes from: mean rain and runoff (mm/year) and
-    the bankfull discharge per km^2 of drainage area (m^3/s)."""
-    return climate(math.fsum(rain[land.data].tolist()) / land.n_data, params)
-
-
-def climate(mean_rain_m: float, params: HydrologyParams) -> dict:
-    """_climate from the mean rain (m/year, a correctly rounded sum over the cells with data)."""
-    runoff_m = float(mean_rain_m * params.runoff_coefficient)
-    return {"rain_mean_mm_per_year": float(mean_rain_m * 1000.0), "runoff_mm_per_year": runoff_m * 1000.0,
-            "mean_discharge_per_km2_m3_s": runoff_m * 1e6 / SECONDS_PER_YEAR,
-            "bankfull_discharge_per_km2_m3_s": runoff_m * 1e6 / SECONDS_PER_YEAR * params.bankfull_discharge_ratio}
-
-
-def _stats(land: Land, surfaces, flow, discharge: np.ndarray, lstats: dict, river_stats: dict, hack: dict,
-           uinfo: dict, terrain_stats: dict) -> dict:
-    """stats.json: what the run made, the same every bake (its timings are
-    the manifest's metrics, a run record)."""
-    rows, cols = land.shape
-    cell_area, n_data = land.cell_area, land.n_data
-    stats = {
-        "cells": int(rows * cols), "data_cells": n_data, "cell_size_m": land.dx,
-        "depression_cells": int((surfaces.filled > land.h).sum()), "total_area_m2": float(n_data * cell_area),
-        "outlet_area_m2": float(flow.outlet_total * cell_area),
-        "discharge_out_m3_s": math.fsum(discharge[land.kind == ref.EDGE].tolist()),
-        **{f"lake_{k_}" if not k_.startswith("lake") else k_: v for k_, v in lstats.items()},
-        **river_stats, **hack, **uinfo, "terrain": terrain_stats,
-    }
-    return {k_: (float(v) if isinstance(v, np.floating) else v) for k_, v in stats.items()}
 
 
 def _grid(name, file, channels, units, description, nodata_nan=False):

@@ -8,6 +8,7 @@ The stage's process holds only the perimeters and the tiles' summaries.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -153,23 +154,29 @@ def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, 
     if outlet != data:
         raise StageError(f"hydrology: accumulation at the outlets is {outlet} cells, not {data}")
     return {"filled": filled["filled"], "routing": routing, "code": code["code"], "counts": counts["counts"],
-            "rounds": rnd, "hmin": hmin}
+            "rounds": rnd, "hmin": hmin, "outlet_cells": outlet}
 
 
 # --------------------------------------------------------------------------- discharge
 
 
-def _runoff_weights(tctx, terrain, params, rain: tuple) -> np.ndarray:
-    """The runoff each cell of the tile sends down (m^3/year, float64, 0 on
-    no-data): routing.rain_m_per_year on the tile, from the world's lowest
-    height and rain map (rain = (hmin, the map's path or None, world shape))."""
+def _tile_rain(tctx, terrain, params, rain: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """The tile's yearly rain (routing.rain_m_per_year on the tile, from the
+    world's lowest height and rain map: rain = (hmin, the map's path or
+    None, world shape)) and its cells with data."""
     hmin, rain_map, (rows, cols) = rain
     h, kind, _ = _heights(tctx, terrain)
     data = kind != ref.NODATA
     t = tctx.tile
     land = Land(h, kind, data, float(terrain.cell_size_m), terrain.origin_m, hmin)
     rain_mm = None if rain_map is None else rain_from_map(rain_map, rows, cols, (t.col0, t.row0, t.cols, t.rows))
-    return rain_m_per_year(land, params, rain_mm) * params.runoff_coefficient * land.cell_area
+    return rain_m_per_year(land, params, rain_mm), data
+
+
+def _runoff_weights(tctx, terrain, params, rain: tuple) -> np.ndarray:
+    """The runoff each cell of the tile sends down (m^3/year, float64, 0 on no-data)."""
+    r, _ = _tile_rain(tctx, terrain, params, rain)
+    return r * params.runoff_coefficient * (float(terrain.cell_size_m) ** 2)
 
 
 def runoff_total(tctx, inputs: dict[str, Any], params, rain: tuple) -> TileOutput:
@@ -245,35 +252,93 @@ def discharge(runner, terrain, core: dict, params, rain_map, progress=lambda f, 
 # --------------------------------------------------------------------------- the river network
 
 
-def network_tile(tctx, inputs: dict[str, Any], params, cell_area: float) -> TileOutput:
+def network_tile(tctx, inputs: dict[str, Any], params, rain: tuple) -> TileOutput:
     """The tile's network cells (rivers.network_cells) with their receivers
-    as flat world indices and what rivers.Network holds of each but the lakes'."""
-    t, (rows, cols) = tctx.tile, inputs["code"].shape
+    as flat world indices and what rivers.Network holds of each but the
+    lakes'; and the tile's exact sums for the stats (rain on its data cells,
+    discharge at its map-edge cells) and depression cells."""
+    t, cols = tctx.tile, inputs["code"].shape[1]
+    dx = float(inputs["terrain"].cell_size_m)
     code = np.asarray(inputs["code"].tile_array(t))
-    area = np.asarray(inputs["counts"].tile_array(t)).astype(np.float64) * cell_area
+    area = np.asarray(inputs["counts"].tile_array(t)).astype(np.float64) * (dx * dx)
     local = rivers.network_cells(code, area, params.river_threshold_m2)
     r, c = np.divmod(local, t.cols)
     k = code.ravel()[local].astype(np.int64)
     kk = np.clip(k, 0, 7)
     cells = (r + t.row0) * cols + (c + t.col0)
     rcv = np.where(k >= 0, cells + ref.DR[kk] * cols + ref.DC[kk], -1)
-    h, _, _ = _heights(tctx, inputs["terrain"])
+    h, kind, _ = _heights(tctx, inputs["terrain"])
+    filled = np.asarray(inputs["filled"].tile_array(t))
+    discharge = np.asarray(inputs["discharge"].tile_array(t))
+    rain_m, data = _tile_rain(tctx, inputs["terrain"], params, rain)
     at = lambda a: np.asarray(a).ravel()[local]
     return TileOutput({}, {"cells": cells, "rcv": rcv, "code": at(code), "area_m2": at(area),
-                           "discharge": at(inputs["discharge"].tile_array(t)), "h": at(h)})
+                           "discharge": at(discharge), "h": at(h), "filled": at(filled),
+                           "rain_sum": str(ta.exact_sum(rain_m[data])), "data_cells": int(data.sum()),
+                           "edge_discharge": str(ta.exact_sum(discharge[kind == ref.EDGE])),
+                           "depression_cells": int((filled > h).sum())})
 
 
-def network(runner, terrain, core: dict, params) -> dict[str, np.ndarray]:
+NETWORK_FIELDS = ("cells", "rcv", "code", "area_m2", "discharge", "h", "filled")
+
+
+def network(runner, terrain, core: dict, params, rain_map=None) -> tuple[dict[str, np.ndarray], dict]:
     """The river network's cells of the whole world (rivers.Network's
-    fields but the lakes'), ascending: gathered tile by tile, nothing
-    world-sized. `core`: flow_core's results and the discharge."""
+    fields but the lakes', and the fill), ascending: gathered tile by tile,
+    nothing world-sized; and the world's sums (mean rain, discharge out of
+    the map, depression cells). `core`: flow_core's results and the discharge."""
     shape, dx = terrain.shape, terrain.cell_size_m
-    ins = {"terrain": terrain, "code": core["code"], "counts": core["counts"], "discharge": core["discharge"]}
-    _, parts = runner.map(network_tile, "network", shape, ins, params, dx * dx, keep=False,
+    ins = {"terrain": terrain, **{k: core[k] for k in ("code", "counts", "discharge", "filled")}}
+    _, parts = runner.map(network_tile, "network", shape, ins, params, (core["hmin"], rain_map, shape), keep=False,
                           cell_size_m=dx, origin_m=terrain.origin_m)
-    out = {k: np.concatenate([p[k] for p in parts]) for k in ("cells", "rcv", "code", "area_m2", "discharge", "h")}
+    out = {k: np.concatenate([p[k] for p in parts]) for k in NETWORK_FIELDS}
     order = np.argsort(out["cells"], kind="stable")
-    return {k: v[order] for k, v in out.items()}
+    n_data = sum(p["data_cells"] for p in parts)
+    sums = {"mean_rain_m": ta.exact_total([int(p["rain_sum"]) for p in parts]) / max(n_data, 1), "n_data": n_data,
+            "discharge_out_m3_s": ta.exact_total([int(p["edge_discharge"]) for p in parts]),
+            "depression_cells": sum(p["depression_cells"] for p in parts)}
+    return {k: v[order] for k, v in out.items()}, sums
+
+
+# --------------------------------------------------------------------------- values on a few cells
+
+
+@dataclass(frozen=True)
+class SparseCells:
+    """Values on a few cells of a world (flat indices, ascending): the lakes
+    on the depression cells, the rivers on the network's. A tile is sent the
+    part in its window and makes its maps from it."""
+    cols: int  # the world's columns
+    cells: np.ndarray  # int64 flat indices, ascending
+    values: dict  # name -> array per cell
+
+    def part(self, window: tuple[int, int, int, int]) -> "SparseCells":
+        """The cells in window = (row0, col0, rows, cols) (it may reach beyond the world)."""
+        r0, c0, rows, cols = window
+        r = np.arange(max(r0, 0), r0 + rows, dtype=np.int64)
+        lo = np.searchsorted(self.cells, r * self.cols + max(c0, 0))
+        hi = np.searchsorted(self.cells, r * self.cols + min(c0 + cols, self.cols))
+        sel = np.concatenate([np.arange(a, b) for a, b in zip(lo.tolist(), hi.tolist())] or [np.zeros(0, np.int64)])
+        return SparseCells(self.cols, self.cells[sel], {k: v[sel] for k, v in self.values.items()})
+
+    def grid(self, name: str, window: tuple[int, int, int, int], fill, dtype) -> np.ndarray:
+        """Values `name` on the window's cells, `fill` elsewhere."""
+        r0, c0, rows, cols = window
+        out = np.full((rows, cols), fill, dtype)
+        r, c = np.divmod(self.cells, self.cols)
+        ok = (r >= r0) & (r < r0 + rows) & (c >= c0) & (c < c0 + cols)
+        out[r[ok] - r0, c[ok] - c0] = self.values[name][ok]
+        return out
+
+
+def _lake_grids(lakes: SparseCells, window) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The lakes' depth, level and id on a window (dry elsewhere: lakes.lake_maps_of's fills)."""
+    return (lakes.grid("depth", window, 0.0, np.float64), lakes.grid("level", window, np.nan, np.float64),
+            lakes.grid("lake_id", window, 0, np.int32))
+
+
+def _padded_window(t, halo: int) -> tuple[int, int, int, int]:
+    return t.row0 - halo, t.col0 - halo, t.rows + 2 * halo, t.cols + 2 * halo
 
 
 # --------------------------------------------------------------------------- the carved ground
@@ -282,28 +347,25 @@ def network(runner, terrain, core: dict, params) -> dict[str, np.ndarray]:
 def ground_tile(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOutput:
     """The tile's ground with the beds of the segments near it carved
     (water_layer.carved_ground on the tile: its cells as the whole world's)."""
-    seg, pool_ids, lake_id, lake_level = shared
+    seg, pool_ids, lakes = shared
     terrain, t = inputs["terrain"], tctx.tile
     h, kind, _ = _heights(tctx, terrain)
-    ground, wet, pools = water_layer.carved_ground(h, lake_id, lake_level, seg, pool_ids, terrain.cell_size_m,
+    _, level, lake_id = _lake_grids(lakes, t.window(0))
+    ground, wet, pools = water_layer.carved_ground(h, lake_id, level, seg, pool_ids, terrain.cell_size_m,
                                                    tuple(terrain.origin_m), params,
                                                    window=(t.row0, t.col0, *terrain.shape))
     return TileOutput({"ground": ground, "wet": wet},
                       {"has_data": bool((kind != ref.NODATA).any()), **water_layer.ground_stats(h, ground, wet, pools)})
 
 
-def carved_ground(runner, terrain, seg: dict, pool_ids: np.ndarray, lakes, params) -> tuple[dict, dict]:
+def carved_ground(runner, terrain, seg: dict, pool_ids: np.ndarray, lakes: SparseCells, params) -> tuple[dict, dict]:
     """The carved ground and the cells under the rivers as TileArrays, and
     water_layer.ground_stats of the world. Each tile gets the segments that
-    can reach it (channels.segments_near) and its part of the lakes' maps
-    (`lakes`: the stage's LakeMaps, whole)."""
+    can reach it (channels.segments_near) and the lakes' cells in it."""
     shape, dx, origin = terrain.shape, terrain.cell_size_m, tuple(terrain.origin_m)
     k = channels.carve_reach_cells(seg, dx, params.river_floor_m, params.river_bank_m)
-    shared = {}
-    for t in runner.tiles(shape):
-        sl = np.s_[t.row0:t.row0 + t.rows, t.col0:t.col0 + t.cols]
-        near = channels.segments_near(seg, dx, origin, (t.row0, t.col0, t.rows, t.cols), k)
-        shared[t.name] = (near, pool_ids, lakes.lake_id[sl], lakes.level[sl])
+    shared = {t.name: (channels.segments_near(seg, dx, origin, t.window(0), k), pool_ids, lakes.part(t.window(0)))
+              for t in runner.tiles(shape)}
     out, parts = runner.map(ground_tile, "ground", shape, {"terrain": terrain}, params, per_tile=shared,
                             grids={"ground": ("height",), "wet": ("wet",)}, cell_size_m=dx, origin_m=origin)
     return out, water_layer.tiles_ground_stats([(s.pop("has_data"), s) for s in parts])
@@ -312,28 +374,22 @@ def carved_ground(runner, terrain, seg: dict, pool_ids: np.ndarray, lakes, param
 # --------------------------------------------------------------------------- wetness and moisture
 
 
-def window(a: np.ndarray, tile, halo: int, fill) -> np.ndarray:
-    """Tile `tile` of the whole-world array a with a halo, `fill` beyond the world."""
-    rows, cols = a.shape
-    r0, c0 = tile.row0 - halo, tile.col0 - halo
-    out = np.full((tile.rows + 2 * halo, tile.cols + 2 * halo), fill, a.dtype)
-    rs, cs = slice(max(r0, 0), min(r0 + out.shape[0], rows)), slice(max(c0, 0), min(c0 + out.shape[1], cols))
-    out[rs.start - r0:rs.stop - r0, cs.start - c0:cs.stop - c0] = a[rs, cs]
-    return out
-
-
-def wetness_tile(tctx, inputs: dict[str, Any], params, open_water: np.ndarray) -> TileOutput:
+def wetness_tile(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOutput:
     """moisture.wetness_and_moisture on the tile: the kernel on the tile with
-    a one-cell halo (its slopes), the moisture from the open water within
-    water_reach_cells of it (open_water: the tile with that halo)."""
+    a one-cell halo (its slopes), the moisture from the open water (rivers,
+    the cells under their surfaces, lakes) within water_reach_cells of it."""
     from worldlib.flow import device as dev
 
+    rivers_part, lakes_part = shared
     terrain, t = inputs["terrain"], tctx.tile
     dx = float(terrain.cell_size_m)
-    halo = ref.canonical(terrain.read_padded(t, 1, channel=terrain.channels[0]))
     reach = water_reach_cells(dx, params.moisture_water_distance_m)
-    m_water = water_proximity(open_water, dx, params.moisture_water_distance_m)[reach - 1:-(reach - 1) or None,
-                                                                                 reach - 1:-(reach - 1) or None]
+    win = _padded_window(t, reach)
+    open_water = rivers_part.grid("mask", win, False, bool) | (lakes_part.grid("depth", win, 0.0, np.float64) > 0) | \
+        inputs["wet"].read_padded(t, reach, fill=False)
+    inner = slice(reach - 1, reach + 1 + t.rows), slice(reach - 1, reach + 1 + t.cols)
+    m_water = water_proximity(open_water, dx, params.moisture_water_distance_m)[inner]
+    halo = ref.canonical(terrain.read_padded(t, 1, channel=terrain.channels[0]))
     area = inputs["counts"].read_padded(t, 1, fill=0).astype(np.float64) * (dx * dx)
     ext = inputs.get("erosion_moisture")
     m_ext = np.zeros(halo.shape) if ext is None else \
@@ -345,17 +401,20 @@ def wetness_tile(tctx, inputs: dict[str, Any], params, open_water: np.ndarray) -
     return TileOutput({"wetness": twi[1:-1, 1:-1], "moisture": moist[1:-1, 1:-1]})
 
 
-def wetness(runner, terrain, counts, erosion_moisture, open_water: np.ndarray, params) -> dict:
-    """The wetness index and moisture as TileArrays (D8 drainage area);
-    open_water: bool, the whole world's (rivers, the water under their
-    surfaces, lakes), each tile sent its part with the water's reach."""
+def wetness(runner, terrain, counts, erosion_moisture, wet, rivers_: SparseCells, lakes: SparseCells,
+            params) -> dict:
+    """The wetness index and moisture as TileArrays (D8 drainage area); the
+    open water: the rivers' mask, the lakes and `wet` (the cells under the
+    rivers' surfaces, TileArrays), each tile sent the part within its reach."""
     shape, dx = terrain.shape, terrain.cell_size_m
     if erosion_moisture is not None and tuple(erosion_moisture.shape) != tuple(shape):
         raise InputError(f"hydrology: erosion moisture is {tuple(erosion_moisture.shape)}, the terrain {tuple(shape)}")
     reach = water_reach_cells(dx, params.moisture_water_distance_m)
-    ins = {"terrain": terrain, "counts": counts, **({"erosion_moisture": erosion_moisture} if erosion_moisture else {})}
-    out, _ = runner.map(wetness_tile, "wetness", shape, ins, params,
-                        per_tile={t.name: window(open_water, t, reach, False) for t in runner.tiles(shape)},
+    ins = {"terrain": terrain, "counts": counts, "wet": wet,
+           **({"erosion_moisture": erosion_moisture} if erosion_moisture else {})}
+    per_tile = {t.name: (rivers_.part(_padded_window(t, reach)), lakes.part(_padded_window(t, reach)))
+                for t in runner.tiles(shape)}
+    out, _ = runner.map(wetness_tile, "wetness", shape, ins, params, per_tile=per_tile,
                         grids={"wetness": ("wetness",), "moisture": ("moisture",)}, cell_size_m=dx,
                         origin_m=terrain.origin_m)
     return out
@@ -367,40 +426,69 @@ def wetness(runner, terrain, counts, erosion_moisture, open_water: np.ndarray, p
 def maps_tile(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOutput:
     """The stage's grids and preview on the tile (grids.grid_arrays, preview
     from a one-cell halo). shared: the world's lowest height and the lakes'
-    and rivers' maps on the tile's window(1)."""
+    and rivers' cells in the tile's window(1)."""
     from pipeline.grid import Grid
 
-    hmin, (lake_depth, lake_level, lake_id, river_mask, river_width, river_order) = shared
+    hmin, lakes, rivers_ = shared
     terrain, t = inputs["terrain"], tctx.tile
     dx = float(terrain.cell_size_m)
-    h = ref.canonical(terrain.read(*t.window(1), channel=terrain.channels[0]))
+    win = t.window(1)
+    h = ref.canonical(terrain.read(*win, channel=terrain.channels[0]))
     h[~np.isfinite(h)] = np.nan
     inner = t.inner(1)
     own = lambda name: np.asarray(inputs[name].tile_array(t))
-    wet = inputs["wet"].read(*t.window(1))
+    wet = inputs["wet"].read(*win)
+    lake_depth, lake_level, lake_id = _lake_grids(lakes, win)
+    mask, width, order = (rivers_.grid(n, win, f, d) for n, f, d in (("mask", False, bool), ("width", 0.0, np.float64),
+                                                                     ("order", 0, np.int32)))
     arrays = grid_arrays(np.isfinite(h[inner]), own("filled"), own("routing"), own("code"),
                          own("counts").astype(np.float64) * (dx * dx), own("discharge"), lake_depth[inner],
-                         lake_level[inner], lake_id[inner], river_mask[inner], river_width[inner], river_order[inner],
+                         lake_level[inner], lake_id[inner], mask[inner], width[inner], order[inner],
                          wet[inner], own("wetness"), own("moisture"), own("ground"))
-    shade = preview(Grid(h, dx, ("height",)), lake_depth, river_shown(river_mask, wet, lake_depth), hmin)
+    shade = preview(Grid(h, dx, ("height",)), lake_depth, river_shown(mask, wet, lake_depth), hmin)
     return TileOutput({**{name.removeprefix("hydrology."): a for name, a in arrays.items()},
                        "preview": np.ascontiguousarray(shade[inner])})
 
 
-def maps(runner, terrain, core: dict, grids: dict, lakes, riv) -> dict:
+def maps(runner, terrain, core: dict, grids: dict, lakes: SparseCells, rivers_: SparseCells) -> dict:
     """The stage's grids and preview as TileArrays, by artifact name. grids:
-    the tiled passes' wet, ground, wetness and moisture; lakes and riv: the
-    lakes' (LakeMaps) and rivers' (rivers.Rivers) maps of the whole world."""
+    the tiled passes' wet, ground, wetness and moisture; lakes (depth,
+    level, lake_id) and rivers (mask, width, order) on their cells."""
     shape, dx = terrain.shape, terrain.cell_size_m
     ins = {"terrain": terrain, **{k: core[k] for k in ("filled", "routing", "code", "counts", "discharge")}, **grids}
-
-    def part(t):
-        r0, c0, rows, cols = t.window(1)
-        sl = np.s_[r0:r0 + rows, c0:c0 + cols]
-        return core["hmin"], tuple(a[sl] for a in (lakes.depth, lakes.level, lakes.lake_id, riv.mask, riv.width,
-                                                    riv.order))
-    out, _ = runner.map(maps_tile, "maps", shape, ins, None, per_tile={t.name: part(t) for t in runner.tiles(shape)},
+    per_tile = {t.name: (core["hmin"], lakes.part(t.window(1)), rivers_.part(t.window(1))) for t in runner.tiles(shape)}
+    out, _ = runner.map(maps_tile, "maps", shape, ins, None, per_tile=per_tile,
                         grids={**{name.removeprefix("hydrology."): chans for name, chans in GRID_CHANNELS.items()},
                                "preview": ("r", "g", "b")},
                         cell_size_m=dx, origin_m=terrain.origin_m)
     return {f"hydrology.{name}": arrays for name, arrays in out.items()}
+
+
+def lake_outlines(lakes: SparseCells, terrain, min_area_m2: float) -> list:
+    """water_layer.lake_outlines from the lakes' cells: each lake of at least
+    min_area_m2, its level and its cells grown by one onto data cells (the
+    terrain read on the lake's box)."""
+    from scipy import ndimage
+
+    rows, cols = terrain.shape
+    cell_area = float(terrain.cell_size_m) ** 2
+    wet = lakes.values["lake_id"] > 0
+    ids, cells = lakes.values["lake_id"][wet], lakes.cells[wet]
+    levels = lakes.values["level"][wet]
+    order = np.argsort(ids, kind="stable")
+    ids, cells, levels = ids[order], cells[order], levels[order]
+    starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]]) if ids.size else np.zeros(0, np.int64)
+    out = []
+    for a, b in zip(starts.tolist(), np.r_[starts[1:], ids.size].tolist()):
+        if (b - a) * cell_area < min_area_m2:
+            continue
+        r, c = np.divmod(cells[a:b], cols)
+        r0, r1 = max(int(r.min()) - 1, 0), min(int(r.max()) + 2, rows)
+        c0, c1 = max(int(c.min()) - 1, 0), min(int(c.max()) + 2, cols)
+        m = np.zeros((r1 - r0, c1 - c0), bool)
+        m[r - r0, c - c0] = True
+        data = np.isfinite(terrain.read(r0, c0, r1 - r0, c1 - c0, channel=terrain.channels[0]))
+        grown = ndimage.binary_dilation(m, structure=np.ones((3, 3), bool)) & data
+        rr, cc = np.nonzero(grown)
+        out.append((int(ids[a]), float(np.nanmax(levels[a:b])), (rr + r0, cc + c0)))
+    return out

@@ -27,7 +27,7 @@ def river_water(land: Land, code: np.ndarray, riv: rivers_mod.Rivers, lake_id: n
     ribbons, the carved ground and how well the ribbons sit on it.
     grounds(segments, pool ids) -> (ground, wet, ground_stats): the carving
     done elsewhere (a tiled run's, tile by tile); default: here, on the whole world."""
-    rs, pool_ids = river_reaches(land, riv, params)
+    rs, pool_ids = river_reaches(riv.network, riv.solved, land.shape, land.dx, tuple(land.origin_m), params)
     seg = channels.segments(rs)
     if grounds is None:
         ground, wet, pools = carved_ground(land.h, lake_id, lake_level, seg, pool_ids, land.dx, tuple(land.origin_m),
@@ -42,12 +42,12 @@ def river_water(land: Land, code: np.ndarray, riv: rivers_mod.Rivers, lake_id: n
     return RiverWater(rs, rib, ground, wet, stats)
 
 
-def river_reaches(land: Land, riv: rivers_mod.Rivers, params) -> tuple[list, np.ndarray]:
+def river_reaches(nw: rivers_mod.Network, sol: rivers_mod.NetworkRivers, shape: tuple[int, int], dx: float,
+                  origin: tuple[float, float], params) -> tuple[list, np.ndarray]:
     """The reaches of the rivers the USD draws (on the network's cells), and
     the ids of the pools (lakes it leaves out) they pass."""
-    nw, sol = riv.network, riv.solved
     shown = sol.mask & (sol.width >= params.river_mesh_min_width_m)
-    rs = channels.reaches(nw.rcv, shown, nw.drawn_lake, land.shape, land.dx, tuple(land.origin_m), sol.surface,
+    rs = channels.reaches(nw.rcv, shown, nw.drawn_lake, shape, dx, origin, sol.surface,
                           sol.width, sol.depth, sol.discharge_bf, sol.order, cells_of=nw.cells)
     ids = np.unique(nw.lake_id[shown])
     return rs, ids[ids > 0]

@@ -1,5 +1,6 @@
-"""The stage on a tiled world (tiled.py): steps 1 to 3 per tile give the
-untiled bake's files byte for byte, in this process and on Dask."""
+"""The stage on a tiled world (tiled_run.py, tiled.py, tiled_lakes.py): its
+steps per tile or on the few cells they concern give the untiled bake's
+files byte for byte, in this process and on Dask."""
 from __future__ import annotations
 
 import hashlib
@@ -49,9 +50,10 @@ def test_tiled_hydrology_writes_the_untiled_files(project, resolution, executor)
         files(project / "b_tiled", "hydrology", tiled["hydrology"])
     manifest = json.loads((project / "b_tiled" / "artifacts" / "hydrology" / tiled["hydrology"] /
                            "manifest.json").read_text())
-    assert manifest["metrics"]["tiled_steps"].startswith("fill, routing surface")
-    assert {p["pass"] for p in manifest["metrics"]["tiling"]["passes"]} >= {"fill", "filled", "directions",
-                                                                            "accumulation", "counts"}
+    assert manifest["metrics"]["tiled_steps"].startswith("all but the terrain statistics")
+    assert {p["pass"] for p in manifest["metrics"]["tiling"]["passes"]} >= {
+        "fill", "filled", "directions", "accumulation", "counts", "discharge", "lake_cells", "lake_exits", "network",
+        "ground", "wetness", "maps"}
 
 
 def test_the_tiled_flow_steps_equal_the_untiled_on_a_world_with_holes(tmp_path):
@@ -139,6 +141,7 @@ def test_the_tiled_river_network_is_the_whole_worlds(tmp_path):
     from stages.hydrology import rivers, tiled
     from stages.hydrology.routing import condition, discharge_m3_s, flow_directions, land_of, rain_m_per_year
     from tests.worldlib.flow.worlds import fractal
+    import math
 
     yy, xx = np.mgrid[0:300, 0:270] / 300.0
     h = (fractal(300, seed=4)[:, :270] * 20 + 300 * xx + 60 * np.sin(9 * xx) * np.cos(7 * yy)).astype(np.float32)
@@ -160,16 +163,20 @@ def test_the_tiled_river_network_is_the_whole_worlds(tmp_path):
     terrain = GridFile(tmp_path / "h.exr")
     core = tiled.flow_core(runner, terrain, params)
     core["discharge"] = tiled.discharge(runner, terrain, core, params, None)
-    got = tiled.network(runner, terrain, core, params)
+    got, sums = tiled.network(runner, terrain, core, params)
     cells = got["cells"]
     assert np.array_equal(cells, want.cells) and cells.size > 1000
+    assert np.array_equal(got["filled"], surfaces.filled.ravel()[cells])
+    assert sums["n_data"] == land.n_data and sums["depression_cells"] == int((surfaces.filled > land.h).sum())
+    assert sums["discharge_out_m3_s"] == math.fsum(q[land.kind == 1].tolist()) > 0
+    assert sums["mean_rain_m"] == math.fsum(rain_m_per_year(land, params, None)[land.data].tolist()) / land.n_data
     assert np.array_equal(rivers.compact_receivers(cells, got["rcv"]), want.rcv)
     for name in ("code", "area_m2", "discharge", "h"):
         assert np.array_equal(got[name], getattr(want, name)), name
     assert (want.rcv >= 0).sum() == cells.size - (got["code"] == -1).sum()  # the network is closed downstream
     nw = rivers.network_of(cells, got["rcv"], got["code"], got["area_m2"], got["discharge"], got["h"],
                            np.zeros(cells.size), np.full(cells.size, np.nan), np.zeros(cells.size, np.int32),
-                           surfaces.filled.ravel()[cells],
+                           got["filled"],
                            np.zeros(cells.size, bool))
     a, b = rivers.solve_network(nw, land.dx, land.n_data, params), rivers.solve_network(want, land.dx, land.n_data,
                                                                                        params)
@@ -202,7 +209,8 @@ def test_the_beds_carved_window_by_window_are_the_whole_carve(cl_env, tile):
                          s.filled, land.dx, params)
     whole = water_layer.river_water(land, f.code, riv, lk.lake_id, lk.level, params)
     assert whole.stats["river_reaches"] >= 2 and whole.stats["river_pool_cells_filled"] > 0
-    rs, pool_ids = water_layer.river_reaches(land, riv, params)
+    rs, pool_ids = water_layer.river_reaches(riv.network, riv.solved, land.shape, land.dx, tuple(land.origin_m),
+                                             params)
     seg, origin = channels.segments(rs), tuple(land.origin_m)
     k = channels.carve_reach_cells(seg, land.dx, params.river_floor_m, params.river_bank_m)
     ground, wet = np.empty(land.shape), np.empty(land.shape, bool)
@@ -219,6 +227,12 @@ def test_the_beds_carved_window_by_window_are_the_whole_carve(cl_env, tile):
     assert np.array_equal(ground, whole.ground, equal_nan=True) and np.array_equal(wet, whole.wet)
     stats = water_layer.tiles_ground_stats(parts)
     assert stats == {k_: whole.stats[k_] for k_ in stats}
+
+
+def _wet_tile(tctx, inputs, params, shared):
+    from pipeline.tiles import TileOutput
+
+    return TileOutput({"wet": inputs["under"].read_tile(tctx.tile) > 0})
 
 
 def test_the_tiled_wetness_and_moisture_equal_the_whole(tmp_path):
@@ -258,7 +272,19 @@ def test_the_tiled_wetness_and_moisture_equal_the_whole(tmp_path):
                         work=tmp_path / "work")
     terrain = GridFile(tmp_path / "h.exr")
     core = tiled.flow_core(runner, terrain, params)
-    out = tiled.wetness(runner, terrain, core["counts"], GridFile(tmp_path / "m.exr"), water, params)
+    # the open water as the run has it: a river's cells, a lake's, and cells under a river's surface
+    river, lake, under = np.zeros_like(water), np.zeros_like(water), np.zeros_like(water)
+    river[20:23, 30:120], lake[20:23, 120:200], under[280, 280] = True, True, True
+    assert np.array_equal(river | lake | under, water)
+    cells = lambda m: np.flatnonzero(m).astype(np.int64)
+    rivers_ = tiled.SparseCells(h.shape[1], cells(river), {"mask": np.ones(river.sum(), bool)})
+    lakes = tiled.SparseCells(h.shape[1], cells(lake | (water[::-1] & ~water)),
+                              {"depth": np.where(lake, 1.0, 0.0)[lake | (water[::-1] & ~water)]})
+    exr.write_grid(tmp_path / "u.exr", Grid(under.astype(np.float32), 8.0, ("wet",)))
+    wet, _ = runner.map(_wet_tile, "wet", h.shape, {"under": GridFile(tmp_path / "u.exr")}, None,
+                        grids={"wet": ("wet",)})
+    out = tiled.wetness(runner, terrain, core["counts"], GridFile(tmp_path / "m.exr"), wet["wet"], rivers_, lakes,
+                        params)
     for name, w in zip(("wetness", "moisture"), want):
         assert np.array_equal(out[name].read(0, 0, *h.shape), w, equal_nan=True), name
     assert (want[1][150:, :100] > 0).any() and np.nanmin(want[1]) >= 0.0
