@@ -340,3 +340,20 @@ def test_the_tiled_depression_cells_are_the_whole_gather(tmp_path, tile, lapse):
     b = lakes_mod.solve_depressions(want, land.cell_area)
     assert np.array_equal(a.level, b.level, equal_nan=True) and np.array_equal(a.lake_id, b.lake_id)
     assert a.stats == b.stats and a.stats["lakes"] > 20 and a.spills == b.spills
+
+
+def test_a_tiled_world_is_checked_for_a_tile_and_the_statistics_read_whole():
+    """The check names what a tiled run holds: the larger of a tile with the
+    open water's reach and the terrain statistics, still read whole; breaching runs whole."""
+    from pipeline.contract import CheckContext, GridInfo
+    from stages.hydrology import HydrologyParams
+    from stages.hydrology.stage import BYTES_PER_CELL, WHOLE_STATISTICS_BYTES_PER_CELL, check
+
+    inputs = {"terrain": GridInfo((8192, 8192), 1.0, "heightmap.resolution")}
+    ctx = lambda tile: CheckContext(seed=0, project_root=Path("."), inputs=inputs, tile_cells=tile)
+    fill = HydrologyParams(depression="fill")
+    assert check(fill, ctx(0)).memory_bytes == BYTES_PER_CELL * 8192 ** 2
+    tiled = check(fill, ctx(1024))
+    assert tiled.memory_bytes == WHOLE_STATISTICS_BYTES_PER_CELL * 8192 ** 2 < BYTES_PER_CELL * 8192 ** 2
+    assert "statistics" in tiled.memory_how and "1664^2" in tiled.memory_how  # 1024 + 2 x 320 cells of reach
+    assert check(HydrologyParams(depression="breach"), ctx(1024)).memory_bytes == BYTES_PER_CELL * 8192 ** 2
