@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from worldlib.flow import longest_path
 from worldlib.flow import reference as ref
 from worldlib.terrain.stats import topological_levels
 
@@ -39,11 +40,7 @@ def hack_exponent(code: np.ndarray, area_m2: np.ndarray, dx: float, min_area_m2:
     rcv = ref.receivers(code)
     k = np.clip(code.ravel(), 0, 7)
     step = np.where(k % 2 == 1, dx * np.sqrt(2.0), dx)
-    L = np.zeros(rcv.size)
-    for lev in topo_levels(rcv):
-        t = rcv[lev]
-        ok = t >= 0
-        np.maximum.at(L, t[ok], L[lev[ok]] + step[lev[ok]])
+    L = longest_path.length_m(*longest_path.longest_whole(code), dx)  # step counts: the same in tiles
     A = area_m2.ravel()
     sel = (A >= min_area_m2) & (L > 0)
     out = {"hack_exponent": float("nan"), "hack_coefficient": float("nan"), "hack_cells": int(sel.sum()),
