@@ -42,14 +42,7 @@ def hack_exponent(code: np.ndarray, area_m2: np.ndarray, dx: float, min_area_m2:
     step = np.where(k % 2 == 1, dx * np.sqrt(2.0), dx)
     L = longest_path.length_m(*longest_path.longest_whole(code), dx)  # step counts: the same in tiles
     A = area_m2.ravel()
-    sel = (A >= min_area_m2) & (L > 0)
-    out = {"hack_exponent": float("nan"), "hack_coefficient": float("nan"), "hack_cells": int(sel.sum()),
-           "hack_exponent_mainstem": float("nan"), "hack_mainstem_cells": 0, "hack_mainstem_basins": 0,
-           "longest_flow_path_m": float(L.max()) if L.size else 0.0}
-    if sel.sum() >= 10:
-        h_, logc = np.polyfit(np.log(A[sel]), np.log(L[sel]), 1)
-        out.update(hack_exponent=float(h_), hack_coefficient=float(np.exp(logc)))
-    # main stems: per receiver, the donor with the longest path through it
+    # main stems: per receiver, the donor with the longest path through it (ties: the last in flat order)
     idx = np.flatnonzero(rcv >= 0)
     best = np.full(rcv.size, -1, np.int64)
     if idx.size:
@@ -57,18 +50,37 @@ def hack_exponent(code: np.ndarray, area_m2: np.ndarray, dx: float, min_area_m2:
         r_s = rcv[idx][o]
         last = np.r_[r_s[1:] != r_s[:-1], True]
         best[r_s[last]] = idx[o][last]
-    outlets = np.flatnonzero((code.ravel() == ref.OUTLET) & (A >= min_area_m2))
+    cells = np.flatnonzero(A >= min_area_m2)
+    outlet = code.ravel()[cells] == ref.OUTLET
+    return hack_fit(cells, A[cells], L[cells], best[cells], outlet, float(L.max()) if L.size else 0.0, min_area_m2)
+
+
+def hack_fit(cells: np.ndarray, area_m2: np.ndarray, L: np.ndarray, best: np.ndarray, outlet: np.ndarray,
+             longest_m: float, min_area_m2: float) -> dict:
+    """hack_exponent's fits from the cells draining at least min_area_m2
+    (ascending flat indices, however gathered): their area, longest path,
+    best donor (flat index, -1 none) and whether each is an outlet; and the
+    world's longest path."""
+    sel = L > 0
+    out = {"hack_exponent": float("nan"), "hack_coefficient": float("nan"), "hack_cells": int(sel.sum()),
+           "hack_exponent_mainstem": float("nan"), "hack_mainstem_cells": 0, "hack_mainstem_basins": 0,
+           "longest_flow_path_m": longest_m}
+    if sel.sum() >= 10:
+        h_, logc = np.polyfit(np.log(area_m2[sel]), np.log(L[sel]), 1)
+        out.update(hack_exponent=float(h_), hack_coefficient=float(np.exp(logc)))
+    outlets = np.flatnonzero(outlet)
     stem = []
-    c = outlets
+    c = outlets  # positions in cells
     while c.size:
-        c = c[(A[c] >= min_area_m2) & (L[c] > 0)]
+        c = c[sel[c]]
         stem.append(c)
-        c = best[c]
-        c = c[c >= 0]
+        nxt = best[c]
+        pos = np.minimum(np.searchsorted(cells, nxt), max(cells.size - 1, 0))
+        c = pos[(nxt >= 0) & (cells[pos] == nxt)]  # a donor draining less than min_area_m2 ends the stem
     stem = np.concatenate(stem) if stem else np.zeros(0, np.int64)
     out.update(hack_mainstem_cells=int(stem.size), hack_mainstem_basins=int(outlets.size))
     if stem.size >= 10:
-        h_, _ = np.polyfit(np.log(A[stem]), np.log(L[stem]), 1)
+        h_, _ = np.polyfit(np.log(area_m2[stem]), np.log(L[stem]), 1)
         out["hack_exponent_mainstem"] = float(h_)
     return out
 

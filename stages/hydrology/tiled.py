@@ -15,6 +15,7 @@ import numpy as np
 
 from pipeline.errors import InputError, StageError
 from pipeline.tiles import TileOutput
+from worldlib.flow import longest_path
 from worldlib.flow import reference as ref
 from worldlib.flow import tiled_accum as ta
 from worldlib.flow import tiled_fill as tf
@@ -492,3 +493,73 @@ def lake_outlines(lakes: SparseCells, terrain, min_area_m2: float) -> list:
         rr, cc = np.nonzero(grown)
         out.append((int(ids[a]), float(np.nanmax(levels[a:b])), (rr + r0, cc + c0)))
     return out
+
+
+# --------------------------------------------------------------------------- Hack's law
+
+
+def paths_local(tctx, inputs: dict[str, Any], params, shared) -> TileOutput:
+    """longest_path's pass 1: the tile's longest paths with nothing flowing in, and its perimeter's."""
+    t = tctx.tile
+    p = longest_path.tile_paths(np.asarray(inputs["code"].tile_array(t)), (t.row0, t.col0))
+    return TileOutput({}, {"code": p.code, "exit": p.exit, "a": p.a, "b": p.b, "to_a": p.to_exit_a,
+                           "to_b": p.to_exit_b})
+
+
+def paths_finish(tctx, inputs: dict[str, Any], params, entry: tuple) -> TileOutput:
+    """longest_path's pass 3: the step counts of each cell's longest path."""
+    t = tctx.tile
+    a, b = longest_path.finish_tile(np.asarray(inputs["code"].tile_array(t)), *entry)
+    return TileOutput({"path_a": a.reshape(t.rows, t.cols), "path_b": b.reshape(t.rows, t.cols)})
+
+
+def hack_tile(tctx, inputs: dict[str, Any], params, dx: float) -> TileOutput:
+    """The tile's cells draining at least hack_min_area_m2 with what
+    rivers.hack_fit needs of each (its best donor from a one-cell halo:
+    rivers.hack_exponent's, ties to the last in flat order), and its longest path."""
+    t, cols = tctx.tile, inputs["code"].shape[1]
+    win = t.window(1)
+    code = inputs["code"].read(*win)
+    L = longest_path.length_m(inputs["path_a"].read(*win), inputs["path_b"].read(*win), dx)
+    step = np.where(np.clip(code, 0, 7) % 2 == 1, dx * np.sqrt(2.0), dx)
+    inner = t.inner(1)
+    area = np.asarray(inputs["counts"].tile_array(t)).astype(np.float64) * (dx * dx)
+    local = np.flatnonzero(area >= params.hack_min_area_m2)
+    r, c = np.divmod(local, t.cols)
+    wr, wc = r + inner[0].start, c + inner[1].start  # in the window
+    best_v, best = np.full(local.size, -np.inf), np.full(local.size, -1, np.int64)
+    for k in range(8):
+        dr, dc = wr + ref.DR[k], wc + ref.DC[k]
+        ok = (dr >= 0) & (dr < code.shape[0]) & (dc >= 0) & (dc < code.shape[1])
+        drs, dcs = np.where(ok, dr, 0), np.where(ok, dc, 0)
+        ok &= code[drs, dcs] == (k + 4) % 8  # the neighbour drains into the cell
+        v = np.where(ok, L[drs, dcs] + step[drs, dcs], -np.inf)
+        idx = (drs + win[0]) * cols + (dcs + win[1])
+        take = ok & ((v > best_v) | ((v == best_v) & (idx > best)))
+        best_v, best = np.where(take, v, best_v), np.where(take, idx, best)
+    own = lambda a: a[inner].ravel()[local]
+    return TileOutput({}, {"cells": (r + t.row0) * cols + (c + t.col0), "area": area.ravel()[local], "L": own(L),
+                           "best": best, "outlet": own(code) == ref.OUTLET, "longest": float(L[inner].max())})
+
+
+def hack(runner, terrain, core: dict, params) -> dict:
+    """rivers.hack_exponent of a tiled world: the longest paths in
+    longest_path's three passes, the fit on the cells draining at least
+    hack_min_area_m2 gathered tile by tile."""
+    shape, dx = terrain.shape, float(terrain.cell_size_m)
+    tiles = runner.tiles(shape)
+    geo = {"cell_size_m": dx, "origin_m": terrain.origin_m}
+    _, parts = runner.map(paths_local, "paths", shape, {"code": core["code"]}, params, keep=False, **geo)
+    got = [longest_path.TilePaths((t.row0, t.col0), (t.rows, t.cols), s["code"], s["exit"], s["a"], s["b"],
+                                  s["to_a"], s["to_b"]) for t, s in zip(tiles, parts)]
+    entries = longest_path.solve_entries(_grid_of(tiles, got))
+    by_name = {t.name: e for t, e in zip(tiles, [e for row in entries for e in row])}
+    paths, _ = runner.map(paths_finish, "paths_finish", shape, {"code": core["code"]}, params, per_tile=by_name,
+                          grids={"path_a": ("a",), "path_b": ("b",)}, keep=False, **geo)
+    _, parts = runner.map(hack_tile, "hack", shape, {"code": core["code"], "counts": core["counts"], **paths}, params,
+                          dx, keep=False, **geo)
+    out = {k: np.concatenate([p[k] for p in parts]) for k in ("cells", "area", "L", "best", "outlet")}
+    order = np.argsort(out["cells"], kind="stable")
+    out = {k: v[order] for k, v in out.items()}
+    return rivers.hack_fit(out["cells"], out["area"], out["L"], out["best"], out["outlet"],
+                           max(p["longest"] for p in parts), params.hack_min_area_m2)

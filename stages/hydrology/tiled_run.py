@@ -11,9 +11,12 @@ run (stage.run), its steps per tile or on the few cells they concern.
 6.   wetness and moisture per tile, the open water within its reach;
      the maps and the preview per tile, written tile by tile by the engine.
 
-Still read whole here: the terrain statistics and Hack's law (longest
-flow paths and the height spectrum over the world) and the ribbons' fit
-on the carved ground (the bed-fit stats), each from the tiles' files.
+Hack's law: the longest flow paths in Barnes' passes (worldlib.flow.
+longest_path), the fit on the cells draining enough, gathered per tile.
+
+Still read whole here: the terrain statistics (the height spectrum and
+block slopes over the world, the network's statistics) and the ribbons'
+fit on the carved ground (the bed-fit stats), each from the tiles' files.
 """
 from __future__ import annotations
 
@@ -85,7 +88,10 @@ def run(ctx, inputs: dict[str, Any], params, write_water_layer) -> dict[str, Any
     with T.lap("wetness_s"):
         wet_maps = tiled.wetness(ctx.tiles, terrain, core["counts"], inputs.get("erosion_moisture"), grounds["wet"],
                                  rivers_cells, lakes, params)
-    hack, terrain_stats = _whole_statistics(terrain, core, params, T)
+    with T.lap("hack_s"):
+        hack = tiled.hack(ctx.tiles, terrain, core, params)
+    with T.lap("terrain_statistics_s"):
+        terrain_stats = _whole_statistics(terrain, core, params)
     ctx.progress(0.8, "water layer")
     width_table = channels.width_table(nw.area_m2, sol.width, np.ones(nw.cells.size, bool))
     with T.lap("usd_s"):
@@ -103,23 +109,25 @@ def run(ctx, inputs: dict[str, Any], params, write_water_layer) -> dict[str, Any
     if rain_map is not None:
         ctx.metrics["rain_map_mean_mm_per_year"] = sums["mean_rain_m"] * 1000.0
     ctx.metrics.update(stats, timings=dict(T), fill_run={"tiled_routing_rounds": core["rounds"]},
-                       tiled_steps=f"all but the terrain statistics, Hack's law and the bed fit (read whole); "
+                       tiled_steps=f"all but the terrain statistics and the bed fit (read whole); "
                        f"routing surface in {core['rounds']} rounds")
     out["hydrology.stats"] = stats
     ctx.progress(1.0, "done")
     return out
 
 
-def _whole_statistics(terrain, core: dict, params, T: Timings) -> tuple[dict, dict]:
-    """Hack's law and the terrain statistics from the tiles' files read whole
-    (their longest flow paths and height spectrum are not tiled yet)."""
-    shape = terrain.shape
+def _whole_statistics(terrain, core: dict, params) -> dict:
+    """The terrain statistics from the tiles' files read whole (their
+    longest flow paths and height spectrum are not tiled yet)."""
+    from worldlib.terrain.stats import terrain_statistics
+
+    shape, dx = terrain.shape, float(terrain.cell_size_m)
     h = ref.canonical(terrain.read(0, 0, *shape, channel=terrain.channels[0]))
     data = np.isfinite(h)
     h[~data] = np.nan
-    area = core["counts"].read(0, 0, *shape).astype(np.float64) * float(terrain.cell_size_m) ** 2
-    return summary.network_statistics(h, core["filled"].read(0, 0, *shape), core["code"].read(0, 0, *shape), area,
-                                      data, float(terrain.cell_size_m), params, T)
+    area = core["counts"].read(0, 0, *shape).astype(np.float64) * dx * dx
+    return terrain_statistics(h, core["filled"].read(0, 0, *shape), core["code"].read(0, 0, *shape), area, dx,
+                              params.river_threshold_m2, data)
 
 
 def _bed_fit(terrain, ground, lakes: tiled.SparseCells, rib, hmin: float, params) -> dict:

@@ -53,7 +53,7 @@ def test_tiled_hydrology_writes_the_untiled_files(project, resolution, executor)
     assert manifest["metrics"]["tiled_steps"].startswith("all but the terrain statistics")
     assert {p["pass"] for p in manifest["metrics"]["tiling"]["passes"]} >= {
         "fill", "filled", "directions", "accumulation", "counts", "discharge", "lake_cells", "lake_exits", "network",
-        "ground", "wetness", "maps"}
+        "ground", "wetness", "maps", "paths", "paths_finish", "hack"}
 
 
 def test_the_tiled_flow_steps_equal_the_untiled_on_a_world_with_holes(tmp_path):
@@ -357,3 +357,31 @@ def test_a_tiled_world_is_checked_for_a_tile_and_the_statistics_read_whole():
     assert tiled.memory_bytes == WHOLE_STATISTICS_BYTES_PER_CELL * 8192 ** 2 < BYTES_PER_CELL * 8192 ** 2
     assert "statistics" in tiled.memory_how and "1664^2" in tiled.memory_how  # 1024 + 2 x 320 cells of reach
     assert check(HydrologyParams(depression="breach"), ctx(1024)).memory_bytes == BYTES_PER_CELL * 8192 ** 2
+
+
+def test_the_tiled_hack_law_is_the_whole(tmp_path):
+    """Hack's law from tiles (longest paths in Barnes' passes, best donors
+    from a one-cell halo, the fit on the gathered cells) equals
+    rivers.hack_exponent's on the whole world, main stems across tiles."""
+    from pipeline import exr
+    from pipeline.grid import Grid
+    from pipeline.opencl import get_cl
+    from pipeline.tiles import GridFile, TileRunner
+    from pipeline.timing import StepTimes
+    from stages.hydrology import STAGE, HydrologyParams, rivers, tiled
+    from stages.hydrology.routing import condition, flow_directions, land_of
+    from tests.worldlib.flow.worlds import fractal
+
+    h = (fractal(300, seed=8)[:, :260] * 300.0).astype(np.float32)
+    h[100:130, 60:90] = np.nan
+    exr.write_grid(tmp_path / "h.exr", Grid(h, 8.0))
+    params = HydrologyParams(depression="fill", hack_min_area_m2=3200.0)
+    env = get_cl()
+    land = land_of(exr.read_grid(tmp_path / "h.exr"))
+    flow = flow_directions(env, land, condition(env, land, "fill", StepTimes()).routing, StepTimes())
+    want = rivers.hack_exponent(flow.code, flow.area_m2, land.dx, params.hack_min_area_m2)
+    runner = TileRunner(64, stage=STAGE, run_key="k", seed=0, project_root=tmp_path, units=None,
+                        work=tmp_path / "work")
+    core = tiled.flow_core(runner, GridFile(tmp_path / "h.exr"), params)
+    got = tiled.hack(runner, GridFile(tmp_path / "h.exr"), core, params)
+    assert got == want and want["hack_mainstem_cells"] > 200 and want["longest_flow_path_m"] > 64 * 8.0
