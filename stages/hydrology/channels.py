@@ -285,18 +285,31 @@ def carve(h: np.ndarray, dx: float, origin: tuple[float, float], rs: list[Reach]
     return gf.reshape(t_rows, t_cols), wf.reshape(t_rows, t_cols)
 
 
-def bilinear_at(grid: np.ndarray, dx: float, origin: tuple[float, float], x: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """The grid (values at cell centres) bilinearly interpolated at points (x, z)."""
-    rows, cols = grid.shape
+def point_taps(shape: tuple[int, int], dx: float, origin: tuple[float, float], x: np.ndarray, z: np.ndarray):
+    """bilinear_at's cells and weights for points (x, z) on a grid of `shape`:
+    (r0, r1, c0, c1, u, v)."""
+    rows, cols = shape
     fc = np.clip((np.asarray(x) - origin[0]) / dx - 0.5, 0.0, cols - 1.0)
     fr = np.clip((np.asarray(z) - origin[1]) / dx - 0.5, 0.0, rows - 1.0)
     c0 = np.minimum(np.floor(fc).astype(np.int64), max(cols - 2, 0))
     r0 = np.minimum(np.floor(fr).astype(np.int64), max(rows - 2, 0))
     c1, r1 = np.minimum(c0 + 1, cols - 1), np.minimum(r0 + 1, rows - 1)
-    u, v = fc - c0, fr - r0
-    top = grid[r0, c0] * (1 - u) + grid[r0, c1] * u
-    bot = grid[r1, c0] * (1 - u) + grid[r1, c1] * u
+    return r0, r1, c0, c1, fc - c0, fr - r0
+
+
+def bilinear_points(values: np.ndarray, taps: tuple, origin_rc: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """bilinear_at from its taps (point_taps) on values that hold the grid's
+    cells from (row, col) = origin_rc on: a window gives the whole grid's numbers."""
+    r0, r1, c0, c1, u, v = taps
+    r0, r1, c0, c1 = r0 - origin_rc[0], r1 - origin_rc[0], c0 - origin_rc[1], c1 - origin_rc[1]
+    top = values[r0, c0] * (1 - u) + values[r0, c1] * u
+    bot = values[r1, c0] * (1 - u) + values[r1, c1] * u
     return top * (1 - v) + bot * v
+
+
+def bilinear_at(grid: np.ndarray, dx: float, origin: tuple[float, float], x: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """The grid (values at cell centres) bilinearly interpolated at points (x, z)."""
+    return bilinear_points(grid, point_taps(grid.shape, dx, origin, x, z))
 
 
 def width_table(area_m2: np.ndarray, width: np.ndarray, net: np.ndarray,

@@ -563,3 +563,63 @@ def hack(runner, terrain, core: dict, params) -> dict:
     out = {k: v[order] for k, v in out.items()}
     return rivers.hack_fit(out["cells"], out["area"], out["L"], out["best"], out["outlet"],
                            max(p["longest"] for p in parts), params.hack_min_area_m2)
+
+
+# --------------------------------------------------------------------------- the ribbons' fit on the ground
+
+
+def bed_fit_tile(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOutput:
+    """The fit ground (water_layer.bed_fit's: the carved ground, the level of
+    the lakes the USD draws, no-data at the lowest height) under the bank
+    vertices and lattice lines whose first tap lies in the tile."""
+    from worldlib.terrain.mesh import bilinear_taps
+
+    hmin, lakes, drawn_ids, bank_taps, lattice = shared
+    t, (rows, cols) = tctx.tile, inputs["ground"].shape
+    win = (t.row0, t.col0, min(t.rows + 1, rows - t.row0), min(t.cols + 1, cols - t.col0))
+    lake_id = lakes.grid("lake_id", win, 0, np.int32)
+    fit = np.where(np.isin(lake_id, drawn_ids) & (lake_id > 0), lakes.grid("level", win, np.nan, np.float64),
+                   inputs["ground"].read(*win))
+    g0 = np.nan_to_num(fit, nan=hmin)
+    bank = channels.bilinear_points(g0, bank_taps, (t.row0, t.col0))
+    hv = None if lattice is None else bilinear_taps(g0.astype(np.float32), *lattice, origin=(t.row0, t.col0))
+    return TileOutput({}, {"bank": bank, **({} if hv is None else {"lattice": hv})})
+
+
+def bed_fit(runner, terrain, ground, lakes: SparseCells, rib, in_drawn_lake: np.ndarray, hmin: float, params) -> dict:
+    """water_layer.bed_fit of a tiled world: each tile samples the fit
+    ground under the bank vertices and mesh lattice lines whose first tap
+    it holds (with a one-cell margin for the second), the stats from them.
+    in_drawn_lake: per ribbon vertex, whether its cell is in a lake the USD draws."""
+    if not len(rib.points):
+        return dict(water_layer.NO_FIT)
+    shape, dx = terrain.shape, float(terrain.cell_size_m)
+    q = water_layer.BedFitQuery.of(rib, ~in_drawn_lake, shape, dx, tuple(terrain.origin_m), params.mesh_max_vertices)
+    lake_cells = lakes.values["lake_id"]
+    big = np.bincount(lake_cells, minlength=1) * dx * dx >= params.lake_min_area_m2
+    drawn_ids = np.flatnonzero(big)
+    T = runner.tile_cells or max(shape)
+    bank_tile = (q.bank_taps[0] // T, q.bank_taps[2] // T)
+    per_tile, where = {}, {}
+    for t in runner.tiles(shape):
+        sel = np.flatnonzero((bank_tile[0] == t.row) & (bank_tile[1] == t.col))
+        lattice = None
+        if q.lattice is not None:
+            (r0, r1, fr), (c0, c1, fc) = q.lattice[2], q.lattice[3]
+            i, j = np.flatnonzero(r0 // T == t.row), np.flatnonzero(c0 // T == t.col)
+            lattice = ((r0[i], r1[i], fr[i]), (c0[j], c1[j], fc[j])) if i.size and j.size else None
+            where[t.name] = (i, j)
+        win = (t.row0, t.col0, t.rows + 1, t.cols + 1)
+        per_tile[t.name] = (hmin, lakes.part(win), drawn_ids, tuple(a[sel] for a in q.bank_taps), lattice)
+        where.setdefault(t.name, None)
+        where[t.name] = (sel, where[t.name])
+    _, parts = runner.map(bed_fit_tile, "bed_fit", shape, {"ground": ground}, params, per_tile=per_tile, keep=False,
+                          cell_size_m=dx, origin_m=terrain.origin_m)
+    bank = np.empty(q.bank_taps[0].size)
+    hv = None if q.lattice is None else np.empty((q.lattice[0].size, q.lattice[1].size))
+    for t, p in zip(runner.tiles(shape), parts):
+        sel, ij = where[t.name]
+        bank[sel] = p["bank"]
+        if "lattice" in p:
+            hv[np.ix_(*ij)] = p["lattice"]
+    return water_layer.bed_fit_stats(q, bank, hv)

@@ -14,9 +14,11 @@ run (stage.run), its steps per tile or on the few cells they concern.
 Hack's law: the longest flow paths in Barnes' passes (worldlib.flow.
 longest_path), the fit on the cells draining enough, gathered per tile.
 
+The ribbons' fit on the carved ground: each tile samples the ground
+under the bank vertices and mesh lattice lines it holds.
+
 Still read whole here: the terrain statistics (the height spectrum and
-block slopes over the world, the network's statistics) and the ribbons'
-fit on the carved ground (the bed-fit stats), each from the tiles' files.
+block slopes over the world, the network's statistics), from the tiles' files.
 """
 from __future__ import annotations
 
@@ -29,7 +31,6 @@ from pipeline.timing import StepTimes as Timings
 from worldlib.flow import reference as ref
 
 from . import channels, rivers, summary, tiled, tiled_lakes, water_layer
-from .routing import Land
 
 
 def _lakes(ctx, terrain, core: dict, params, rain_map) -> tuple[tiled.SparseCells, dict]:
@@ -83,7 +84,8 @@ def run(ctx, inputs: dict[str, Any], params, write_water_layer) -> dict[str, Any
         grounds, gstats = tiled.carved_ground(ctx.tiles, terrain, channels.segments(rs), pool_ids, lakes, params)
         rib = channels.ribbons(rs)
         wstats = {**water_layer.reach_stats(rs, rib, params), **gstats,
-                  **_bed_fit(terrain, grounds["ground"], lakes, rib, core["hmin"], params)}
+                  **tiled.bed_fit(ctx.tiles, terrain, grounds["ground"], lakes, rib,
+                                  nw.drawn_lake[np.searchsorted(nw.cells, rib.edge_cells)], core["hmin"], params)}
     ctx.progress(0.7, "wetness and moisture")
     with T.lap("wetness_s"):
         wet_maps = tiled.wetness(ctx.tiles, terrain, core["counts"], inputs.get("erosion_moisture"), grounds["wet"],
@@ -109,7 +111,7 @@ def run(ctx, inputs: dict[str, Any], params, write_water_layer) -> dict[str, Any
     if rain_map is not None:
         ctx.metrics["rain_map_mean_mm_per_year"] = sums["mean_rain_m"] * 1000.0
     ctx.metrics.update(stats, timings=dict(T), fill_run={"tiled_routing_rounds": core["rounds"]},
-                       tiled_steps=f"all but the terrain statistics and the bed fit (read whole); "
+                       tiled_steps=f"all but the terrain statistics (read whole); "
                        f"routing surface in {core['rounds']} rounds")
     out["hydrology.stats"] = stats
     ctx.progress(1.0, "done")
@@ -128,18 +130,3 @@ def _whole_statistics(terrain, core: dict, params) -> dict:
     area = core["counts"].read(0, 0, *shape).astype(np.float64) * dx * dx
     return terrain_statistics(h, core["filled"].read(0, 0, *shape), core["code"].read(0, 0, *shape), area, dx,
                               params.river_threshold_m2, data)
-
-
-def _bed_fit(terrain, ground, lakes: tiled.SparseCells, rib, hmin: float, params) -> dict:
-    """water_layer.bed_fit on the carved ground read whole (not tiled yet)."""
-    shape, dx = terrain.shape, float(terrain.cell_size_m)
-    h = ref.canonical(terrain.read(0, 0, *shape, channel=terrain.channels[0]))
-    data = np.isfinite(h)
-    h[~data] = np.nan
-    land = Land(h, ref.cell_kinds(h), data, dx, tuple(terrain.origin_m), hmin)
-    window = (0, 0, *shape)
-    lake_id = lakes.grid("lake_id", window, 0, np.int32)
-    drawn = channels.drawn_lakes(lake_id, dx * dx, params.lake_min_area_m2)
-    level = lakes.grid("level", window, np.nan, np.float64)
-    return water_layer.bed_fit(rib, np.where(drawn, level, ground.read(0, 0, *shape)), land, drawn.ravel(),
-                               params.mesh_max_vertices)

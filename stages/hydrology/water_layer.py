@@ -88,34 +88,70 @@ def tiles_ground_stats(parts: list[tuple[bool, dict]]) -> dict:
                                                          "river_pool_cells_filled")}}
 
 
+@dataclass(frozen=True)
+class BedFitQuery:
+    """Where bed_fit samples the carved ground: the ribbons' bank vertices
+    off the lakes (point_taps), and the lattice of the world's terrain mesh."""
+    points: np.ndarray  # (n, 3) float64 the ribbons' vertices
+    keep: np.ndarray  # bool per vertex: off the lakes the USD draws
+    bank_taps: tuple  # channels.point_taps of the kept vertices
+    lattice: tuple | None  # (ri, ci, row taps, col taps) of the mesh's lattice (mesh.lattice_of), None: no mesh
+    dx: float
+    origin: tuple[float, float]
+    shape: tuple[int, int]
+
+    @staticmethod
+    def of(rib: channels.Ribbons, keep: np.ndarray, shape: tuple[int, int], dx: float, origin: tuple[float, float],
+           mesh_max_vertices: int) -> "BedFitQuery":
+        from worldlib.terrain.mesh import lattice_of, lattice_taps
+
+        p = rib.points.astype(np.float64)
+        taps = channels.point_taps(shape, dx, origin, p[keep, 0], p[keep, 2])
+        lattice = None
+        if shape[0] >= 2 and shape[1] >= 2:
+            ri, ci = lattice_of(*shape, mesh_max_vertices)
+            lattice = (ri, ci, lattice_taps(shape[0], ri), lattice_taps(shape[1], ci))
+        return BedFitQuery(p, keep, taps, lattice, dx, origin, shape)
+
+
+NO_FIT = {"river_bank_vertices": 0, "river_banks_on_bed_share": 1.0, "river_bank_above_ground_max_m": 0.0,
+          "river_bank_below_ground_max_m": 0.0, "river_visible_over_mesh_share": 1.0}
+
+
 def bed_fit(rib: channels.Ribbons, ground: np.ndarray, land: Land, in_lake: np.ndarray, mesh_max_vertices: int) -> dict:
     """How the ribbons sit on the carved ground: at every bank vertex off
     the lakes, its height above the ground (bilinear between cell centres):
     the share within BED_TOLERANCE_M and the extremes; and the share of bank
     vertices and centreline points not below the world's terrain mesh of
     the carved ground (mesh_max_vertices per side: what a renderer shows)."""
-    out = {"river_bank_vertices": 0, "river_banks_on_bed_share": 1.0, "river_bank_above_ground_max_m": 0.0,
-           "river_bank_below_ground_max_m": 0.0, "river_visible_over_mesh_share": 1.0}
     if not len(rib.points):
-        return out
-    p = rib.points.astype(np.float64)
-    keep = ~in_lake[rib.edge_cells]
+        return dict(NO_FIT)
+    from worldlib.terrain.mesh import bilinear_taps
+
+    q = BedFitQuery.of(rib, ~in_lake[rib.edge_cells], land.shape, land.dx, tuple(land.origin_m), mesh_max_vertices)
     g0 = np.nan_to_num(ground, nan=land.hmin)
-    dy = p[keep, 1] - channels.bilinear_at(g0, land.dx, tuple(land.origin_m), p[keep, 0], p[keep, 2])
+    hv = None if q.lattice is None else bilinear_taps(g0.astype(np.float32), q.lattice[2], q.lattice[3])
+    return bed_fit_stats(q, channels.bilinear_points(g0, q.bank_taps), hv)
+
+
+def bed_fit_stats(q: BedFitQuery, bank_ground: np.ndarray, lattice_heights: np.ndarray | None) -> dict:
+    """bed_fit's numbers from the ground under the kept bank vertices and the mesh's lattice heights."""
+    from worldlib.terrain.mesh import height_on_mesh, mesh_from_lattice
+
+    out = dict(NO_FIT)
+    p, keep = q.points, q.keep
+    dy = p[keep, 1] - bank_ground
     out.update(river_bank_vertices=int(keep.sum()))
     if dy.size:
         out.update(river_banks_on_bed_share=float((np.abs(dy) <= BED_TOLERANCE_M).mean()),
                    river_bank_above_ground_max_m=float(max(dy.max(), 0.0)),
                    river_bank_below_ground_max_m=float(max(-dy.min(), 0.0)))
-    rows, cols = land.shape
-    if rows >= 2 and cols >= 2:
-        from pipeline.grid import Grid
-        from worldlib.terrain.mesh import build_terrain_mesh, height_on_mesh
-
-        mesh = build_terrain_mesh(Grid(g0.astype(np.float32), land.dx, ("height",), land.origin_m), mesh_max_vertices)
+    if lattice_heights is not None:
+        rows, cols = q.shape
+        mesh = mesh_from_lattice(lattice_heights, q.lattice[0], q.lattice[1], q.dx, q.origin, (cols * q.dx, rows * q.dx))
         mid = 0.5 * (p[0::2] + p[1::2])
-        q = np.concatenate([p[keep], mid[keep[0::2]]])
-        vis = q[:, 1] >= height_on_mesh(mesh, q[:, 0], q[:, 2]) - 0.05
+        pts = np.concatenate([p[keep], mid[keep[0::2]]])
+        vis = pts[:, 1] >= height_on_mesh(mesh, pts[:, 0], pts[:, 2]) - 0.05
         out["river_visible_over_mesh_share"] = float(vis.mean()) if vis.size else 1.0
     return out
 

@@ -51,32 +51,50 @@ def lattice_shape(rows: int, cols: int, max_vertices_per_side: int) -> tuple[int
     return side(rows), side(cols)
 
 
-def bilinear(values: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """values sampled at fractional (row, col) cell indices (outer product)."""
-    r0 = np.clip(np.floor(rows).astype(np.int64), 0, max(values.shape[0] - 2, 0))
-    c0 = np.clip(np.floor(cols).astype(np.int64), 0, max(values.shape[1] - 2, 0))
-    r1 = np.minimum(r0 + 1, values.shape[0] - 1)
-    c1 = np.minimum(c0 + 1, values.shape[1] - 1)
-    fr = (rows - r0)[:, None]
-    fc = (cols - c0)[None, :]
+def lattice_taps(n_cells: int, coords: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The two cells (first, second) and the weight of the second of
+    bilinear sampling at fractional cell indices coords along a side of n_cells."""
+    i0 = np.clip(np.floor(coords).astype(np.int64), 0, max(n_cells - 2, 0))
+    return i0, np.minimum(i0 + 1, n_cells - 1), coords - i0
+
+
+def bilinear_taps(values: np.ndarray, rt: tuple, ct: tuple, origin: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """bilinear() from its taps (lattice_taps) on values that hold the
+    world's cells from (row, col) = origin on: the same numbers from a
+    window of the world as from the whole."""
+    (r0, r1, fr), (c0, c1, fc) = rt, ct
+    r0, r1, c0, c1 = r0 - origin[0], r1 - origin[0], c0 - origin[1], c1 - origin[1]
+    fr, fc = fr[:, None], fc[None, :]
     v = values.astype(np.float64)
     top = v[np.ix_(r0, c0)] * (1 - fc) + v[np.ix_(r0, c1)] * fc
     bottom = v[np.ix_(r1, c0)] * (1 - fc) + v[np.ix_(r1, c1)] * fc
     return top * (1 - fr) + bottom * fr
 
 
-def build_terrain_mesh(height: Grid, max_vertices_per_side: int) -> TerrainMesh:
-    h = height.channel(height.channels[0])
-    rows, cols = h.shape
+def bilinear(values: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """values sampled at fractional (row, col) cell indices (outer product)."""
+    return bilinear_taps(values, lattice_taps(values.shape[0], rows), lattice_taps(values.shape[1], cols))
+
+
+def lattice_of(rows: int, cols: int, max_vertices_per_side: int) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh's lattice lines as fractional cell indices (rows, cols) of a rows x cols grid."""
     if rows < 2 or cols < 2:
         raise ValueError(f"a terrain mesh needs at least 2x2 cells, the grid is {rows}x{cols}")
-    dx = height.cell_size_m
     nr, nc = lattice_shape(rows, cols, max_vertices_per_side)
-    ri = lattice_coordinates(rows, nr)
-    ci = lattice_coordinates(cols, nc)
-    hv = bilinear(h, ri, ci)
-    x = height.origin_m[0] + (ci + 0.5) * dx
-    z = height.origin_m[1] + (ri + 0.5) * dx
+    return lattice_coordinates(rows, nr), lattice_coordinates(cols, nc)
+
+
+def build_terrain_mesh(height: Grid, max_vertices_per_side: int) -> TerrainMesh:
+    h = height.channel(height.channels[0])
+    ri, ci = lattice_of(*h.shape, max_vertices_per_side)
+    return mesh_from_lattice(bilinear(h, ri, ci), ri, ci, height.cell_size_m, height.origin_m, height.size_m)
+
+
+def mesh_from_lattice(hv: np.ndarray, ri: np.ndarray, ci: np.ndarray, dx: float, origin_m: tuple[float, float],
+                      size_m: tuple[float, float]) -> TerrainMesh:
+    """The mesh of the lattice heights hv (float64) at lattice lines ri, ci (lattice_of)."""
+    x = origin_m[0] + (ci + 0.5) * dx
+    z = origin_m[1] + (ri + 0.5) * dx
     nr, nc = hv.shape
     X, Z = np.meshgrid(x, z)
     points = np.stack([X, hv, Z], axis=-1).reshape(-1, 3)
@@ -87,9 +105,9 @@ def build_terrain_mesh(height: Grid, max_vertices_per_side: int) -> TerrainMesh:
     n = np.stack([-dh_dx, np.ones_like(hv), -dh_dz], axis=-1)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
 
-    width, depth = height.size_m
-    s = (X - height.origin_m[0]) / width
-    t = 1.0 - (Z - height.origin_m[1]) / depth
+    width, depth = size_m
+    s = (X - origin_m[0]) / width
+    t = 1.0 - (Z - origin_m[1]) / depth
     st = np.stack([s, t], axis=-1).reshape(-1, 2)
 
     idx = np.arange(nr * nc, dtype=np.int32).reshape(nr, nc)

@@ -53,7 +53,7 @@ def test_tiled_hydrology_writes_the_untiled_files(project, resolution, executor)
     assert manifest["metrics"]["tiled_steps"].startswith("all but the terrain statistics")
     assert {p["pass"] for p in manifest["metrics"]["tiling"]["passes"]} >= {
         "fill", "filled", "directions", "accumulation", "counts", "discharge", "lake_cells", "lake_exits", "network",
-        "ground", "wetness", "maps", "paths", "paths_finish", "hack"}
+        "ground", "wetness", "maps", "paths", "paths_finish", "hack", "bed_fit"}
 
 
 def test_the_tiled_flow_steps_equal_the_untiled_on_a_world_with_holes(tmp_path):
