@@ -153,15 +153,6 @@ def network_cells(code: np.ndarray, area_m2: np.ndarray, threshold_m2: float) ->
     return np.flatnonzero((area_m2.ravel() >= threshold_m2) & (code.ravel() != ref.NODATA_CODE))
 
 
-def compact_receivers(cells: np.ndarray, rcv_flat: np.ndarray) -> np.ndarray:
-    """Receivers given as flat world indices (-1 none) as indices into the
-    ascending `cells`; -1 where the receiver is not one of them."""
-    pos = np.searchsorted(cells, rcv_flat)
-    pos_ok = np.minimum(pos, max(cells.size - 1, 0))
-    hit = (rcv_flat >= 0) & (pos < cells.size) & (cells[pos_ok] == rcv_flat) if cells.size else rcv_flat < -1
-    return np.where(hit, pos_ok, -1).astype(np.int64)
-
-
 def network_of(cells: np.ndarray, rcv_flat: np.ndarray, code: np.ndarray, area_m2: np.ndarray,
                discharge: np.ndarray, h: np.ndarray, lake_depth: np.ndarray, lake_level: np.ndarray,
                lake_id: np.ndarray, filled: np.ndarray, drawn: np.ndarray) -> Network:
@@ -172,7 +163,7 @@ def network_of(cells: np.ndarray, rcv_flat: np.ndarray, code: np.ndarray, area_m
     in_lake = lake_depth > 0
     level = np.where(in_lake, lake_level, np.nan)
     full = in_lake & (level >= filled - LAKE_FULL_TOLERANCE_M)
-    return Network(cells, compact_receivers(cells, rcv_flat), code.astype(np.int8), area_m2.astype(np.float64),
+    return Network(cells, ref.subset_receivers(cells, rcv_flat), code.astype(np.int8), area_m2.astype(np.float64),
                    discharge.astype(np.float64), h.astype(np.float64), level, full, lake_id.astype(np.int32),
                    drawn.astype(bool))
 

@@ -251,25 +251,22 @@ def check(params: HydrologyParams, ctx: CheckContext) -> Check:
     return Check(memory_bytes=BYTES_PER_CELL * cells, memory_how=f"the terrain's {cells:,} cells x {BYTES_PER_CELL} B")
 
 
-# a tiled run still reads the terrain statistics' and Hack's law's inputs whole (heights, fill, codes, area:
-# 18 B per cell) and their work takes about 180 B per cell more (tracemalloc's peak at 2048^2)
-WHOLE_STATISTICS_BYTES_PER_CELL = 200
-BYTES_PER_TILE_CELL = 48  # a tile pass: heights, codes, accumulation, the wetness's distance transform
+# a tiled run holds a tile pass at a time (a tile with the open water's reach around it) and the cells the
+# world-wide solves work on: the river network's, the depressions', those draining enough for Hack's law (each
+# about 100 B; together well under a tenth of the cells at any resolution)
+BYTES_PER_TILE_CELL = 48  # heights, codes, accumulation, the wetness's distance transform
+SPARSE_BYTES_PER_CELL = 10
 
 
 def _tiled_memory(params: HydrologyParams, shape: tuple[int, int], dx: float, tile_cells: int) -> Check:
-    """The largest of: a tile with the open water's reach around it, the
-    statistics read whole."""
+    """A tile pass and the sparse sets of the world-wide solves."""
     from .moisture import water_reach_cells
 
     held = tile_cells + 2 * water_reach_cells(dx, params.moisture_water_distance_m)
     cells = shape[0] * shape[1]
-    parts = [(BYTES_PER_TILE_CELL * held * held, f"a tile and the water's reach ({held}^2 cells x "
-              f"{BYTES_PER_TILE_CELL} B)"),
-             (WHOLE_STATISTICS_BYTES_PER_CELL * cells, f"the terrain statistics, read whole ({cells:,} cells x "
-              f"{WHOLE_STATISTICS_BYTES_PER_CELL} B)")]
-    memory, _ = max(parts)
-    return Check(memory_bytes=memory, memory_how="the largest of " + ", ".join(how for _, how in parts))
+    return Check(memory_bytes=BYTES_PER_TILE_CELL * held * held + SPARSE_BYTES_PER_CELL * cells,
+                 memory_how=f"a tile and the water's reach ({held}^2 cells x {BYTES_PER_TILE_CELL} B) and the "
+                 f"network's, depressions' and Hack's cells ({cells:,} cells x {SPARSE_BYTES_PER_CELL} B)")
 
 
 STAGE = Stage(

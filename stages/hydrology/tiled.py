@@ -524,7 +524,7 @@ def hack_tile(tctx, inputs: dict[str, Any], params, dx: float) -> TileOutput:
     step = np.where(np.clip(code, 0, 7) % 2 == 1, dx * np.sqrt(2.0), dx)
     inner = t.inner(1)
     area = np.asarray(inputs["counts"].tile_array(t)).astype(np.float64) * (dx * dx)
-    local = np.flatnonzero(area >= params.hack_min_area_m2)
+    local = np.flatnonzero(area >= min(params.hack_min_area_m2, params.river_threshold_m2))
     r, c = np.divmod(local, t.cols)
     wr, wc = r + inner[0].start, c + inner[1].start  # in the window
     best_v, best = np.full(local.size, -np.inf), np.full(local.size, -1, np.int64)
@@ -542,10 +542,11 @@ def hack_tile(tctx, inputs: dict[str, Any], params, dx: float) -> TileOutput:
                            "best": best, "outlet": own(code) == ref.OUTLET, "longest": float(L[inner].max())})
 
 
-def hack(runner, terrain, core: dict, params) -> dict:
+def hack(runner, terrain, core: dict, params) -> tuple[dict, dict]:
     """rivers.hack_exponent of a tiled world: the longest paths in
     longest_path's three passes, the fit on the cells draining at least
-    hack_min_area_m2 gathered tile by tile."""
+    hack_min_area_m2 gathered tile by tile; and the longest paths (m) of the
+    cells draining at least either that or river_threshold_m2 ("cells", "L")."""
     shape, dx = terrain.shape, float(terrain.cell_size_m)
     tiles = runner.tiles(shape)
     geo = {"cell_size_m": dx, "origin_m": terrain.origin_m}
@@ -561,8 +562,9 @@ def hack(runner, terrain, core: dict, params) -> dict:
     out = {k: np.concatenate([p[k] for p in parts]) for k in ("cells", "area", "L", "best", "outlet")}
     order = np.argsort(out["cells"], kind="stable")
     out = {k: v[order] for k, v in out.items()}
-    return rivers.hack_fit(out["cells"], out["area"], out["L"], out["best"], out["outlet"],
-                           max(p["longest"] for p in parts), params.hack_min_area_m2)
+    fit = out["area"] >= params.hack_min_area_m2
+    return rivers.hack_fit(*(out[k][fit] for k in ("cells", "area", "L", "best", "outlet")),
+                           max(p["longest"] for p in parts), params.hack_min_area_m2), out
 
 
 # --------------------------------------------------------------------------- the ribbons' fit on the ground

@@ -17,8 +17,8 @@ longest_path), the fit on the cells draining enough, gathered per tile.
 The ribbons' fit on the carved ground: each tile samples the ground
 under the bank vertices and mesh lattice lines it holds.
 
-Still read whole here: the terrain statistics (the height spectrum and
-block slopes over the world, the network's statistics), from the tiles' files.
+The terrain statistics: the height's from windows of the files
+(stats.field_statistics), the network's from its cells.
 """
 from __future__ import annotations
 
@@ -91,9 +91,10 @@ def run(ctx, inputs: dict[str, Any], params, write_water_layer) -> dict[str, Any
         wet_maps = tiled.wetness(ctx.tiles, terrain, core["counts"], inputs.get("erosion_moisture"), grounds["wet"],
                                  rivers_cells, lakes, params)
     with T.lap("hack_s"):
-        hack = tiled.hack(ctx.tiles, terrain, core, params)
+        hack, paths = tiled.hack(ctx.tiles, terrain, core, params)
     with T.lap("terrain_statistics_s"):
-        terrain_stats = _whole_statistics(terrain, core, params)
+        terrain_stats = _terrain_statistics(terrain, core, nw, paths["L"][np.searchsorted(paths["cells"], nw.cells)],
+                                            sums["n_data"], params)
     ctx.progress(0.8, "water layer")
     width_table = channels.width_table(nw.area_m2, sol.width, np.ones(nw.cells.size, bool))
     with T.lap("usd_s"):
@@ -111,22 +112,25 @@ def run(ctx, inputs: dict[str, Any], params, write_water_layer) -> dict[str, Any
     if rain_map is not None:
         ctx.metrics["rain_map_mean_mm_per_year"] = sums["mean_rain_m"] * 1000.0
     ctx.metrics.update(stats, timings=dict(T), fill_run={"tiled_routing_rounds": core["rounds"]},
-                       tiled_steps=f"all but the terrain statistics (read whole); "
+                       tiled_steps=f"every step; "
                        f"routing surface in {core['rounds']} rounds")
     out["hydrology.stats"] = stats
     ctx.progress(1.0, "done")
     return out
 
 
-def _whole_statistics(terrain, core: dict, params) -> dict:
-    """The terrain statistics from the tiles' files read whole (their
-    longest flow paths and height spectrum are not tiled yet)."""
-    from worldlib.terrain.stats import terrain_statistics
+def _terrain_statistics(terrain, core: dict, nw: rivers.Network, L: np.ndarray, n_data: int, params) -> dict:
+    """worldlib.terrain.stats.terrain_statistics of a tiled world: the
+    height's statistics from windows of the files, the network's from its
+    cells (nw; L: their longest paths)."""
+    from worldlib.terrain import stats
 
     shape, dx = terrain.shape, float(terrain.cell_size_m)
-    h = ref.canonical(terrain.read(0, 0, *shape, channel=terrain.channels[0]))
-    data = np.isfinite(h)
-    h[~data] = np.nan
-    area = core["counts"].read(0, 0, *shape).astype(np.float64) * dx * dx
-    return terrain_statistics(h, core["filled"].read(0, 0, *shape), core["code"].read(0, 0, *shape), area, dx,
-                              params.river_threshold_m2, data)
+
+    def read(r0: int, c0: int, nr: int, nc: int) -> np.ndarray:
+        h = ref.canonical(terrain.read(r0, c0, nr, nc, channel=terrain.channels[0])).astype(np.float64)
+        return np.where(np.isfinite(h), h, np.nan)
+
+    field = stats.field_statistics(read, shape, dx, lambda r0, c0, nr, nc: core["filled"].read(r0, c0, nr, nc))
+    net = stats.channel_statistics(nw.rcv, nw.code, nw.area_m2, nw.h, L, n_data, dx)
+    return stats.combined_statistics(field, net, params.river_threshold_m2, shape[0] * shape[1], dx)

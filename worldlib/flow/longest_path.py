@@ -24,9 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from worldlib.terrain.stats import topological_levels
-
 from . import reference as ref
+from .reference import topological_levels
 from .tiled_accum import _local_receivers, _path_ends, _perimeter_graph, perimeter_cells
 
 SQRT2 = math.sqrt(2.0)

@@ -166,6 +166,38 @@ def receivers(code: np.ndarray) -> np.ndarray:
     return np.where(code >= 0, r, -1).ravel()
 
 
+def subset_receivers(cells: np.ndarray, rcv_flat: np.ndarray) -> np.ndarray:
+    """Receivers given as flat world indices (-1 none) as indices into the
+    ascending `cells`; -1 where the receiver is not one of them."""
+    pos = np.searchsorted(cells, rcv_flat)
+    pos_ok = np.minimum(pos, max(cells.size - 1, 0))
+    hit = (rcv_flat >= 0) & (pos < cells.size) & (cells[pos_ok] == rcv_flat) if cells.size else rcv_flat < -1
+    return np.where(hit, pos_ok, -1).astype(np.int64)
+
+
+def topological_levels(rcv: np.ndarray, member: np.ndarray | None = None) -> list[np.ndarray]:
+    """Successive frontiers from the sources down: every cell after all its
+    donors (Kahn's algorithm, vectorised). `member` restricts to a subset;
+    receivers outside it count as none."""
+    n = rcv.size
+    member = np.ones(n, bool) if member is None else np.asarray(member, bool).ravel()
+    r = np.where(member & (rcv >= 0), rcv, -1)
+    r = np.where((r >= 0) & member[np.maximum(r, 0)], r, -1)
+    deg = np.bincount(r[r >= 0], minlength=n)
+    front = np.flatnonzero(member & (deg == 0))
+    levels = []
+    while front.size:
+        levels.append(front)
+        t = r[front]
+        t = t[t >= 0]
+        if not t.size:
+            break
+        np.subtract.at(deg, t, 1)
+        t = np.unique(t)
+        front = t[deg[t] == 0]
+    return levels
+
+
 def accumulate(code: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
     """D8 accumulation by Kahn's algorithm in pure Python (int64; unit
     weights = cell counts, no-data cells weigh 0)."""

@@ -41,6 +41,9 @@ import math
 
 import numpy as np
 
+from worldlib.flow import longest_path
+from worldlib.flow.reference import subset_receivers, topological_levels
+
 DR = np.array([-1, -1, 0, 1, 1, 1, 0, -1])
 DC = np.array([0, 1, 1, 1, 0, -1, -1, -1])
 GRID_DIRECTIONS_DEG = (0.0, 45.0, 90.0, 135.0)
@@ -373,29 +376,6 @@ def receivers(code: np.ndarray) -> np.ndarray:
     return np.where(ok, r * cols + q, -1)
 
 
-def topological_levels(rcv: np.ndarray, member: np.ndarray | None = None) -> list[np.ndarray]:
-    """Successive frontiers from the sources down: every cell after all its
-    donors (Kahn's algorithm, vectorised). `member` restricts to a subset;
-    receivers outside it count as none."""
-    n = rcv.size
-    member = np.ones(n, bool) if member is None else np.asarray(member, bool).ravel()
-    r = np.where(member & (rcv >= 0), rcv, -1)
-    r = np.where((r >= 0) & member[np.maximum(r, 0)], r, -1)
-    deg = np.bincount(r[r >= 0], minlength=n)
-    front = np.flatnonzero(member & (deg == 0))
-    levels = []
-    while front.size:
-        levels.append(front)
-        t = r[front]
-        t = t[t >= 0]
-        if not t.size:
-            break
-        np.subtract.at(deg, t, 1)
-        t = np.unique(t)
-        front = t[deg[t] == 0]
-    return levels
-
-
 def strahler_order(rcv: np.ndarray, channel: np.ndarray, levels: list[np.ndarray]) -> np.ndarray:
     """Horton-Strahler order of the channel cells (0 elsewhere): 1 at heads;
     where two or more donors of the highest order meet, that order + 1."""
@@ -474,31 +454,51 @@ def terrain_statistics(height: np.ndarray, filled: np.ndarray, code: np.ndarray,
 
     # the height's statistics by the windows a tiled run reads, so both give the same numbers
     field = field_statistics(read, (rows, cols), dx, lambda r0, c0, nr, nc: fl[r0:r0 + nr, c0:c0 + nc])
-    rcv = receivers(code)
     A = np.asarray(area_m2, np.float64).ravel()
-    flat_h = np.where(data, h, 0.0).ravel()
-    k = np.clip(np.asarray(code).ravel(), 0, 7)
+    cells = np.flatnonzero(data.ravel() & (A >= channel_area_m2))
+    code_c = np.asarray(code).ravel()[cells]
+    L = longest_path.length_m(*longest_path.longest_whole(np.asarray(code)), dx)  # step counts: the same in tiles
+    net = channel_statistics(subset_receivers(cells, receivers(code)[cells]), code_c, A[cells], h.ravel()[cells],
+                             L[cells], int(data.sum()), dx)
+    return combined_statistics(field, net, channel_area_m2, rows * cols, dx)
+
+
+def combined_statistics(field: dict, net: dict, channel_area_m2: float, cells: int, dx: float) -> dict:
+    """terrain_statistics' dict from field_statistics' and channel_statistics' (its keys in its order)."""
+    return {
+        **{k_: field[k_] for k_ in ("grid_anisotropy", "grid_anisotropy_local", "depression_area_fraction")},
+        **{k_: net[k_] for k_ in ("strahler_order_max", "hack_exponent", "concavity_theta", "concavity_bins",
+                                  "concavity_theta_cell", "concavity_slope_reach_m", "drainage_density_per_km")},
+        **{k_: v for k_, v in field.items() if k_ == "hypsometric_integral" or k_.startswith("slope_")},
+        "relief_m": field["relief_m"],
+        "channel_area_m2": float(channel_area_m2),
+        "channel_cells": net["channel_cells"],
+        "cells": int(cells),
+        "cell_size_m": dx,
+    }
+
+
+def channel_statistics(rcv: np.ndarray, code: np.ndarray, area_m2: np.ndarray, height: np.ndarray, L: np.ndarray,
+                       n_data: int, cell_size_m: float) -> dict:
+    """The channel network's statistics (Strahler, Hack, concavity,
+    drainage density) from its cells alone, ascending flat order however
+    gathered: their receivers as indices into them (-1: none), D8 codes,
+    drainage areas (m^2), heights (m) and longest upstream paths (m);
+    n_data: the world's cells with a height."""
+    dx = float(cell_size_m)
+    A = np.asarray(area_m2, np.float64)
+    h = np.asarray(height, np.float64)
+    k = np.clip(np.asarray(code), 0, 7)
     step = np.where(k % 2 == 1, dx * math.sqrt(2.0), dx)
     has_r = rcv >= 0
-    channel = data.ravel() & (A >= channel_area_m2)
-
-    levels = topological_levels(rcv)
-    # longest upstream flow path to the centre of the farthest head cell (Hack's mainstream length)
-    L = np.zeros(rcv.size)
-    for lev in levels:
-        t = rcv[lev]
-        ok = t >= 0
-        np.maximum.at(L, t[ok], L[lev[ok]] + step[lev[ok]])
-    order = strahler_order(rcv, channel, topological_levels(rcv, channel))
-
-    sel = channel & (L > 0)
+    order = strahler_order(rcv, np.ones(rcv.size, bool), topological_levels(rcv))
+    sel = L > 0
     hack = _fit_slope(np.log(A[sel]), np.log(L[sel])) if sel.sum() >= 10 else float("nan")
-
     slope = np.zeros(rcv.size)
-    slope[has_r] = (flat_h[has_r] - flat_h[rcv[has_r]]) / step[has_r]
-    theta_cell, _ = _concavity(A, slope, channel & has_r)
+    slope[has_r] = (h[has_r] - h[rcv[has_r]]) / step[has_r]
+    theta_cell, _ = _concavity(A, slope, has_r)
     # the drop over a reach of SLOPE_REACH_M downstream (or to the outlet)
-    cells = np.flatnonzero(channel & has_r)
+    cells = np.flatnonzero(has_r)
     pos, run = cells.copy(), np.zeros(cells.size)
     for _ in range(int(math.ceil(SLOPE_REACH_M / dx)) + 1):
         go = (run < SLOPE_REACH_M) & (rcv[pos] >= 0)
@@ -507,24 +507,12 @@ def terrain_statistics(height: np.ndarray, filled: np.ndarray, code: np.ndarray,
         run[go] += step[pos[go]]
         pos[go] = rcv[pos[go]]
     reach_slope = np.zeros(rcv.size)
-    reach_slope[cells] = (flat_h[cells] - flat_h[pos]) / np.maximum(run, dx)
-    theta, bins_used = _concavity(A, reach_slope, channel & has_r)
-
-    channel_length_m = float(step[channel & has_r].sum())
-    area_km2 = float(data.sum()) * dx * dx / 1e6
-    return {
-        **{k_: field[k_] for k_ in ("grid_anisotropy", "grid_anisotropy_local", "depression_area_fraction")},
-        "strahler_order_max": int(order.max()) if order.size else 0,
-        "hack_exponent": hack,
-        "concavity_theta": theta,
-        "concavity_bins": bins_used,
-        "concavity_theta_cell": theta_cell,
-        "concavity_slope_reach_m": SLOPE_REACH_M,
-        "drainage_density_per_km": channel_length_m / 1000.0 / area_km2 if area_km2 > 0 else 0.0,
-        **{k_: v for k_, v in field.items() if k_ == "hypsometric_integral" or k_.startswith("slope_")},
-        "relief_m": field["relief_m"],
-        "channel_area_m2": float(channel_area_m2),
-        "channel_cells": int(channel.sum()),
-        "cells": int(rows * cols),
-        "cell_size_m": dx,
-    }
+    reach_slope[cells] = (h[cells] - h[pos]) / np.maximum(run, dx)
+    theta, bins_used = _concavity(A, reach_slope, has_r)
+    channel_length_m = float(step[has_r].sum())
+    area_km2 = float(n_data) * dx * dx / 1e6
+    return {"strahler_order_max": int(order.max()) if order.size else 0, "hack_exponent": hack,
+            "concavity_theta": theta, "concavity_bins": bins_used, "concavity_theta_cell": theta_cell,
+            "concavity_slope_reach_m": SLOPE_REACH_M,
+            "drainage_density_per_km": channel_length_m / 1000.0 / area_km2 if area_km2 > 0 else 0.0,
+            "channel_cells": int(rcv.size)}

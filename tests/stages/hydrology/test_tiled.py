@@ -50,7 +50,7 @@ def test_tiled_hydrology_writes_the_untiled_files(project, resolution, executor)
         files(project / "b_tiled", "hydrology", tiled["hydrology"])
     manifest = json.loads((project / "b_tiled" / "artifacts" / "hydrology" / tiled["hydrology"] /
                            "manifest.json").read_text())
-    assert manifest["metrics"]["tiled_steps"].startswith("all but the terrain statistics")
+    assert manifest["metrics"]["tiled_steps"].startswith("every step")
     assert {p["pass"] for p in manifest["metrics"]["tiling"]["passes"]} >= {
         "fill", "filled", "directions", "accumulation", "counts", "discharge", "lake_cells", "lake_exits", "network",
         "ground", "wetness", "maps", "paths", "paths_finish", "hack", "bed_fit"}
@@ -141,6 +141,7 @@ def test_the_tiled_river_network_is_the_whole_worlds(tmp_path):
     from stages.hydrology import rivers, tiled
     from stages.hydrology.routing import condition, discharge_m3_s, flow_directions, land_of, rain_m_per_year
     from tests.worldlib.flow.worlds import fractal
+    from worldlib.flow import reference as ref
     import math
 
     yy, xx = np.mgrid[0:300, 0:270] / 300.0
@@ -170,7 +171,7 @@ def test_the_tiled_river_network_is_the_whole_worlds(tmp_path):
     assert sums["n_data"] == land.n_data and sums["depression_cells"] == int((surfaces.filled > land.h).sum())
     assert sums["discharge_out_m3_s"] == math.fsum(q[land.kind == 1].tolist()) > 0
     assert sums["mean_rain_m"] == math.fsum(rain_m_per_year(land, params, None)[land.data].tolist()) / land.n_data
-    assert np.array_equal(rivers.compact_receivers(cells, got["rcv"]), want.rcv)
+    assert np.array_equal(ref.subset_receivers(cells, got["rcv"]), want.rcv)
     for name in ("code", "area_m2", "discharge", "h"):
         assert np.array_equal(got[name], getattr(want, name)), name
     assert (want.rcv >= 0).sum() == cells.size - (got["code"] == -1).sum()  # the network is closed downstream
@@ -342,46 +343,17 @@ def test_the_tiled_depression_cells_are_the_whole_gather(tmp_path, tile, lapse):
     assert a.stats == b.stats and a.stats["lakes"] > 20 and a.spills == b.spills
 
 
-def test_a_tiled_world_is_checked_for_a_tile_and_the_statistics_read_whole():
-    """The check names what a tiled run holds: the larger of a tile with the
-    open water's reach and the terrain statistics, still read whole; breaching runs whole."""
+def test_a_tiled_world_is_checked_for_a_tile_and_its_sparse_sets():
+    """The check names what a tiled run holds: a tile with the open water's
+    reach and the cells of the world-wide solves; breaching runs whole."""
     from pipeline.contract import CheckContext, GridInfo
     from stages.hydrology import HydrologyParams
-    from stages.hydrology.stage import BYTES_PER_CELL, WHOLE_STATISTICS_BYTES_PER_CELL, check
+    from stages.hydrology.stage import BYTES_PER_CELL, check
 
-    inputs = {"terrain": GridInfo((8192, 8192), 1.0, "heightmap.resolution")}
+    inputs = {"terrain": GridInfo((16384, 16384), 1.0, "heightmap.resolution")}
     ctx = lambda tile: CheckContext(seed=0, project_root=Path("."), inputs=inputs, tile_cells=tile)
     fill = HydrologyParams(depression="fill")
-    assert check(fill, ctx(0)).memory_bytes == BYTES_PER_CELL * 8192 ** 2
+    assert check(fill, ctx(0)).memory_bytes == BYTES_PER_CELL * 16384 ** 2
     tiled = check(fill, ctx(1024))
-    assert tiled.memory_bytes == WHOLE_STATISTICS_BYTES_PER_CELL * 8192 ** 2 < BYTES_PER_CELL * 8192 ** 2
-    assert "statistics" in tiled.memory_how and "1664^2" in tiled.memory_how  # 1024 + 2 x 320 cells of reach
-    assert check(HydrologyParams(depression="breach"), ctx(1024)).memory_bytes == BYTES_PER_CELL * 8192 ** 2
-
-
-def test_the_tiled_hack_law_is_the_whole(tmp_path):
-    """Hack's law from tiles (longest paths in Barnes' passes, best donors
-    from a one-cell halo, the fit on the gathered cells) equals
-    rivers.hack_exponent's on the whole world, main stems across tiles."""
-    from pipeline import exr
-    from pipeline.grid import Grid
-    from pipeline.opencl import get_cl
-    from pipeline.tiles import GridFile, TileRunner
-    from pipeline.timing import StepTimes
-    from stages.hydrology import STAGE, HydrologyParams, rivers, tiled
-    from stages.hydrology.routing import condition, flow_directions, land_of
-    from tests.worldlib.flow.worlds import fractal
-
-    h = (fractal(300, seed=8)[:, :260] * 300.0).astype(np.float32)
-    h[100:130, 60:90] = np.nan
-    exr.write_grid(tmp_path / "h.exr", Grid(h, 8.0))
-    params = HydrologyParams(depression="fill", hack_min_area_m2=3200.0)
-    env = get_cl()
-    land = land_of(exr.read_grid(tmp_path / "h.exr"))
-    flow = flow_directions(env, land, condition(env, land, "fill", StepTimes()).routing, StepTimes())
-    want = rivers.hack_exponent(flow.code, flow.area_m2, land.dx, params.hack_min_area_m2)
-    runner = TileRunner(64, stage=STAGE, run_key="k", seed=0, project_root=tmp_path, units=None,
-                        work=tmp_path / "work")
-    core = tiled.flow_core(runner, GridFile(tmp_path / "h.exr"), params)
-    got = tiled.hack(runner, GridFile(tmp_path / "h.exr"), core, params)
-    assert got == want and want["hack_mainstem_cells"] > 200 and want["longest_flow_path_m"] > 64 * 8.0
+    assert tiled.memory_bytes < 4e9 and "1664^2" in tiled.memory_how  # 1024 + 2 x 320 cells of reach
+    assert check(HydrologyParams(depression="breach"), ctx(1024)).memory_bytes == BYTES_PER_CELL * 16384 ** 2
