@@ -580,7 +580,7 @@ def bed_fit_tile(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOut
     t, (rows, cols) = tctx.tile, inputs["ground"].shape
     win = (t.row0, t.col0, min(t.rows + 1, rows - t.row0), min(t.cols + 1, cols - t.col0))
     lake_id = lakes.grid("lake_id", win, 0, np.int32)
-    fit = np.where(np.isin(lake_id, drawn_ids) & (lake_id > 0), lakes.grid("level", win, np.nan, np.float64),
+    fit = np.where(np.isin(lake_id, drawn_ids), lakes.grid("level", win, np.nan, np.float64),
                    inputs["ground"].read(*win))
     g0 = np.nan_to_num(fit, nan=hmin)
     bank = channels.bilinear_points(g0, bank_taps, (t.row0, t.col0))
@@ -597,31 +597,30 @@ def bed_fit(runner, terrain, ground, lakes: SparseCells, rib, in_drawn_lake: np.
         return dict(water_layer.NO_FIT)
     shape, dx = terrain.shape, float(terrain.cell_size_m)
     q = water_layer.BedFitQuery.of(rib, ~in_drawn_lake, shape, dx, tuple(terrain.origin_m), params.mesh_max_vertices)
-    lake_cells = lakes.values["lake_id"]
-    big = np.bincount(lake_cells, minlength=1) * dx * dx >= params.lake_min_area_m2
+    big = np.bincount(lakes.values["lake_id"], minlength=1) * dx * dx >= params.lake_min_area_m2
+    big[0] = False  # dry
     drawn_ids = np.flatnonzero(big)
     T = runner.tile_cells or max(shape)
-    bank_tile = (q.bank_taps[0] // T, q.bank_taps[2] // T)
-    per_tile, where = {}, {}
+    bank_row, bank_col = q.bank_taps[0] // T, q.bank_taps[2] // T
+    per_tile, picks = {}, {}
     for t in runner.tiles(shape):
-        sel = np.flatnonzero((bank_tile[0] == t.row) & (bank_tile[1] == t.col))
-        lattice = None
+        sel = np.flatnonzero((bank_row == t.row) & (bank_col == t.col))
+        lattice, ij = None, None
         if q.lattice is not None:
             (r0, r1, fr), (c0, c1, fc) = q.lattice[2], q.lattice[3]
             i, j = np.flatnonzero(r0 // T == t.row), np.flatnonzero(c0 // T == t.col)
-            lattice = ((r0[i], r1[i], fr[i]), (c0[j], c1[j], fc[j])) if i.size and j.size else None
-            where[t.name] = (i, j)
-        win = (t.row0, t.col0, t.rows + 1, t.cols + 1)
-        per_tile[t.name] = (hmin, lakes.part(win), drawn_ids, tuple(a[sel] for a in q.bank_taps), lattice)
-        where.setdefault(t.name, None)
-        where[t.name] = (sel, where[t.name])
+            if i.size and j.size:
+                lattice, ij = ((r0[i], r1[i], fr[i]), (c0[j], c1[j], fc[j])), (i, j)
+        per_tile[t.name] = (hmin, lakes.part((t.row0, t.col0, t.rows + 1, t.cols + 1)), drawn_ids,
+                            tuple(a[sel] for a in q.bank_taps), lattice)
+        picks[t.name] = (sel, ij)
     _, parts = runner.map(bed_fit_tile, "bed_fit", shape, {"ground": ground}, params, per_tile=per_tile, keep=False,
                           cell_size_m=dx, origin_m=terrain.origin_m)
     bank = np.empty(q.bank_taps[0].size)
     hv = None if q.lattice is None else np.empty((q.lattice[0].size, q.lattice[1].size))
     for t, p in zip(runner.tiles(shape), parts):
-        sel, ij = where[t.name]
+        sel, ij = picks[t.name]
         bank[sel] = p["bank"]
-        if "lattice" in p:
+        if ij is not None:
             hv[np.ix_(*ij)] = p["lattice"]
     return water_layer.bed_fit_stats(q, bank, hv)
