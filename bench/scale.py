@@ -75,7 +75,7 @@ def main() -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[1024, 2048, 4096])
     ap.add_argument("--full", action="store_true", help="also 8192^2")
     ap.add_argument("--build", type=Path, default=REPO / "build_scale")
-    ap.add_argument("--set", nargs="*", default=[], help="config overrides, e.g. tiling.tile_cells=1024")
+    ap.add_argument("--set", nargs="*", action="extend", default=[], help="config overrides, e.g. tiling.tile_cells=1024")
     ap.add_argument("--executor", default=None, help="passed to worldbake bake (e.g. dask)")
     ap.add_argument("--stages", nargs="+", choices=SCALING, default=list(SCALING), help="the stages to time")
     args = ap.parse_args()
