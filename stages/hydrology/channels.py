@@ -53,10 +53,14 @@ def drawn_lakes(lake_id: np.ndarray, cell_area: float, min_area_m2: float,
     """bool per cell of lake_id: in a lake of at least min_area_m2 (the lakes
     the USD draws); the lakes' areas from lake_cells (the lake id of each of
     their cells, when lake_id holds only some cells), else from lake_id."""
-    counts = np.bincount((lake_id if lake_cells is None else lake_cells).ravel(), minlength=1)
-    big = counts * cell_area >= min_area_m2
+    return drawn_lake_ids(lake_id if lake_cells is None else lake_cells, cell_area, min_area_m2)[lake_id]
+
+
+def drawn_lake_ids(lake_cells: np.ndarray, cell_area: float, min_area_m2: float) -> np.ndarray:
+    """bool per lake id (0: dry, never drawn): at least min_area_m2, from the lake id of each of its cells."""
+    big = np.bincount(np.asarray(lake_cells).ravel(), minlength=1) * cell_area >= min_area_m2
     big[0] = False
-    return big[lake_id]
+    return big
 
 
 def water_level(rcv: np.ndarray, net: np.ndarray, levels: list, h: np.ndarray, lake_level: np.ndarray,

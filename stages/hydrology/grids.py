@@ -49,8 +49,10 @@ def output_grids(land: Land, surfaces: Surfaces, flow: Flow, discharge: np.ndarr
 
 GRID_CHANNELS = {
     "hydrology.filled": ("height",), "hydrology.conditioned": ("height",),
-    "hydrology.flow": ("flow.x", "flow.z", "flow.d8"), "hydrology.accumulation": ("flow.accumulation", "flow.discharge"),
-    "hydrology.lakes": ("lake.depth", "lake.level", "lake.id"), "hydrology.rivers": ("river.mask", "river.width", "river.order"),
+    "hydrology.flow": ("flow.x", "flow.z", "flow.d8"),
+    "hydrology.accumulation": ("flow.accumulation", "flow.discharge"),
+    "hydrology.lakes": ("lake.depth", "lake.level", "lake.id"),
+    "hydrology.rivers": ("river.mask", "river.width", "river.order"),
     "hydrology.wetness": ("wetness",), "hydrology.moisture": ("moisture",), "hydrology.ground": ("height",),
 }
 ARTIFACT_ORDER = (*GRID_CHANNELS, "hydrology.water", "hydrology.preview")

@@ -36,15 +36,25 @@ def erosion_moisture(ext, shape: tuple[int, int]) -> np.ndarray:
     """The erosion stage's running average of water presence, 0..1 (0 without it)."""
     if ext is None:
         return np.zeros(shape)
-    M = np.nan_to_num(ext.channel(ext.channels[0]).astype(np.float64), nan=0.0)
+    M = ext.channel(ext.channels[0])
     if M.shape != shape:
         raise InputError(f"hydrology: erosion moisture is {M.shape}, the terrain {shape}")
-    return np.clip(M, 0.0, 1.0)
+    return clean_moisture(M)
+
+
+def clean_moisture(values: np.ndarray) -> np.ndarray:
+    """The erosion stage's moisture as the kernel takes it: float64, NaN 0, within 0..1."""
+    return np.clip(np.nan_to_num(np.asarray(values).astype(np.float64), nan=0.0), 0.0, 1.0)
 
 
 def wetness_and_moisture(env, land: Land, twi_area: np.ndarray, open_water: np.ndarray, ext, params):
     """The wetness index and moisture 0..1 per cell, on the OpenCL device `env`."""
     m_water = water_proximity(open_water, land.dx, params.moisture_water_distance_m)
-    m_ext = erosion_moisture(ext, land.shape)
-    return dev.wetness(env, land.h, land.kind, twi_area, m_water, m_ext, land.dx, params.wetness_min_slope,
-                       params.wetness_dry, params.wetness_wet)
+    return wetness_kernel(env, land.h, land.kind, twi_area, m_water, erosion_moisture(ext, land.shape), land.dx,
+                          params)
+
+
+def wetness_kernel(env, h, kind, area_m2, m_water, m_ext, dx: float, params):
+    """The wetness kernel on the OpenCL device `env` with the params' slope floor and wetness range."""
+    return dev.wetness(env, h, kind, area_m2, m_water, m_ext, dx, params.wetness_min_slope, params.wetness_dry,
+                       params.wetness_wet)

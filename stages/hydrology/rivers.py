@@ -9,20 +9,9 @@ import numpy as np
 
 from worldlib.flow import longest_path
 from worldlib.flow import reference as ref
-from worldlib.terrain.stats import topological_levels
+from worldlib.terrain.stats import strahler_order
 
 from .channels import LAKE_FULL_TOLERANCE_M, bankfull_discharge, drawn_lakes, hydraulic_geometry, water_level
-
-
-def topo_levels(rcv: np.ndarray, cells: np.ndarray | None = None) -> list[np.ndarray]:
-    """Topological levels of a receiver forest, sources first (every cell
-    after all of its donors); `cells` restricts to a subset closed downstream
-    within itself. worldlib.terrain.stats.topological_levels on a mask."""
-    if cells is None:
-        return topological_levels(rcv)
-    member = np.zeros(rcv.size, bool)
-    member[cells] = True
-    return topological_levels(rcv, member)
 
 
 def hack_exponent(code: np.ndarray, area_m2: np.ndarray, dx: float, min_area_m2: float) -> dict:
@@ -100,37 +89,6 @@ class Rivers:
     solved: NetworkRivers | None = None  # ... and the rivers on them
 
 
-def strahler(rcv: np.ndarray, net: np.ndarray, levels: list) -> np.ndarray:
-    """Strahler order of every network cell (flat; 0 off it), sources first."""
-    n = rcv.size
-    order = np.zeros(n, np.int32)
-    r_in = np.where(net & (rcv >= 0), rcv, -1)
-    r_in = np.where((r_in >= 0) & net[np.maximum(r_in, 0)], r_in, -1)
-    maxo = np.zeros(n, np.int32)
-    nmax = np.zeros(n, np.int32)
-    for lev in levels:
-        o = np.where(maxo[lev] == 0, 1, np.where(nmax[lev] >= 2, maxo[lev] + 1, maxo[lev]))
-        order[lev] = o
-        t = r_in[lev]
-        ok = t >= 0
-        src, tt = lev[ok], t[ok]
-        if tt.size:
-            # per receiver: the largest donor order and how many donors have it
-            ob = order[src]
-            srt = np.lexsort((-ob, tt))
-            tt_s, ob_s = tt[srt], ob[srt]
-            first = np.r_[True, tt_s[1:] != tt_s[:-1]]
-            tmax = ob_s[first]
-            grp = np.cumsum(first) - 1
-            ut = tt_s[first]
-            cnt = np.bincount(grp[ob_s == tmax[grp]], minlength=ut.size)
-            newmax = tmax > maxo[ut]
-            eq = tmax == maxo[ut]
-            nmax[ut] = np.where(newmax, cnt, np.where(eq, nmax[ut] + cnt, nmax[ut]))
-            maxo[ut] = np.maximum(maxo[ut], tmax)
-    return np.where(net, order, 0)
-
-
 @dataclass(frozen=True)
 class Network:
     """The river network's cells (drainage area >= river_threshold_m2), in
@@ -195,8 +153,8 @@ def solve_network(nw: Network, dx: float, n_data: int, params) -> NetworkRivers:
     water level of the network's cells; the stats (sums over the cells in
     flat order: the same whatever gathered them). n_data: the world's cells
     with a height (the drainage density's area)."""
-    levels = topo_levels(nw.rcv)
-    order = strahler(nw.rcv, np.ones(nw.cells.size, bool), levels)
+    levels = ref.topological_levels(nw.rcv)
+    order = strahler_order(nw.rcv, np.ones(nw.cells.size, bool), levels)
     q_bf = bankfull_discharge(nw.discharge, params.bankfull_discharge_ratio)
     width, depth = hydraulic_geometry(q_bf, params.width_coefficient, params.width_exponent,
                                       params.depth_coefficient, params.depth_exponent)

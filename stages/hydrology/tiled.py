@@ -22,7 +22,7 @@ from worldlib.flow import tiled_fill as tf
 
 from . import channels, rivers, water_layer
 from .grids import GRID_CHANNELS, grid_arrays, preview, river_shown
-from .moisture import water_proximity, water_reach_cells
+from .moisture import clean_moisture, water_proximity, water_reach_cells, wetness_kernel
 from .routing import SECONDS_PER_YEAR, Land, rain_from_map, rain_m_per_year
 
 MAX_EPS_ROUNDS = 10_000
@@ -92,8 +92,7 @@ def directions(tctx, inputs: dict[str, Any], params, dx: float) -> TileOutput:
 def accumulate_local(tctx, inputs: dict[str, Any], params, shared) -> TileOutput:
     """Barnes 2017 pass 1: where each perimeter cell's path leaves the tile, and its local sum."""
     code = np.asarray(inputs["code"].tile_array(tctx.tile))
-    p = ta.accumulate_tile(code, (tctx.tile.row0, tctx.tile.col0), None, tctx.cl)
-    return TileOutput({}, {"code": p.code, "exit": p.exit, "local_sum": p.local_sum})
+    return TileOutput({}, perimeter_summary(ta.accumulate_tile(code, (tctx.tile.row0, tctx.tile.col0), None, tctx.cl)))
 
 
 def accumulate_finish(tctx, inputs: dict[str, Any], params, inflow: np.ndarray) -> TileOutput:
@@ -108,6 +107,43 @@ def accumulate_finish(tctx, inputs: dict[str, Any], params, inflow: np.ndarray) 
 def _grid_of(tiles, values: list) -> list[list]:
     rows = max(t.row for t in tiles) + 1
     return [[v for t, v in zip(tiles, values) if t.row == i] for i in range(rows)]
+
+
+def perimeter_summary(p: ta.Perimeter) -> dict:
+    """Barnes 2017 pass 1's answer for one tile, as a tile's summary."""
+    return {"code": p.code, "exit": p.exit, "local_sum": p.local_sum}
+
+
+def inflow_by_tile(tiles, parts: list[dict]) -> dict:
+    """Barnes 2017 pass 2 from the tiles' perimeter_summary: each tile's inflow at its perimeter cells, by tile name."""
+    perims = [ta.Perimeter((t.row0, t.col0), (t.rows, t.cols), s["code"], s["exit"], s["local_sum"])
+              for t, s in zip(tiles, parts)]
+    inflow = ta.solve_inflow(_grid_of(tiles, perims))
+    return {t.name: f for t, f in zip(tiles, [f for row in inflow for f in row])}
+
+
+def weight_sums(weights: np.ndarray, scale: float | None) -> dict:
+    """A tile's summary for fixed_point_scale: its weights summed exactly
+    (scale None), or in fixed point at the candidate scale and half of it."""
+    if scale is None:
+        return {"exact": str(ta.exact_sum(weights))}
+    return {"q": [str(x) for x in ta.tile_quantized_sums(weights, scale)]}
+
+
+def fixed_point_scale(runner, fn, pass_name: str, shape, inputs: dict, params, shared, what: str,
+                      **geo) -> tuple[float, float]:
+    """The world's total weight and device.quantize's scale for it, from
+    two passes of fn(tctx, inputs, params, (shared, scale or None)) ->
+    weight_sums' summary: exact per-tile totals, then integer sums at the
+    candidate scale (ta.quantize_scale)."""
+    geo = {**geo, "keep": False}  # cheap passes: remade on a resume
+    _, parts = runner.map(fn, pass_name, shape, inputs, params, (shared, None), **geo)
+    total = ta.exact_total([int(p["exact"]) for p in parts])
+    _, parts = runner.map(fn, pass_name + "_q", shape, inputs, params, (shared, ta.first_scale(total)), **geo)
+    try:
+        return total, ta.quantize_scale(total, [tuple(int(x) for x in p["q"]) for p in parts])
+    except ValueError as e:
+        raise StageError(f"hydrology: {what}: {e}") from None
 
 
 def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, Any]:
@@ -144,10 +180,7 @@ def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, 
     if sum(s["pits"] for s in parts):
         raise StageError("hydrology: a cell has no downslope path after depression handling (broken invariant)")
     _, parts = runner.map(accumulate_local, "accumulation", shape, dict(code), params, **geo)
-    perims = [ta.Perimeter((t.row0, t.col0), (t.rows, t.cols), s["code"], s["exit"], s["local_sum"])
-              for t, s in zip(tiles, parts)]
-    inflow = ta.solve_inflow(_grid_of(tiles, perims))
-    by_name = {t.name: f for t, f in zip(tiles, [f for row in inflow for f in row])}
+    by_name = inflow_by_tile(tiles, parts)
     counts, parts = runner.map(accumulate_finish, "counts", shape, {**code, "routing": routing}, params,
                                per_tile=by_name,
                                grids={"counts": ("counts",)}, **geo)
@@ -159,6 +192,18 @@ def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, 
 
 
 # --------------------------------------------------------------------------- discharge
+
+
+def _global(t, cols: int, local: np.ndarray) -> np.ndarray:
+    r, c = np.divmod(np.asarray(local, np.int64), t.cols)
+    return (r + t.row0) * cols + (c + t.col0)
+
+
+def _receivers(t, cols: int, code: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """Flat world index of the receiver of each tile-local cell, -1 where it has none."""
+    k = code.ravel()[local].astype(np.int64)
+    kk = np.clip(k, 0, 7)
+    return np.where(k >= 0, _global(t, cols, local) + ref.DR[kk] * cols + ref.DC[kk], -1)
 
 
 def _tile_rain(tctx, terrain, params, rain: tuple) -> tuple[np.ndarray, np.ndarray]:
@@ -180,16 +225,10 @@ def _runoff_weights(tctx, terrain, params, rain: tuple) -> np.ndarray:
     return r * params.runoff_coefficient * (float(terrain.cell_size_m) ** 2)
 
 
-def runoff_total(tctx, inputs: dict[str, Any], params, rain: tuple) -> TileOutput:
-    """The tile's runoff summed exactly (an integer; the world's total is the tiles' sum in any order)."""
-    return TileOutput({}, {"exact_sum": str(ta.exact_sum(_runoff_weights(tctx, inputs["terrain"], params, rain)))})
-
-
-def runoff_quantized(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOutput:
-    """The tile's fixed-point runoff summed at the candidate scale and half of it (ta.quantize_scale)."""
+def runoff_sums(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOutput:
+    """The tile's runoff for fixed_point_scale (weight_sums)."""
     rain, scale = shared
-    sums = ta.tile_quantized_sums(_runoff_weights(tctx, inputs["terrain"], params, rain), scale)
-    return TileOutput({}, {"at_scale": str(sums[0]), "at_half": str(sums[1])})
+    return TileOutput({}, weight_sums(_runoff_weights(tctx, inputs["terrain"], params, rain), scale))
 
 
 def discharge_local(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOutput:
@@ -197,8 +236,7 @@ def discharge_local(tctx, inputs: dict[str, Any], params, shared: tuple) -> Tile
     rain, scale = shared
     q = ta.quantize_tile(_runoff_weights(tctx, inputs["terrain"], params, rain), scale)
     code = np.asarray(inputs["code"].tile_array(tctx.tile))
-    p = ta.accumulate_tile(code, (tctx.tile.row0, tctx.tile.col0), q, tctx.cl)
-    return TileOutput({}, {"code": p.code, "exit": p.exit, "local_sum": p.local_sum})
+    return TileOutput({}, perimeter_summary(ta.accumulate_tile(code, (tctx.tile.row0, tctx.tile.col0), q, tctx.cl)))
 
 
 def discharge_finish(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOutput:
@@ -232,20 +270,11 @@ def discharge(runner, terrain, core: dict, params, rain_map, progress=lambda f, 
         return out["discharge"]
     rain = (core["hmin"], rain_map, shape)
     progress(0.0, "discharge: runoff totals")
-    _, parts = runner.map(runoff_total, "runoff_total", shape, {"terrain": terrain}, params, rain, keep=False, **geo)
-    total = ta.exact_total([int(s["exact_sum"]) for s in parts])
-    _, parts = runner.map(runoff_quantized, "runoff_quantized", shape, {"terrain": terrain}, params,
-                          (rain, ta.first_scale(total)), keep=False, **geo)
-    try:
-        scale = ta.quantize_scale(total, [(int(s["at_scale"]), int(s["at_half"])) for s in parts])
-    except ValueError as e:
-        raise StageError(f"hydrology: discharge: {e}") from None
+    _, scale = fixed_point_scale(runner, runoff_sums, "runoff", shape, {"terrain": terrain}, params, rain,
+                                 "discharge", **geo)
     ins = {"terrain": terrain, "code": core["code"]}
     _, parts = runner.map(discharge_local, "discharge_local", shape, ins, params, (rain, scale), **geo)
-    perims = [ta.Perimeter((t.row0, t.col0), (t.rows, t.cols), s["code"], s["exit"], s["local_sum"])
-              for t, s in zip(tiles, parts)]
-    inflow = ta.solve_inflow(_grid_of(tiles, perims))
-    by_name = {t.name: (rain, scale, f) for t, f in zip(tiles, [f for row in inflow for f in row])}
+    by_name = {name: (rain, scale, f) for name, f in inflow_by_tile(tiles, parts).items()}
     out, _ = runner.map(discharge_finish, "discharge", shape, ins, params, per_tile=by_name, grids=grids, **geo)
     return out["discharge"]
 
@@ -263,17 +292,13 @@ def network_tile(tctx, inputs: dict[str, Any], params, rain: tuple) -> TileOutpu
     code = np.asarray(inputs["code"].tile_array(t))
     area = np.asarray(inputs["counts"].tile_array(t)).astype(np.float64) * (dx * dx)
     local = rivers.network_cells(code, area, params.river_threshold_m2)
-    r, c = np.divmod(local, t.cols)
-    k = code.ravel()[local].astype(np.int64)
-    kk = np.clip(k, 0, 7)
-    cells = (r + t.row0) * cols + (c + t.col0)
-    rcv = np.where(k >= 0, cells + ref.DR[kk] * cols + ref.DC[kk], -1)
     h, kind, _ = _heights(tctx, inputs["terrain"])
     filled = np.asarray(inputs["filled"].tile_array(t))
     discharge = np.asarray(inputs["discharge"].tile_array(t))
     rain_m, data = _tile_rain(tctx, inputs["terrain"], params, rain)
     at = lambda a: np.asarray(a).ravel()[local]
-    return TileOutput({}, {"cells": cells, "rcv": rcv, "code": at(code), "area_m2": at(area),
+    return TileOutput({}, {"cells": _global(t, cols, local), "rcv": _receivers(t, cols, code, local),
+                           "code": at(code), "area_m2": at(area),
                            "discharge": at(discharge), "h": at(h), "filled": at(filled),
                            "rain_sum": str(ta.exact_sum(rain_m[data])), "data_cells": int(data.sum()),
                            "edge_discharge": str(ta.exact_sum(discharge[kind == ref.EDGE])),
@@ -379,8 +404,6 @@ def wetness_tile(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOut
     """moisture.wetness_and_moisture on the tile: the kernel on the tile with
     a one-cell halo (its slopes), the moisture from the open water (rivers,
     the cells under their surfaces, lakes) within water_reach_cells of it."""
-    from worldlib.flow import device as dev
-
     rivers_part, lakes_part = shared
     terrain, t = inputs["terrain"], tctx.tile
     dx = float(terrain.cell_size_m)
@@ -394,11 +417,9 @@ def wetness_tile(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOut
     area = inputs["counts"].read_padded(t, 1, fill=0).astype(np.float64) * (dx * dx)
     ext = inputs.get("erosion_moisture")
     m_ext = np.zeros(halo.shape) if ext is None else \
-        np.clip(np.nan_to_num(ext.read_padded(t, 1, fill=0.0, channel=ext.channels[0]).astype(np.float64), nan=0.0),
-                0.0, 1.0)
-    twi, moist = dev.wetness(tctx.cl, np.where(np.isfinite(halo), halo, np.float32(np.nan)), ref.cell_kinds(halo),
-                             area, m_water, m_ext, dx, params.wetness_min_slope, params.wetness_dry,
-                             params.wetness_wet)
+        clean_moisture(ext.read_padded(t, 1, fill=0.0, channel=ext.channels[0]))
+    twi, moist = wetness_kernel(tctx.cl, np.where(np.isfinite(halo), halo, np.float32(np.nan)), ref.cell_kinds(halo),
+                                area, m_water, m_ext, dx, params)
     return TileOutput({"wetness": twi[1:-1, 1:-1], "moisture": moist[1:-1, 1:-1]})
 
 
@@ -597,9 +618,7 @@ def bed_fit(runner, terrain, ground, lakes: SparseCells, rib, in_drawn_lake: np.
         return dict(water_layer.NO_FIT)
     shape, dx = terrain.shape, float(terrain.cell_size_m)
     q = water_layer.BedFitQuery.of(rib, ~in_drawn_lake, shape, dx, tuple(terrain.origin_m), params.mesh_max_vertices)
-    big = np.bincount(lakes.values["lake_id"], minlength=1) * dx * dx >= params.lake_min_area_m2
-    big[0] = False  # dry
-    drawn_ids = np.flatnonzero(big)
+    drawn_ids = np.flatnonzero(channels.drawn_lake_ids(lakes.values["lake_id"], dx * dx, params.lake_min_area_m2))
     T = runner.tile_cells or max(shape)
     bank_row, bank_col = q.bank_taps[0] // T, q.bank_taps[2] // T
     per_tile, picks = {}, {}

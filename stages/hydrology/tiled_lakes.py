@@ -25,8 +25,8 @@ from worldlib.flow import reference as ref
 from worldlib.flow import tiled_accum as ta
 
 from . import lakes as lakes_mod
-from .routing import Land, rain_from_map, rain_m_per_year
-from .tiled import _grid_of, _heights
+from .tiled import (_global, _heights, _receivers, _tile_rain, fixed_point_scale, inflow_by_tile, perimeter_summary,
+                    weight_sums)
 
 
 def _tile_state(tctx, inputs: dict[str, Any], params, rain: tuple) -> dict[str, Any]:
@@ -36,10 +36,8 @@ def _tile_state(tctx, inputs: dict[str, Any], params, rain: tuple) -> dict[str, 
     rows, cols = terrain.shape
     dx = float(terrain.cell_size_m)
     h, kind, halo = _heights(tctx, terrain)
-    data = kind != ref.NODATA
     hmin, rain_map, mean_rain = rain
-    rain_mm = None if rain_map is None else rain_from_map(rain_map, rows, cols, (t.col0, t.row0, t.cols, t.rows))
-    r = rain_m_per_year(Land(h, kind, data, dx, terrain.origin_m, hmin), params, rain_mm)
+    r, data = _tile_rain(tctx, terrain, params, (hmin, rain_map, (rows, cols)))
     F = np.asarray(inputs["filled"].tile_array(t))
     D = (kind == ref.INTERIOR) & (F > h)
     state = {"h": h, "kind": kind, "data": data, "rain": r, "F": F, "D": D, "dx": dx}
@@ -66,12 +64,9 @@ def rain_sums(tctx, inputs: dict[str, Any], params, rain: tuple) -> TileOutput:
 
 
 def runoff_sums(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOutput:
-    """The tile's lake runoff summed exactly, and in fixed point at the candidate scale (and half of it)."""
+    """The tile's lake runoff for fixed_point_scale (weight_sums)."""
     rain, scale = shared
-    runoff = _tile_state(tctx, inputs, params, rain)["runoff"]
-    if scale is None:
-        return TileOutput({}, {"exact": str(ta.exact_sum(runoff))})
-    return TileOutput({}, {"q": [str(x) for x in ta.tile_quantized_sums(runoff, scale)]})
+    return TileOutput({}, weight_sums(_tile_state(tctx, inputs, params, rain)["runoff"], scale))
 
 
 def routing_local(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOutput:
@@ -79,20 +74,8 @@ def routing_local(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOu
     rain, scale = shared
     s = _tile_state(tctx, inputs, params, rain)
     t = tctx.tile
-    p = ta.accumulate_tile(s["code_lake"], (t.row0, t.col0), ta.quantize_tile(s["runoff"], scale), tctx.cl)
-    return TileOutput({}, {"code": p.code, "exit": p.exit, "local_sum": p.local_sum})
-
-
-def _global(t, cols: int, local: np.ndarray) -> np.ndarray:
-    r, c = np.divmod(np.asarray(local, np.int64), t.cols)
-    return (r + t.row0) * cols + (c + t.col0)
-
-
-def _receivers(t, cols: int, code: np.ndarray, local: np.ndarray) -> np.ndarray:
-    """Flat world index of the receiver of each tile-local cell, -1 where it has none."""
-    k = code.ravel()[local].astype(np.int64)
-    kk = np.clip(k, 0, 7)
-    return np.where(k >= 0, _global(t, cols, local) + ref.DR[kk] * cols + ref.DC[kk], -1)
+    return TileOutput({}, perimeter_summary(
+        ta.accumulate_tile(s["code_lake"], (t.row0, t.col0), ta.quantize_tile(s["runoff"], scale), tctx.cl)))
 
 
 def _ends(t, cols: int, code_lake: np.ndarray, local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -179,21 +162,13 @@ def gather(runner, terrain, core: dict, params, rain_map, progress=lambda f, m: 
     n_data = sum(p["data"] for p in parts)
     mean_rain = ta.exact_total([int(p["rain"]) for p in parts]) / n_data
     rain = (core["hmin"], rain_map, mean_rain if mean_rain > 0 else 1.0)
-    _, parts_r = runner.map(runoff_sums, "lake_runoff", shape, ins, params, (rain, None), **geo)
-    total_in = ta.exact_total([int(p["exact"]) for p in parts_r])
     if not sum(p["depression_cells"] for p in parts):
-        return lakes_mod.no_depressions(cols, rows * cols, total_in)
-    _, parts_q = runner.map(runoff_sums, "lake_runoff_q", shape, ins, params, (rain, ta.first_scale(total_in)), **geo)
-    try:
-        scale = ta.quantize_scale(total_in, [tuple(int(x) for x in p["q"]) for p in parts_q])
-    except ValueError as e:
-        raise StageError(f"hydrology: lakes: {e}") from None
+        _, parts = runner.map(runoff_sums, "lake_runoff", shape, ins, params, (rain, None), **geo)
+        return lakes_mod.no_depressions(cols, rows * cols, ta.exact_total([int(p["exact"]) for p in parts]))
+    total_in, scale = fixed_point_scale(runner, runoff_sums, "lake_runoff", shape, ins, params, rain, "lakes", **geo)
     progress(0.3, "lakes: routing")
     _, parts = runner.map(routing_local, "lake_routing", shape, ins, params, (rain, scale), **geo)
-    perims = [ta.Perimeter((t.row0, t.col0), (t.rows, t.cols), s["code"], s["exit"], s["local_sum"])
-              for t, s in zip(tiles, parts)]
-    inflow = ta.solve_inflow(_grid_of(tiles, perims))
-    by_name = {t.name: (rain, scale, f) for t, f in zip(tiles, [f for row in inflow for f in row])}
+    by_name = {name: (rain, scale, f) for name, f in inflow_by_tile(tiles, parts).items()}
     progress(0.6, "lakes: depression cells")
     _, parts = runner.map(cells_tile, "lake_cells", shape, ins, params, per_tile=by_name, **geo)
     got = {k: np.concatenate([p[k] for p in parts]) for k in ("cells", "h", "F", "rcv", "pit", "acc", "rcv_main")}

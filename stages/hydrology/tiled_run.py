@@ -69,7 +69,8 @@ def run(ctx, inputs: dict[str, Any], params, write_water_layer) -> dict[str, Any
     with T.lap("tiled_flow_s"):
         core = tiled.flow_core(ctx.tiles, terrain, params, lambda f, m: ctx.progress(0.3 * f, m))
     with T.lap("discharge_s"):
-        core["discharge"] = tiled.discharge(ctx.tiles, terrain, core, params, rain_map, lambda f, m: ctx.progress(0.3, m))
+        core["discharge"] = tiled.discharge(ctx.tiles, terrain, core, params, rain_map,
+                                            lambda f, m: ctx.progress(0.3, m))
     with T.lap("lakes_s"):
         lakes, lstats = _lakes(ctx, terrain, core, params, rain_map)
     ctx.progress(0.6, "rivers")

@@ -148,7 +148,8 @@ def bed_fit_stats(q: BedFitQuery, bank_ground: np.ndarray, lattice_heights: np.n
                    river_bank_below_ground_max_m=float(max(-dy.min(), 0.0)))
     if lattice_heights is not None:
         rows, cols = q.shape
-        mesh = mesh_from_lattice(lattice_heights, q.lattice[0], q.lattice[1], q.dx, q.origin, (cols * q.dx, rows * q.dx))
+        mesh = mesh_from_lattice(lattice_heights, q.lattice[0], q.lattice[1], q.dx, q.origin,
+                                 (cols * q.dx, rows * q.dx))
         mid = 0.5 * (p[0::2] + p[1::2])
         pts = np.concatenate([p[keep], mid[keep[0::2]]])
         vis = pts[:, 1] >= height_on_mesh(mesh, pts[:, 0], pts[:, 2]) - 0.05

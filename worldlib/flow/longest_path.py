@@ -26,7 +26,7 @@ import numpy as np
 
 from . import reference as ref
 from .reference import topological_levels
-from .tiled_accum import _local_receivers, _path_ends, _perimeter_graph, perimeter_cells
+from .tiled_accum import Perimeter, _local_receivers, _path_ends, _perimeter_graph, perimeter_cells, perimeter_position
 
 SQRT2 = math.sqrt(2.0)
 
@@ -108,8 +108,6 @@ def tile_paths(code: np.ndarray, origin: tuple[int, int]) -> TilePaths:
     sa, sb = np.where(rl >= 0, da, 0), np.where(rl >= 0, db, 0)
     while not np.array_equal(nxt[nxt], nxt):
         sa, sb, nxt = sa + sa[nxt], sb + sb[nxt], nxt[nxt]
-    from .tiled_accum import perimeter_position
-
     er, ec = np.divmod(end, code.shape[1])
     pos = perimeter_position(er, ec, *code.shape)
     return TilePaths((int(origin[0]), int(origin[1])), code.shape, np.ascontiguousarray(code, np.int8).ravel()[cells],
@@ -120,8 +118,6 @@ def tile_paths(code: np.ndarray, origin: tuple[int, int]) -> TilePaths:
 def solve_entries(tiles: list[list[TilePaths]]) -> list[list[tuple[np.ndarray, np.ndarray]]]:
     """Pass 2: per tile (row-major grid), the step counts (a, b) of the
     longest path arriving at each perimeter cell from other tiles (0, 0 where none)."""
-    from .tiled_accum import Perimeter
-
     perims = [[Perimeter(t.origin, t.shape, t.code, t.exit, np.zeros(t.code.size, np.int64)) for t in row]
               for row in tiles]
     offsets, counts, _, exit_node, to = _perimeter_graph(perims)
