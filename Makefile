@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY      = $(VENV)/bin/python
 CONFIG ?= configs/default.toml
 
-.PHONY: setup bake plan test bench docs clean dcc-env
+.PHONY: setup vdb-writer bake plan test bench docs clean dcc-env
 .DELETE_ON_ERROR:
 
 # The virtual environment, rebuilt when pyproject.toml changes.
@@ -16,6 +16,19 @@ $(VENV)/.installed: pyproject.toml
 
 setup: $(VENV)/.installed
 
+# The .vdb writer: Debian's python3-openvdb in the system Python (no OpenVDB writer installs from PyPI;
+# worldlib/volumes/vdb.py). Installed here when this is root on a Debian machine, so that `make bake` and
+# `make test` on a fresh machine need nothing else; elsewhere the message says what to do.
+vdb-writer:
+	@/usr/bin/python3 -c "import pyopenvdb" 2>/dev/null || { \
+	  if command -v apt-get >/dev/null && [ "$$(id -u)" = 0 ]; then \
+	    echo "installing Debian's python3-openvdb (the .vdb writer of the volumes stages)"; \
+	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3-openvdb >/dev/null) \
+	      || echo "python3-openvdb could not be installed: bakes with volumes are refused unless vdb = false" >&2; \
+	  else \
+	    echo "python3-openvdb is missing: install Debian's python3-openvdb (as root: apt-get install python3-openvdb), or set vdb = false" >&2; \
+	  fi; }
+
 # Blender as a Python module for tests/dcc (a real USD client): its own environment, since bpy 5.0 needs
 # numpy<2 and the project numpy>=2. The wheel is about 370 MB; without it tests/dcc skip and say so.
 BLENDER_VENV ?= .venv-blender
@@ -26,18 +39,18 @@ $(BLENDER_VENV)/.installed:
 
 dcc-env: $(BLENDER_VENV)/.installed
 
-bake: setup
+bake: setup vdb-writer
 	$(VENV)/bin/worldbake bake $(CONFIG)
 
-plan: setup
+plan: setup vdb-writer
 	$(VENV)/bin/worldbake plan $(CONFIG)
 
 # One worker per core (pytest-xdist): the suite is mostly Python and many small bakes.
-test: setup
+test: setup vdb-writer
 	$(PY) -m pytest -q -n auto --dist loadgroup
 
 # Every benchmark in bench/, one after the other (minutes; not part of `make test`).
-bench: setup
+bench: setup vdb-writer
 	@for b in bench/*.py; do m=$$(basename $$b .py); [ "$$m" = __init__ ] && continue; \
 	  echo "== bench.$$m"; $(PY) -m bench.$$m || exit 1; done
 
