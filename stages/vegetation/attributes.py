@@ -59,15 +59,34 @@ def sun_table(latitude_deg: float, nd: int) -> tuple[np.ndarray, np.ndarray, flo
     return np.asarray(rows0, F), np.asarray(rows1, F), 1.0 / denom
 
 
-def compute(height: np.ndarray, dx: float, params, backend, local=None) -> dict[str, np.ndarray]:
+def compute(height: np.ndarray, dx: float, params, backend, local=None, window=None) -> dict[str, np.ndarray]:
+    """The attributes of the world `height`, or of a tile's cells: `height`
+    the tile with halo_cells() around it, `window` reference.Window.of(tile,
+    that halo); the tile's values are then the whole world's, bit for bit."""
+    if window is not None and window.margin(height.shape) < halo_cells(dx, params):
+        raise ValueError(f"vegetation attributes: a window holds {window.margin(height.shape)} cells around its "
+                         f"tile, the scan reaches {halo_cells(dx, params)}")
     nd = params.horizon_directions
-    kc = max(1, int(round(params.curvature_scale_m / dx)))
+    kc = curvature_cells(dx, params)
     sun0, sun1, inv = sun_table(params.latitude_deg, nd)
     slope, aspect, grad, curv, sky, sun = backend.attributes(
         height, dx, kc, 1.0 / (kc * dx) ** 2, directions(nd),
         march_steps(dx, params.horizon_distance_m, params.horizon_step_growth), sun0, sun1, inv,
-        params.diffuse_fraction, local=local)
+        params.diffuse_fraction, local=local, window=window)
     return {"slope": slope, "aspect": aspect, "grad": grad, "curvature": curv, "sky_view": sky, "sunlight": sun}
+
+
+def curvature_cells(dx: float, params) -> int:
+    """The Laplacian's reach in cells (curvature_scale_m)."""
+    return max(1, int(round(params.curvature_scale_m / dx)))
+
+
+def halo_cells(dx: float, params) -> int:
+    """The cells around a tile its attributes read: the horizon scan's
+    farthest sample and the next cell of its bilinear, and the Laplacian's
+    reach (1500 m of 1 m cells: 1501)."""
+    steps = march_steps(dx, params.horizon_distance_m, params.horizon_step_growth)
+    return max(int(math.ceil(float(steps[-1]))) + 1, curvature_cells(dx, params))
 
 
 def fallback_moisture(height: np.ndarray, dx: float, radius_m: float, scale_m: float) -> np.ndarray:

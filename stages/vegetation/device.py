@@ -46,35 +46,37 @@ class _Kernels:
         return kernel(self.prg, name)
 
 
-def attributes(env, h, dx, kc, inv_kc2, dirs, steps, sun0, sun1, inv_direct, diffuse, local=None):
+def attributes(env, h, dx, kc, inv_kc2, dirs, steps, sun0, sun1, inv_direct, diffuse, local=None, window=None):
     b = Buffers(env)
     h = np.ascontiguousarray(h, F)
-    rows, cols = h.shape
+    w = ref.Window.whole(h.shape) if window is None else window
+    win = w.args(h.shape)
+    out_bytes = w.orows * w.ocols * 4
     nd = len(dirs)
     prg = program(env)
     hb = b.arr(h)
     sb = b.arr(np.ascontiguousarray(steps, F))
-    hz = b.empty(nd * h.nbytes)
+    hz = b.empty(nd * out_bytes)
     dirs = np.asarray(dirs, F)
     for d in range(nd):
-        b.run(prg.horizon, (cols, rows), local, hb, np.int32(rows), np.int32(cols), F(dx), dirs[d, 0], dirs[d, 1],
+        b.run(prg.horizon, (w.ocols, w.orows), local, hb, *win, F(dx), dirs[d, 0], dirs[d, 1],
               sb, np.int32(len(steps)), np.int32(d), hz)
-    outs = [b.empty(h.nbytes) for _ in range(6)]
+    outs = [b.empty(out_bytes) for _ in range(6)]
     sun0 = np.ascontiguousarray(sun0, F).reshape(-1, 4)
     sun1 = np.ascontiguousarray(sun1, F).reshape(-1, 4)
-    b.run(prg.shade, (cols, rows), local, hb, np.int32(rows), np.int32(cols), F(dx), np.int32(kc), F(inv_kc2), hz,
+    b.run(prg.shade, (w.ocols, w.orows), local, hb, *win, F(dx), np.int32(kc), F(inv_kc2), hz,
           np.int32(nd), b.arr(sun0), b.arr(sun1), np.int32(len(sun0)), F(inv_direct), F(diffuse), *outs)
-    return tuple(b.get(o, (rows, cols), F) for o in outs)
+    return tuple(b.get(o, (w.orows, w.ocols), F) for o in outs)
 
 
-def moisture_filter(env, m, jitter, key, local=None):
+def moisture_filter(env, m, jitter, key, local=None, window=None):
     b = Buffers(env)
     m = np.ascontiguousarray(m, F)
-    rows, cols = m.shape
-    out = b.empty(m.nbytes)
-    b.run(program(env).moisture_filter, (cols, rows), local, b.arr(m), np.int32(rows), np.int32(cols), F(jitter),
+    w = ref.Window.whole(m.shape) if window is None else window
+    out = b.empty(w.orows * w.ocols * 4)
+    b.run(program(env).moisture_filter, (w.ocols, w.orows), local, b.arr(m), *w.args(m.shape), F(jitter),
           np.uint32(key), out)
-    return b.get(out, (rows, cols), F)
+    return b.get(out, (w.orows, w.ocols), F)
 
 
 def suitability(env, alt, slope, moist, sun, curv, blocked, prefs, local=None):

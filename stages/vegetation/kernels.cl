@@ -45,24 +45,31 @@ INLINE float sstep(float e0, float inv, float x)
     return t * t * (3.0f - 2.0f * t);
 }
 
-INLINE float height_at(__global const float *h, int rows, int cols, int r, int c)
+/* A window of a world grid (a tile and its halo): the array h holds `rows`
+ * x `cols` cells whose first is the world's cell (row0, col0), of a world of
+ * wrows x wcols. The kernels that take one index and clamp in world cells, so
+ * a tile with a wide enough halo computes the bits the whole world does
+ * (the whole world is the window 0, 0, rows, cols). */
+#define WINDOW_ARGS const int rows, const int cols, const int row0, const int col0, const int wrows, const int wcols
+#define WINDOW rows, cols, row0, col0, wrows, wcols
+
+INLINE float world_at(__global const float *h, WINDOW_ARGS, int r, int c)
 {
-    r = clamp(r, 0, rows - 1);
-    c = clamp(c, 0, cols - 1);
+    r = clamp(r, 0, wrows - 1) - row0;
+    c = clamp(c, 0, wcols - 1) - col0;
     return h[r * cols + c];
 }
 
-/* bilinear sample at fractional (row, col) cell indices (cell centres at
- * integers), clamped to the grid */
-INLINE float bilinear(__global const float *h, int rows, int cols, float fr, float fc)
+/* bilinear at fractional world (row, col) indices, clamped to the world */
+INLINE float world_bilinear(__global const float *h, WINDOW_ARGS, float fr, float fc)
 {
     float r0f = floor(fr), c0f = floor(fc);
     float tr = fr - r0f, tc = fc - c0f;
     int r0 = (int)r0f, c0 = (int)c0f;
-    float a = height_at(h, rows, cols, r0, c0);
-    float b = height_at(h, rows, cols, r0, c0 + 1);
-    float c = height_at(h, rows, cols, r0 + 1, c0);
-    float d = height_at(h, rows, cols, r0 + 1, c0 + 1);
+    float a = world_at(h, WINDOW, r0, c0);
+    float b = world_at(h, WINDOW, r0, c0 + 1);
+    float c = world_at(h, WINDOW, r0 + 1, c0);
+    float d = world_at(h, WINDOW, r0 + 1, c0 + 1);
     float top = a + (b - a) * tc;
     float bot = c + (d - c) * tc;
     return top + (bot - top) * tr;
@@ -73,8 +80,9 @@ INLINE float bilinear(__global const float *h, int rows, int cols, float fr, flo
  * horizon: for one direction (east, north unit vector e), the largest
  *   tangent of the terrain seen from the cell, marching outwards at the
  *   distances of `steps` (cell units, growing geometrically) with bilinear
- *   heights; samples off the grid do not count (no early exit, so every
- *   work-item runs the same loop and the compiler can vectorise it).
+ *   heights, until the first sample off the world.
+ * Both read a window of the world (WINDOW_ARGS) and compute its orows x
+ *   ocols cells from (orow, ocol); their outputs are that size.
  * shade: gradient by central differences (one-sided at the border),
  *   curvature = Laplacian over +-k cells, sky view = mean cos^2 of the
  *   horizon elevations, direct sun = sum over the sun table of w * max(0,
@@ -86,52 +94,54 @@ INLINE float bilinear(__global const float *h, int rows, int cols, float fr, flo
  *   slope faces), gradient magnitude (m/m), curvature (1/m), sky view
  *   (0..1), sunlight (relative insolation).
  */
-__kernel void horizon(__global const float *h, const int rows, const int cols, const float dx,
-                      const float ex, const float ez, __constant float *steps, const int nsteps,
-                      const int d, __global float *out)
+__kernel void horizon(__global const float *h, WINDOW_ARGS, const int orow, const int ocol, const int orows,
+                      const int ocols, const float dx, const float ex, const float ez, __constant float *steps,
+                      const int nsteps, const int d, __global float *out)
 {
-    const int c = get_global_id(0), r = get_global_id(1);
-    if (c >= cols || r >= rows)
+    const int oc = get_global_id(0), orr = get_global_id(1);
+    if (oc >= ocols || orr >= orows)
         return;
-    const float h0 = h[r * cols + c];
+    const int r = row0 + orow + orr, c = col0 + ocol + oc;  /* world cell */
+    const float h0 = world_at(h, WINDOW, r, c);
     float tmax = 0.0f;
     for (int m = 0; m < nsteps; ++m) {
         const float s = steps[m];
         const float fc = (float)c + s * ex;
         const float fr = (float)r - s * ez;
-        /* the samples move away monotonically: the first one off the grid ends the scan */
-        if (fc < 0.0f || fr < 0.0f || fc > (float)(cols - 1) || fr > (float)(rows - 1))
+        /* the samples move away monotonically: the first one off the world ends the scan */
+        if (fc < 0.0f || fr < 0.0f || fc > (float)(wcols - 1) || fr > (float)(wrows - 1))
             break;
-        const float t = (bilinear(h, rows, cols, fr, fc) - h0) / (s * dx);
+        const float t = (world_bilinear(h, WINDOW, fr, fc) - h0) / (s * dx);
         tmax = fmax(tmax, t);
     }
-    out[d * rows * cols + r * cols + c] = tmax;
+    out[d * orows * ocols + orr * ocols + oc] = tmax;
 }
 
-__kernel void shade(__global const float *h, const int rows, const int cols, const float dx,
-                    const int kc, const float inv_kc2, __global const float *hz, const int nd,
-                    __constant float4 *sun0, __constant float4 *sun1, const int nsun,
+__kernel void shade(__global const float *h, WINDOW_ARGS, const int orow, const int ocol, const int orows,
+                    const int ocols, const float dx, const int kc, const float inv_kc2, __global const float *hz,
+                    const int nd, __constant float4 *sun0, __constant float4 *sun1, const int nsun,
                     const float inv_direct, const float diffuse,
                     __global float *slope, __global float *aspect, __global float *grad,
                     __global float *curv, __global float *sky, __global float *sunlight)
 {
-    const int c = get_global_id(0), r = get_global_id(1);
-    if (c >= cols || r >= rows)
+    const int oc = get_global_id(0), orr = get_global_id(1);
+    if (oc >= ocols || orr >= orows)
         return;
-    const int n = rows * cols;
-    const int i = r * cols + c;
-    const float h0 = h[i];
-    const int cl = max(c - 1, 0), cr = min(c + 1, cols - 1);
-    const int ru = max(r - 1, 0), rd = min(r + 1, rows - 1);
-    const float gx = (h[r * cols + cr] - h[r * cols + cl]) / ((float)(cr - cl) * dx);
-    const float gz = (h[rd * cols + c] - h[ru * cols + c]) / ((float)(rd - ru) * dx);
+    const int n = orows * ocols;
+    const int i = orr * ocols + oc;
+    const int r = row0 + orow + orr, c = col0 + ocol + oc;  /* world cell */
+    const float h0 = world_at(h, WINDOW, r, c);
+    const int cl = max(c - 1, 0), cr = min(c + 1, wcols - 1);
+    const int ru = max(r - 1, 0), rd = min(r + 1, wrows - 1);
+    const float gx = (world_at(h, WINDOW, r, cr) - world_at(h, WINDOW, r, cl)) / ((float)(cr - cl) * dx);
+    const float gz = (world_at(h, WINDOW, rd, c) - world_at(h, WINDOW, ru, c)) / ((float)(rd - ru) * dx);
     const float g = sqrt(gx * gx + gz * gz);
     slope[i] = atan(g) * 57.29577951f;
     float asp = atan2(-gx, gz) * 57.29577951f;
     aspect[i] = asp < 0.0f ? asp + 360.0f : asp;
     grad[i] = g;
-    const float lap = height_at(h, rows, cols, r, c + kc) + height_at(h, rows, cols, r, c - kc)
-                    + height_at(h, rows, cols, r + kc, c) + height_at(h, rows, cols, r - kc, c) - 4.0f * h0;
+    const float lap = world_at(h, WINDOW, r, c + kc) + world_at(h, WINDOW, r, c - kc)
+                    + world_at(h, WINDOW, r + kc, c) + world_at(h, WINDOW, r - kc, c) - 4.0f * h0;
     curv[i] = lap * inv_kc2;
 
     float svf = 0.0f;
@@ -165,27 +175,30 @@ __kernel void shade(__global const float *h, const int rows, const int cols, con
  * Seed 004's jittered 3x3 moisture filter with its normalisation fixed: the
  * centre (weight 4) at the cell, the four diagonal (2) and four axial (1)
  * neighbours at a per-cell jittered offset (up to +-jitter cells), bilinear,
- * divided by the sum of the weights, 16 (the thesis divides by 12).
+ * divided by the sum of the weights, 16 (the thesis divides by 12). A
+ * window of the world (WINDOW_ARGS), its orows x ocols cells from (orow, ocol).
  */
-__kernel void moisture_filter(__global const float *m, const int rows, const int cols, const float jitter,
-                              const uint key, __global float *out)
+__kernel void moisture_filter(__global const float *m, WINDOW_ARGS, const int orow, const int ocol,
+                              const int orows, const int ocols, const float jitter, const uint key,
+                              __global float *out)
 {
-    const int c = get_global_id(0), r = get_global_id(1);
-    if (c >= cols || r >= rows)
+    const int oc = get_global_id(0), orr = get_global_id(1);
+    if (oc >= ocols || orr >= orows)
         return;
-    const uint i = (uint)(r * cols + c);
+    const int r = row0 + orow + orr, c = col0 + ocol + oc;  /* world cell: its jitter and clamping */
+    const uint i = (uint)r * (uint)wcols + (uint)c;
     const float jx = (unit(hash4(key, i, 0u, 0u)) - 0.5f) * 2.0f * jitter;
     const float jz = (unit(hash4(key, i, 1u, 0u)) - 0.5f) * 2.0f * jitter;
     const float fr = (float)r + jz, fc = (float)c + jx;
-    float diag = bilinear(m, rows, cols, fr - 1.0f, fc - 1.0f);
-    diag = diag + bilinear(m, rows, cols, fr - 1.0f, fc + 1.0f);
-    diag = diag + bilinear(m, rows, cols, fr + 1.0f, fc - 1.0f);
-    diag = diag + bilinear(m, rows, cols, fr + 1.0f, fc + 1.0f);
-    float axial = bilinear(m, rows, cols, fr - 1.0f, fc);
-    axial = axial + bilinear(m, rows, cols, fr + 1.0f, fc);
-    axial = axial + bilinear(m, rows, cols, fr, fc - 1.0f);
-    axial = axial + bilinear(m, rows, cols, fr, fc + 1.0f);
-    out[i] = (4.0f * m[i] + 2.0f * diag + axial) * 0.0625f;
+    float diag = world_bilinear(m, WINDOW, fr - 1.0f, fc - 1.0f);
+    diag = diag + world_bilinear(m, WINDOW, fr - 1.0f, fc + 1.0f);
+    diag = diag + world_bilinear(m, WINDOW, fr + 1.0f, fc - 1.0f);
+    diag = diag + world_bilinear(m, WINDOW, fr + 1.0f, fc + 1.0f);
+    float axial = world_bilinear(m, WINDOW, fr - 1.0f, fc);
+    axial = axial + world_bilinear(m, WINDOW, fr + 1.0f, fc);
+    axial = axial + world_bilinear(m, WINDOW, fr, fc - 1.0f);
+    axial = axial + world_bilinear(m, WINDOW, fr, fc + 1.0f);
+    out[orr * ocols + oc] = (4.0f * world_at(m, WINDOW, r, c) + 2.0f * diag + axial) * 0.0625f;
 }
 
 /* ------------------------------------------------------------------ suitability

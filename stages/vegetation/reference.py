@@ -10,6 +10,7 @@ placement.py, grass.py) runs on either.
 from __future__ import annotations
 
 import zlib
+from typing import NamedTuple
 
 import numpy as np
 
@@ -66,19 +67,58 @@ def sstep(e0, inv, x):
     return t * t * (F(3) - F(2) * t)
 
 
-def _at(h, r, c):
-    rows, cols = h.shape
-    return h[np.clip(r, 0, rows - 1), np.clip(c, 0, cols - 1)]
+class Window(NamedTuple):
+    """Where an array sits in the world grid, and which of its cells a
+    kernel computes: the array's first cell is the world's (row0, col0), the
+    world is wrows x wcols, and the orows x ocols cells from (orow, ocol) of
+    the array are computed. A tile read with a halo (pipeline.tiles.Tile) is
+    Window.of(tile, halo); kernels taking one clamp in world cells, so with a
+    wide enough halo a tile gets the bits of the whole world's run."""
+    row0: int
+    col0: int
+    wrows: int
+    wcols: int
+    orow: int
+    ocol: int
+    orows: int
+    ocols: int
+
+    @staticmethod
+    def whole(shape) -> "Window":
+        return Window(0, 0, int(shape[0]), int(shape[1]), 0, 0, int(shape[0]), int(shape[1]))
+
+    @staticmethod
+    def of(tile, halo: int) -> "Window":
+        r0, c0, _, _ = tile.window(halo)
+        rows, cols = tile.inner(halo)
+        return Window(r0, c0, *tile.world_shape, rows.start, cols.start, tile.rows, tile.cols)
+
+    def margin(self, shape) -> int:
+        """The fewest cells the array holds beyond the output on a side
+        where it stops short of the world's border (what a kernel may reach)."""
+        sides = ((self.orow, self.row0 + self.orow), (self.ocol, self.col0 + self.ocol),
+                 (shape[0] - self.orow - self.orows, self.wrows - (self.row0 + self.orow + self.orows)),
+                 (shape[1] - self.ocol - self.ocols, self.wcols - (self.col0 + self.ocol + self.ocols)))
+        return min((held for held, to_border in sides if held < to_border), default=1 << 30)
+
+    def args(self, shape) -> tuple:
+        """The kernels' WINDOW_ARGS and output window, as int32."""
+        return tuple(np.int32(v) for v in (shape[0], shape[1], self.row0, self.col0, self.wrows, self.wcols,
+                                           self.orow, self.ocol, self.orows, self.ocols))
 
 
-def bilinear(h, fr, fc):
+def _world_at(h, w: Window, r, c):
+    return h[np.clip(r, 0, w.wrows - 1) - w.row0, np.clip(c, 0, w.wcols - 1) - w.col0]
+
+
+def _world_bilinear(h, w: Window, fr, fc):
     r0f, c0f = np.floor(fr), np.floor(fc)
     tr, tc = fr - r0f, fc - c0f
     r0, c0 = r0f.astype(np.int64), c0f.astype(np.int64)
-    a = _at(h, r0, c0)
-    b = _at(h, r0, c0 + 1)
-    c = _at(h, r0 + 1, c0)
-    d = _at(h, r0 + 1, c0 + 1)
+    a = _world_at(h, w, r0, c0)
+    b = _world_at(h, w, r0, c0 + 1)
+    c = _world_at(h, w, r0 + 1, c0)
+    d = _world_at(h, w, r0 + 1, c0 + 1)
     top = a + (b - a) * tc
     bot = c + (d - c) * tc
     return top + (bot - top) * tr
@@ -86,44 +126,47 @@ def bilinear(h, fr, fc):
 
 # --------------------------------------------------------------------------- attributes
 
-def attributes(h, dx, kc, inv_kc2, dirs, steps, sun0, sun1, inv_direct, diffuse, local=None):
-    """The attributes kernel: (slope deg, aspect deg, gradient m/m,
-    curvature 1/m, sky view, sunlight), each (rows, cols) float32."""
+def attributes(h, dx, kc, inv_kc2, dirs, steps, sun0, sun1, inv_direct, diffuse, local=None, window=None):
+    """The attributes kernels: (slope deg, aspect deg, gradient m/m,
+    curvature 1/m, sky view, sunlight), each float32 of the world `h`, or
+    of the output cells of `window` (a Window; h its array)."""
     h = np.asarray(h, F)
-    rows, cols = h.shape
+    w = Window.whole(h.shape) if window is None else window
     dx = F(dx)
-    r = np.arange(rows)[:, None] + np.zeros((1, cols), np.int64)
-    c = np.arange(cols)[None, :] + np.zeros((rows, 1), np.int64)
-    cl, cr = np.maximum(c - 1, 0), np.minimum(c + 1, cols - 1)
-    ru, rd = np.maximum(r - 1, 0), np.minimum(r + 1, rows - 1)
-    gx = (h[r, cr] - h[r, cl]) / ((cr - cl).astype(F) * dx)
-    gz = (h[rd, c] - h[ru, c]) / ((rd - ru).astype(F) * dx)
+    r = w.row0 + w.orow + np.arange(w.orows)[:, None] + np.zeros((1, w.ocols), np.int64)  # world cells
+    c = w.col0 + w.ocol + np.arange(w.ocols)[None, :] + np.zeros((w.orows, 1), np.int64)
+    h0 = _world_at(h, w, r, c)
+    cl, cr = np.maximum(c - 1, 0), np.minimum(c + 1, w.wcols - 1)
+    ru, rd = np.maximum(r - 1, 0), np.minimum(r + 1, w.wrows - 1)
+    gx = (_world_at(h, w, r, cr) - _world_at(h, w, r, cl)) / ((cr - cl).astype(F) * dx)
+    gz = (_world_at(h, w, rd, c) - _world_at(h, w, ru, c)) / ((rd - ru).astype(F) * dx)
     g = np.sqrt(gx * gx + gz * gz)
     slope = np.arctan(g) * RAD2DEG
     asp = np.arctan2(-gx, gz) * RAD2DEG
     aspect = np.where(asp < F(0), asp + F(360), asp)
-    lap = _at(h, r, c + kc) + _at(h, r, c - kc)
-    lap = lap + _at(h, r + kc, c)
-    lap = lap + _at(h, r - kc, c)
-    lap = lap - F(4) * h
+    lap = _world_at(h, w, r, c + kc) + _world_at(h, w, r, c - kc)
+    lap = lap + _world_at(h, w, r + kc, c)
+    lap = lap + _world_at(h, w, r - kc, c)
+    lap = lap - F(4) * h0
     curv = lap * F(inv_kc2)
 
     nd = len(dirs)
-    hz = np.zeros((nd, rows, cols), F)
-    svf = np.zeros((rows, cols), F)
+    shape = (w.orows, w.ocols)
+    hz = np.zeros((nd,) + shape, F)
+    svf = np.zeros(shape, F)
     cf, rf = c.astype(F), r.astype(F)
     for d in range(nd):
         ex, ez = F(dirs[d][0]), F(dirs[d][1])
-        tmax = np.zeros((rows, cols), F)
-        active = np.ones((rows, cols), bool)
+        tmax = np.zeros(shape, F)
+        active = np.ones(shape, bool)
         for s in steps:
             s = F(s)
             fc = cf + s * ex
             fr = rf - s * ez
-            active &= ~((fc < F(0)) | (fr < F(0)) | (fc > F(cols - 1)) | (fr > F(rows - 1)))
+            active &= ~((fc < F(0)) | (fr < F(0)) | (fc > F(w.wcols - 1)) | (fr > F(w.wrows - 1)))
             if not active.any():
                 break
-            t = (bilinear(h, np.where(active, fr, F(0)), np.where(active, fc, F(0))) - h) / (s * dx)
+            t = (_world_bilinear(h, w, np.where(active, fr, rf), np.where(active, fc, cf)) - h0) / (s * dx)  # in the window
             tmax = np.where(active, np.maximum(tmax, t), tmax)
         hz[d] = tmax
         svf = svf + F(1) / (F(1) + tmax * tmax)
@@ -131,7 +174,7 @@ def attributes(h, dx, kc, inv_kc2, dirs, steps, sun0, sun1, inv_direct, diffuse,
 
     nn = np.sqrt(gx * gx + gz * gz + F(1))
     nx, ny, nz = -gx / nn, F(1) / nn, -gz / nn
-    direct = np.zeros((rows, cols), F)
+    direct = np.zeros(shape, F)
     for k in range(len(sun0)):
         s0, s1 = np.asarray(sun0[k], F), np.asarray(sun1[k], F)
         a0 = np.floor(s1[0])
@@ -147,24 +190,35 @@ def attributes(h, dx, kc, inv_kc2, dirs, steps, sun0, sun1, inv_direct, diffuse,
     return slope, aspect, g, curv, svf, sunlight
 
 
-def moisture_filter(m, jitter, key, local=None):
+def moisture_filter(m, jitter, key, local=None, window=None):
+    """The filtered moisture of the world `m`, or of the output cells of
+    `window` (a Window; m its array): the jitter and the clamping are the
+    world cell's."""
     m = np.asarray(m, F)
-    rows, cols = m.shape
-    i = np.arange(rows * cols, dtype=np.int64).reshape(rows, cols)
+    w = Window.whole(m.shape) if window is None else window
+    r = w.row0 + w.orow + np.arange(w.orows, dtype=np.int64)[:, None]  # world cells
+    c = w.col0 + w.ocol + np.arange(w.ocols, dtype=np.int64)[None, :]
+    i = r * w.wcols + c
     jx = (uniform(key, i, 0, 0) - F(0.5)) * F(2) * F(jitter)
     jz = (uniform(key, i, 1, 0) - F(0.5)) * F(2) * F(jitter)
-    fr = np.arange(rows, dtype=F)[:, None] + jz
-    fc = np.arange(cols, dtype=F)[None, :] + jx
+    fr = r.astype(F) + jz
+    fc = c.astype(F) + jx
     one = F(1)
-    diag = bilinear(m, fr - one, fc - one)
-    diag = diag + bilinear(m, fr - one, fc + one)
-    diag = diag + bilinear(m, fr + one, fc - one)
-    diag = diag + bilinear(m, fr + one, fc + one)
-    axial = bilinear(m, fr - one, fc)
-    axial = axial + bilinear(m, fr + one, fc)
-    axial = axial + bilinear(m, fr, fc - one)
-    axial = axial + bilinear(m, fr, fc + one)
-    return (F(4) * m + F(2) * diag + axial) * F(0.0625)
+    diag = _world_bilinear(m, w, fr - one, fc - one)
+    diag = diag + _world_bilinear(m, w, fr - one, fc + one)
+    diag = diag + _world_bilinear(m, w, fr + one, fc - one)
+    diag = diag + _world_bilinear(m, w, fr + one, fc + one)
+    axial = _world_bilinear(m, w, fr - one, fc)
+    axial = axial + _world_bilinear(m, w, fr + one, fc)
+    axial = axial + _world_bilinear(m, w, fr, fc - one)
+    axial = axial + _world_bilinear(m, w, fr, fc + one)
+    return (F(4) * _world_at(m, w, r, c) + F(2) * diag + axial) * F(0.0625)
+
+
+def moisture_filter_halo(jitter: float) -> int:
+    """The cells around a tile the moisture filter reads: the jitter (cells)
+    and the neighbour's bilinear."""
+    return int(np.ceil(jitter)) + 2
 
 
 # --------------------------------------------------------------------------- suitability and splat

@@ -52,6 +52,47 @@ def test_attributes_match_reference(cl_env, terrain):
                 same(cl_env, g, w)
 
 
+@pytest.mark.parametrize("tile_cells", [16, 23])
+def test_attributes_of_tiles_are_the_whole_worlds(cl_env, tile_cells):
+    """A tile read with the attributes' halo computes the bits of the whole
+    world's run, on the device and in the reference (world borders, corners
+    and tiles smaller than the halo included)."""
+    from pipeline.tiles import tiles_of
+
+    params = VegetationParams(horizon_distance_m=160.0, horizon_directions=8)
+    h = synthetic_height(41, 50, DX, seed=5)
+    halo = at.halo_cells(DX, params)
+    assert halo == int(np.ceil(at.march_steps(DX, 160.0, params.horizon_step_growth)[-1])) + 1
+    for backend in (ref, dev.on(cl_env)):
+        whole = at.compute(h, DX, params, backend)
+        for tile in tiles_of(h.shape, tile_cells):
+            r0, c0, rows, cols = tile.window(halo)
+            part = at.compute(h[r0:r0 + rows, c0:c0 + cols], DX, params, backend, window=ref.Window.of(tile, halo))
+            cells = np.s_[tile.row0:tile.row0 + tile.rows, tile.col0:tile.col0 + tile.cols]
+            for name, field in part.items():
+                np.testing.assert_array_equal(field, whole[name][cells], err_msg=f"{name} {tile.name}")
+    tile = tiles_of(h.shape, tile_cells)[0]  # its right and lower sides are inside the world
+    r0, c0, rows, cols = tile.window(halo - 1)
+    with pytest.raises(ValueError, match="the scan reaches"):
+        at.compute(h[r0:r0 + rows, c0:c0 + cols], DX, params, ref, window=ref.Window.of(tile, halo - 1))
+
+
+@pytest.mark.parametrize("jitter", [0.4, 2.5])
+def test_moisture_filter_of_tiles_is_the_whole_worlds(cl_env, jitter):
+    from pipeline.tiles import tiles_of
+
+    m = np.random.default_rng(4).random((29, 34)).astype(np.float32)
+    halo = ref.moisture_filter_halo(jitter)
+    for backend in (ref, dev.on(cl_env)):
+        whole = backend.moisture_filter(m, jitter, 91)
+        for tile in tiles_of(m.shape, 8):
+            r0, c0, rows, cols = tile.window(halo)
+            part = backend.moisture_filter(m[r0:r0 + rows, c0:c0 + cols], jitter, 91,
+                                           window=ref.Window.of(tile, halo))
+            np.testing.assert_array_equal(part, whole[tile.row0:tile.row0 + tile.rows,
+                                                      tile.col0:tile.col0 + tile.cols], err_msg=tile.name)
+
+
 def test_attributes_physics(cl_env):
     flat = np.full((20, 24), 500.0, np.float32)
     slope, aspect, grad, curv, sky, sun = dev.attributes(cl_env, *attr_args(flat))
