@@ -81,12 +81,14 @@ class Domain:
         return tr, tc
 
 
-def value_noise(shape: tuple[int, int], dx: float, origin: tuple[float, float], wavelength: float, key: int) -> np.ndarray:
+def value_noise(shape: tuple[int, int], dx: float, origin: tuple[float, float], wavelength: float, key: int,
+                first=(0, 0)) -> np.ndarray:
     """Zero-mean value noise in [-1, 1] (lattice of spacing `wavelength`,
-    smoothstep interpolation) at the cell centres."""
+    smoothstep interpolation) at the cell centres. first: the (row, col) of
+    the array's first cell in the world whose origin is `origin`."""
     rows, cols = shape
-    x = (origin[0] + (np.arange(cols) + 0.5) * dx) / wavelength
-    z = (origin[1] + (np.arange(rows) + 0.5) * dx) / wavelength
+    x = (origin[0] + (first[1] + np.arange(cols) + 0.5) * dx) / wavelength
+    z = (origin[1] + (first[0] + np.arange(rows) + 0.5) * dx) / wavelength
     ix, iz = np.floor(x).astype(np.int64), np.floor(z).astype(np.int64)
     fx, fz = x - ix, z - iz
     sx, sz = fx * fx * (3 - 2 * fx), fz * fz * (3 - 2 * fz)

@@ -96,6 +96,15 @@ def riparian_index(h: np.ndarray, water: np.ndarray, level: np.ndarray, half_wid
     return np.where(water, 1.0, out).astype(F)
 
 
+def riparian_halo(dx: float, params: VegetationParams, max_half_width_m: float) -> int:
+    """The cells around a tile its riparian index reads: beyond
+    riparian_distance_m plus the widest river's half width the index is 0
+    whichever water is nearest, so a tile read with this halo gets the whole
+    world's values (the nearest water cell it finds is the world's wherever
+    the index is not 0)."""
+    return int(math.ceil((params.riparian_distance_m + max_half_width_m) / dx)) + 2
+
+
 def d8_receivers(h: np.ndarray, dx: float) -> np.ndarray:
     """Per cell (flat index) the D8 index of the steepest lower neighbour
     (-1: none, a flat or a pit)."""
@@ -171,14 +180,15 @@ def _lattice_noise(x: np.ndarray, z: np.ndarray, key: int) -> np.ndarray:
     return top + (bot - top) * fz
 
 
-def noise(shape, dx: float, origin, wavelength: float, key: int, octaves: int) -> np.ndarray:
-    """Value noise at the cell centres in world coordinates (so a window of
-    a larger world is the same): octaves at wavelength / 2.3^k with
-    amplitude 0.5^k, each on a lattice turned by its own angle (no
-    axis-aligned blocks), divided by the amplitudes' sum."""
+def noise(shape, dx: float, origin, wavelength: float, key: int, octaves: int, first=(0, 0)) -> np.ndarray:
+    """Value noise at the cell centres in world coordinates: octaves at
+    wavelength / 2.3^k with amplitude 0.5^k, each on a lattice turned by its
+    own angle (no axis-aligned blocks), divided by the amplitudes' sum.
+    first: the (row, col) of the array's first cell in the world whose
+    origin is `origin` (a window of it has the world's bits)."""
     rows, cols = shape
-    x = (origin[0] + (np.arange(cols) + 0.5) * dx)[None, :]
-    z = (origin[1] + (np.arange(rows) + 0.5) * dx)[:, None]
+    x = (origin[0] + (first[1] + np.arange(cols) + 0.5) * dx)[None, :]
+    z = (origin[1] + (first[0] + np.arange(rows) + 0.5) * dx)[:, None]
     total, amp, out = 0.0, 1.0, np.zeros(shape)
     for k in range(octaves):
         a, w = 0.6 + 1.1 * k, wavelength / 2.3 ** k
@@ -197,15 +207,18 @@ def noise_threshold(share: float, octaves: int) -> float:
     return float(np.quantile(sample, 1.0 - share))
 
 
-def release_cells(h, slope, blocked, params: VegetationParams, dx: float, origin, seed: int) -> np.ndarray:
-    """bool: where avalanches release (see the module's doc)."""
+def release_cells(h, slope, blocked, params: VegetationParams, dx: float, origin, seed: int,
+                  first=(0, 0)) -> np.ndarray:
+    """bool: where avalanches release (see the module's doc); first: the
+    array's first cell in the world (noise)."""
     p = params
     ok = ((h >= p.avalanche_release_min_m) & (slope >= p.avalanche_release_slope_min_deg)
           & (slope <= p.avalanche_release_slope_max_deg) & ~blocked)
     if p.avalanche_release_share <= 0.0 or not ok.any():
         return np.zeros(h.shape, bool)
     if p.avalanche_release_share < 1.0:
-        n = noise(h.shape, dx, origin, p.avalanche_release_patch_m, ref.stream_key(seed, "avalanche-release"), 1)
+        n = noise(h.shape, dx, origin, p.avalanche_release_patch_m, ref.stream_key(seed, "avalanche-release"), 1,
+                  first)
         ok &= n > noise_threshold(p.avalanche_release_share, 1)
     return ok
 
@@ -228,11 +241,12 @@ def avalanche_tracks(h, slope, blocked, params: VegetationParams, dx: float, ori
                              "track_share": float((track >= 0.5).mean())}
 
 
-def clearings(shape, params: VegetationParams, dx: float, origin, seed: int) -> np.ndarray:
-    """0..1 clearing weight: the noise over its threshold, with a soft edge."""
+def clearings(shape, params: VegetationParams, dx: float, origin, seed: int, first=(0, 0)) -> np.ndarray:
+    """0..1 clearing weight: the noise over its threshold, with a soft edge;
+    first: the array's first cell in the world."""
     if params.clearing_share <= 0.0:
         return np.zeros(shape, F)
-    n = noise(shape, dx, origin, params.clearing_size_m, ref.stream_key(seed, "clearing"), CLEARING_OCTAVES)
+    n = noise(shape, dx, origin, params.clearing_size_m, ref.stream_key(seed, "clearing"), CLEARING_OCTAVES, first)
     t = noise_threshold(params.clearing_share, CLEARING_OCTAVES)
     return smooth01((n - t) / CLEARING_EDGE + 0.5).astype(F)
 

@@ -108,6 +108,44 @@ def test_riparian_index():
     assert not sites.riparian_index(h, np.zeros_like(water), level, half, dx, 3.0, 30.0).any()
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_riparian_index_of_tiles_is_the_whole_worlds(seed):
+    """A tile read with riparian_halo gets the whole world's index bit for
+    bit, also where several water cells are equally near (straight rivers
+    on the grid's axes, scattered ponds)."""
+    from pipeline.tiles import tiles_of
+
+    rng = np.random.default_rng(seed)
+    rows, cols, dx = 90, 110, 2.0
+    water = rng.random((rows, cols)) < (0.002, 0.01, 0.05)[seed % 3]
+    if seed % 2:
+        water[:, 40] = water[60, :] = True
+    h, level = rng.random((rows, cols)) * 20, rng.random((rows, cols)) * 20
+    half = np.where(water, rng.random((rows, cols)) * 6, 0.0)
+    params = VegetationParams(riparian_height_m=5.0, riparian_distance_m=20.0)
+    whole = sites.riparian_index(h, water, level, half, dx, 5.0, 20.0)
+    halo = sites.riparian_halo(dx, params, float(half.max()))
+    for tile in tiles_of((rows, cols), 32):
+        r0, c0, n_rows, n_cols = tile.window(halo)
+        part = np.s_[r0:r0 + n_rows, c0:c0 + n_cols]
+        got = sites.riparian_index(h[part], water[part], level[part], half[part], dx, 5.0, 20.0)[tile.inner(halo)]
+        np.testing.assert_array_equal(got, whole[tile.row0:tile.row0 + tile.rows, tile.col0:tile.col0 + tile.cols])
+
+
+def test_noise_of_a_window_is_the_whole_worlds():
+    """The clearings, the avalanche release patches and the clumping noise
+    of a window of the world, given its first cell, have the world's bits
+    (cell sizes and origins whose products round)."""
+    params = VegetationParams(clearing_share=0.3, clearing_size_m=37.0)
+    for dx, origin in ((5.41, (-2771.3, 113.7)), (1.0, (0.0, 0.0))):
+        whole = sites.clearings((70, 90), params, dx, origin, 11)
+        clump = pl.value_noise((70, 90), dx, origin, 23.0, 5)
+        first, shape = (33, 47), (20, 31)
+        cells = np.s_[33:53, 47:78]
+        np.testing.assert_array_equal(sites.clearings(shape, params, dx, origin, 11, first), whole[cells])
+        np.testing.assert_array_equal(pl.value_noise(shape, dx, origin, 23.0, 5, first), clump[cells])
+
+
 def test_avalanche_run_out_against_the_alpha_line():
     """A 35 deg slope onto a flat floor: an avalanche released at the top
     runs down the slope and out over the floor until its alpha line (from
