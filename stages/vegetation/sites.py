@@ -22,9 +22,10 @@ transforms, flow lines), and how they change each species' suitability.
   patches release, so a planar face sends a band, not a comb of lines); each
   avalanche runs down the steepest descent (D8) while the line falling at
   avalanche_alpha_deg from its release height stays above the ground (the
-  alpha angle of Lied and Bakkehoi 1980). A cell reached by several keeps
-  the highest such line (the path below depends on nothing else), so the
-  result is exact and does not depend on order. The track is the path
+  alpha angle of Lied and Bakkehoi 1980); over a flat straight on. A cell
+  keeps the highest line per direction of arrival (RunOut), so the result
+  is exact and does not depend on order: tiles spread in rounds give the
+  whole world's. The track is the path
   widened to avalanche_track_width_m with a soft edge.
 - Clearings: a three-octave counter-based value noise of wavelength
   clearing_size_m in its top clearing_share (the noise's quantile measured on
@@ -121,41 +122,88 @@ def d8_receivers(h: np.ndarray, dx: float) -> np.ndarray:
 
 
 def run_out(h: np.ndarray, release: np.ndarray, dx: float, alpha_deg: float) -> np.ndarray:
-    """bool: the cells avalanches from `release` reach, each running down
-    the D8 steepest descent (over a flat or a pit: straight on, where that
-    does not climb) while its alpha line (from its release height, falling
-    tan(alpha) per metre run) is at or above the ground. A cell keeps the
-    highest line that reaches it (and that line's direction, the lowest D8
-    index among equals), so the result does not depend on order."""
-    rows, cols = h.shape
-    hf = h.astype(np.float64).ravel()
-    way = d8_receivers(h, dx)
-    off = np.asarray(D8, np.int64)
-    run = dx * np.hypot(off[:, 0], off[:, 1])
-    tan_a = math.tan(math.radians(alpha_deg))
-    line = np.full(hf.size, -np.inf)
-    heading = np.full(hf.size, -1, np.int64)
-    active = np.flatnonzero(release.ravel())
-    line[active] = hf[active]
-    while active.size:
-        k = np.where(way[active] >= 0, way[active], heading[active])
-        r, c = np.divmod(active, cols)
-        r2, c2 = r + off[np.maximum(k, 0), 0], c + off[np.maximum(k, 0), 1]
-        inside = (k >= 0) & (r2 >= 0) & (r2 < rows) & (c2 >= 0) & (c2 < cols)
-        nxt = np.where(inside, r2 * cols + c2, 0)
-        e = line[active] - tan_a * run[np.maximum(k, 0)]
-        ok = inside & (e >= hf[nxt]) & ((way[active] >= 0) | (hf[nxt] <= hf[active]))
-        nxt, e, k = nxt[ok], e[ok], k[ok]
-        cells = np.unique(nxt)
-        before = line[cells].copy()
-        np.maximum.at(line, nxt, e)  # a maximum: the same in any order
-        moved = line[cells] > before
-        won = e == line[nxt]
-        pick = np.full(hf.size, len(D8), np.int64)
-        np.minimum.at(pick, nxt[won], k[won])
-        active = cells[moved]
-        heading[active] = pick[active]
-    return (line >= hf).reshape(h.shape)
+    """bool: the cells avalanches from `release` reach (RunOut: each runs
+    down the D8 steepest descent, over a flat straight on where that does
+    not climb, while its alpha line is at or above the ground)."""
+    run = RunOut(h, d8_receivers(h, dx), dx, alpha_deg)
+    run.spread(run.seed(np.flatnonzero(release.ravel()), np.full(int(release.sum()), NO_HEADING),
+                        h.astype(np.float64).ravel()[release.ravel()]))
+    return run.path()
+
+
+NO_HEADING = 8  # the state slot of a line that keeps no direction (a release, or a cell with a lower neighbour)
+
+
+class RunOut:
+    """Avalanche lines on a grid (the world, or a tile and a one-cell halo).
+
+    A line falls tan(alpha) per metre of run from its release height and
+    goes on while at or above the ground. From a cell with a lower neighbour
+    it moves to the steepest (d8_receivers); from a flat it goes straight on
+    in the direction it came from, where that does not climb. So a cell's
+    lines differ only by that direction: the state is the highest line per
+    (cell, slot), slot the direction of arrival on a flat and NO_HEADING
+    elsewhere. Each state's value is the highest over every path reaching
+    it, each path's value its release height less its steps' falls, in the
+    path's order: the states are the same, bit for bit, in whatever order
+    lines are spread, so a world spread tile by tile (its lines crossing
+    into neighbours in rounds) equals the world spread whole.
+
+    own: the cells lines spread from (a tile's; default all); a line
+    reaching another cell is settled there and reported by spread() as a
+    crossing, for the neighbour that owns it."""
+
+    def __init__(self, h: np.ndarray, way: np.ndarray, dx: float, alpha_deg: float, own: np.ndarray | None = None):
+        self.shape = h.shape
+        self.hf = h.astype(np.float64).ravel()
+        self.way = way
+        self.own = np.ones(self.hf.size, bool) if own is None else own.ravel()
+        self.off = np.asarray(D8, np.int64)
+        self.fall = math.tan(math.radians(alpha_deg)) * dx * np.hypot(self.off[:, 0], self.off[:, 1])
+        self.line = np.full((self.hf.size, NO_HEADING + 1), -np.inf)
+
+    def slot(self, cells: np.ndarray, heading: np.ndarray) -> np.ndarray:
+        """Where a line arriving with `heading` is kept: its heading on a flat."""
+        return np.where(self.way[cells] >= 0, NO_HEADING, heading)
+
+    def seed(self, cells: np.ndarray, slots: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Raise states to `values` (a maximum: any order); the states raised."""
+        flat = cells * (NO_HEADING + 1) + slots
+        line = self.line.ravel()
+        before = line[flat]
+        np.maximum.at(line, flat, values)
+        raised = np.unique(flat[line[flat] > before])
+        return np.divmod(raised, NO_HEADING + 1)
+
+    def spread(self, active: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Move the active states' lines on until none moves; the lines
+        reaching cells not owned (cell, heading, value), for their owner's
+        seed(cells, slot(cells, headings), values)."""
+        rows, cols = self.shape
+        out_cells, out_headings, out_values = [], [], []
+        cells, slots = active
+        while cells.size:
+            keep = self.own[cells]
+            cells, slots = cells[keep], slots[keep]
+            k = np.where(self.way[cells] >= 0, self.way[cells], np.where(slots < NO_HEADING, slots, -1))
+            r, c = np.divmod(cells, cols)
+            kk = np.maximum(k, 0)
+            r2, c2 = r + self.off[kk, 0], c + self.off[kk, 1]
+            inside = (k >= 0) & (r2 >= 0) & (r2 < rows) & (c2 >= 0) & (c2 < cols)
+            nxt = np.where(inside, r2 * cols + c2, 0)
+            e = self.line[cells, slots] - self.fall[kk]
+            ok = inside & (e >= self.hf[nxt]) & ((self.way[cells] >= 0) | (self.hf[nxt] <= self.hf[cells]))
+            nxt, e, k = nxt[ok], e[ok], k[ok]
+            away = ~self.own[nxt]  # the owner keeps its slot (this grid may not see the cell's neighbours)
+            out_cells.append(nxt[away]), out_headings.append(k[away]), out_values.append(e[away])
+            cells, slots = self.seed(nxt, self.slot(nxt, k), e)
+        cat = np.concatenate
+        return (cat(out_cells) if out_cells else np.zeros(0, np.int64), cat(out_headings) if out_headings else
+                np.zeros(0, np.int64), cat(out_values) if out_values else np.zeros(0))
+
+    def path(self) -> np.ndarray:
+        """bool: where a line is at or above the ground."""
+        return (self.line.max(axis=1) >= self.hf).reshape(self.shape)
 
 
 def _lattice_noise(x: np.ndarray, z: np.ndarray, key: int) -> np.ndarray:

@@ -132,6 +132,66 @@ def test_riparian_index_of_tiles_is_the_whole_worlds(seed):
         np.testing.assert_array_equal(got, whole[tile.row0:tile.row0 + tile.rows, tile.col0:tile.col0 + tile.cols])
 
 
+def tiled_run_out(h, release, dx, alpha, tile_cells):
+    """run_out as a tiled bake spreads it: each tile (and a one-cell halo)
+    spreads its own lines, the lines crossing into a neighbour are handed
+    on in rounds until none crosses."""
+    from pipeline.tiles import tiles_of
+
+    tiles = tiles_of(h.shape, tile_cells)
+    runs, inbox = {}, {(t.row, t.col): [] for t in tiles}
+    for t in tiles:
+        r0, c0, rows, cols = t.window(1)
+        part = h[r0:r0 + rows, c0:c0 + cols]
+        own = np.zeros(part.shape, bool)
+        own[t.inner(1)] = True
+        run = sites.RunOut(part, sites.d8_receivers(part, dx), dx, alpha, own)
+        seeds = np.flatnonzero((release[r0:r0 + rows, c0:c0 + cols] & own).ravel())
+        runs[t.row, t.col] = (t, run)
+        inbox[t.row, t.col].append((seeds, np.full(seeds.size, sites.NO_HEADING), run.hf[seeds], True))
+    rounds = 0
+    while any(inbox.values()):
+        rounds += 1
+        sent, inbox = inbox, {key: [] for key in inbox}
+        for key, messages in sent.items():
+            t, run = runs[key]
+            r0, c0, _, cols = t.window(1)
+            for cells, headings, values, are_slots in messages:
+                slots = headings if are_slots else run.slot(cells, headings)
+                cells_out, headings_out, values_out = run.spread(run.seed(cells, slots, values))
+                wr, wc = r0 + cells_out // cols, c0 + cells_out % cols
+                for owner in set(zip((wr // tile_cells).tolist(), (wc // tile_cells).tolist())):
+                    mine = (wr // tile_cells == owner[0]) & (wc // tile_cells == owner[1])
+                    o, o_run = runs[owner]
+                    orow0, ocol0, _, ocols = o.window(1)
+                    local = (wr[mine] - orow0) * ocols + (wc[mine] - ocol0)
+                    inbox[owner].append((local, headings_out[mine], values_out[mine], False))
+    path = np.zeros(h.shape, bool)
+    for t, run in runs.values():
+        path[t.row0:t.row0 + t.rows, t.col0:t.col0 + t.cols] = run.path()[t.inner(1)]
+    return path, rounds
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_run_out_of_tiles_is_the_whole_worlds(seed):
+    """Avalanches spread tile by tile, handing their lines to the
+    neighbours in rounds, reach the cells the whole world's reach: on rough
+    slopes, terraces of flats (where lines keep their heading) and pits."""
+    rng = np.random.default_rng(seed)
+    rows, cols, dx = 70, 83, 4.0
+    r, c = np.mgrid[0:rows, 0:cols]
+    h = 900.0 - 3.0 * r - 1.2 * c + 6.0 * rng.random((rows, cols))
+    if seed % 2:
+        h = np.floor(h / 12.0) * 12.0  # terraces: wide flats
+    release = (rng.random((rows, cols)) < 0.02) & (r < rows // 2)
+    whole = sites.run_out(h, release, dx, 20.0)
+    assert whole.sum() > 4 * release.sum()  # the lines run far
+    for tile_cells in (16, 29):
+        tiled, rounds = tiled_run_out(h, release, dx, 20.0, tile_cells)
+        assert rounds > 1
+        np.testing.assert_array_equal(tiled, whole)
+
+
 def test_noise_of_a_window_is_the_whole_worlds():
     """The clearings, the avalanche release patches and the clumping noise
     of a window of the world, given its first cell, have the world's bits
