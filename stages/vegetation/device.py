@@ -167,14 +167,17 @@ class Sim:
 class Poisson:
     """reference.Poisson on the device."""
 
-    def __init__(self, env, nx, nz, c, wdom, ddom, rad, dx, margin, obs_start, obs, onx, onz, oc, local=None):
+    def __init__(self, env, nx, nz, c, wdom, ddom, rad, dx, margin, obs_start, obs, onx, onz, oc, local=None,
+                 window=None, pts=None):
         self.b = b = Buffers(env)
         self.nx, self.nz = nx, nz
         self.local = local
         self.prg = program(env)
         rad = np.ascontiguousarray(rad, F)
         self.rows, self.cols = rad.shape
-        self.pts = b.arr(np.zeros((nz * nx, 4), F), True)
+        self.win = ref.PoissonWindow.whole(nx, nz, rad.shape) if window is None else window
+        start = np.zeros((self.win.wnz * self.win.wnx, 4), F) if pts is None else np.array(pts, F).reshape(-1, 4)
+        self.pts = b.arr(start, True)
         self.rad = b.arr(rad)
         self.obs_start = b.arr(np.ascontiguousarray(obs_start, np.int32))
         self.obs = b.arr(np.ascontiguousarray(obs, F).reshape(-1, 4))
@@ -183,16 +186,20 @@ class Poisson:
 
     def phase(self, px, pz, pss, key):
         P = ref.PN + 1
-        gx, gz = -(-(self.nx - px) // P), -(-(self.nz - pz) // P)
+        w = self.win
+        xf, zf = w.first(px, pz)
+        gx, gz = -(-(w.x0 + w.wnx - xf) // P), -(-(w.z0 + w.wnz - zf) // P)
         if gx <= 0 or gz <= 0:
             return
-        c, w, d = self.fixed
-        self.b.run(self.prg.poisson_phase, (gx, gz), self.local, self.pts, np.int32(self.nx), np.int32(self.nz),
-                   c, w, d, np.int32(px), np.int32(pz), np.uint32(pss), np.uint32(key), self.rad,
-                   np.int32(self.rows), np.int32(self.cols), *self.tail)
+        c, wd, d = self.fixed
+        i32 = np.int32
+        self.b.run(self.prg.poisson_phase, (gx, gz), self.local, self.pts, i32(self.nx), i32(self.nz), i32(w.x0),
+                   i32(w.z0), i32(w.wnx), i32(w.wnz), i32(xf), i32(zf), c, wd, d, np.uint32(pss), np.uint32(key),
+                   self.rad, i32(self.rows), i32(self.cols), i32(w.trow0), i32(w.tcol0), i32(w.wrows),
+                   i32(w.wcols), *self.tail)
 
     def read(self):
-        pts = self.b.get(self.pts, (self.nz * self.nx, 4), F)
+        pts = self.b.get(self.pts, (self.win.wnz * self.win.wnx, 4), F)
         pts[pts[:, 2] < 0] = 0.0  # cells the kernel marked as unusable are free cells
         return pts
 

@@ -540,7 +540,7 @@ __kernel void thin_resolve(__global const float4 *rec, __global const uchar *st_
 }
 
 /* ------------------------------------------------------------------ Poisson disk
- * One dart per free cell of one phase: cells (px + P gx, pz + P gz) of a grid
+ * One dart per free cell of one phase: world cells (xfirst + P gx, zfirst + P gz) of a grid
  * of cell c (metres), P = PN + 1. The dart is uniform in its cell; its
  * radius r comes from the radius field of the terrain cell it lands in (0:
  * nothing may grow there). It is kept when no point of the species within
@@ -551,6 +551,12 @@ __kernel void thin_resolve(__global const float4 *rec, __global const uchar *st_
  * launch never conflict with each other and the result is the same in any
  * order. pts[cell] = (x, z, r, key), r = 0 for a free cell; x, z in metres
  * from the domain origin (the first terrain cell centre).
+ * Windows: pts holds the wnx x wnz cells from the world's (x0, z0) of an nx x
+ * nz grid, and rad the rows x cols terrain cells from (trow0, tcol0) of a
+ * wrows x wcols terrain; darts are hashed and placed by world cell, and cells
+ * outside the window count as free. A window's cells k cells from its edge
+ * are the world's after k / PN phases (a dart reads PN cells around it): a
+ * tile with a halo of PN x the phases of a round is exact (placement.py).
  */
 #ifndef PN
 #define PN 3
@@ -571,19 +577,21 @@ INLINE void poisson_dead_cell(__global float4 *pts, const int i, const int x, co
         pts[i] = (float4)(0.0f, 0.0f, -1.0f, 0.0f);
 }
 
-__kernel void poisson_phase(__global float4 *pts, const int nx, const int nz, const float c,
-                            const float wdom, const float ddom, const int px, const int pz, const uint pass,
-                            const uint key, __global const float *rad, const int rows, const int cols,
-                            const float dx, const float margin,
+__kernel void poisson_phase(__global float4 *pts, const int nx, const int nz, const int x0, const int z0,
+                            const int wnx, const int wnz, const int xfirst, const int zfirst, const float c,
+                            const float wdom, const float ddom, const uint pass, const uint key,
+                            __global const float *rad, const int rows, const int cols, const int trow0,
+                            const int tcol0, const int wrows, const int wcols, const float dx, const float margin,
                             __global const int *obs_start, __global const float4 *obs, const int onx,
                             const int onz, const float oc)
 {
     const int gx = get_global_id(0), gz = get_global_id(1);
-    const int x = gx * PP + px, z = gz * PP + pz;
-    if (x >= nx || z >= nz)
+    const int x = xfirst + gx * PP, z = zfirst + gz * PP;  /* world cells */
+    if (x >= x0 + wnx || z >= z0 + wnz)
         return;
+    const int li = (z - z0) * wnx + (x - x0);
     const int i = z * nx + x;
-    if (pts[i].z != 0.0f)  /* a point, or a cell no dart can use (below) */
+    if (pts[li].z != 0.0f)  /* a point, or a cell no dart can use (below) */
         return;
     const float u1 = unit(hash4(key, (uint)i, pass, 1u));
     const float u2 = unit(hash4(key, (uint)i, pass, 2u));
@@ -591,8 +599,8 @@ __kernel void poisson_phase(__global float4 *pts, const int nx, const int nz, co
     const float fz = ((float)z + u2) * c;
     if (fx > wdom || fz > ddom)
         return;
-    const int tc = min((int)floor(fx / dx + 0.5f), cols - 1);
-    const int tr = min((int)floor(fz / dx + 0.5f), rows - 1);
+    const int tc = min((int)floor(fx / dx + 0.5f), wcols - 1) - tcol0;
+    const int tr = min((int)floor(fz / dx + 0.5f), wrows - 1) - trow0;
     const float r = rad[tr * cols + tc];
     if (!(r > 0.0f))
         return;
@@ -602,19 +610,19 @@ __kernel void poisson_phase(__global float4 *pts, const int nx, const int nz, co
     for (int k = 1; k <= PN; ++k) {
         for (int dz = -k; dz <= k; ++dz) {
             const int zz = z + dz;
-            if (zz < 0 || zz >= nz)
+            if (zz < z0 || zz >= z0 + wnz)
                 continue;
             const int step = (dz == -k || dz == k) ? 1 : 2 * k;  /* the ring's rows, else its two ends */
             for (int ddx = -k; ddx <= k; ddx += step) {
                 const int xx = x + ddx;
-                if (xx < 0 || xx >= nx)
+                if (xx < x0 || xx >= x0 + wnx)
                     continue;
-                const float4 q = pts[zz * nx + xx];
+                const float4 q = pts[(zz - z0) * wnx + (xx - x0)];
                 if (q.z > 0.0f) {
                     const float ex = fx - q.x, ez = fz - q.y;
                     const float rr = fmax(r, q.z) + margin;
                     if (ex * ex + ez * ez < rr * rr) {
-                        poisson_dead_cell(pts, i, x, z, c, q.x, q.y, q.z);
+                        poisson_dead_cell(pts, li, x, z, c, q.x, q.y, q.z);
                         return;
                     }
                 }
@@ -638,14 +646,14 @@ __kernel void poisson_phase(__global float4 *pts, const int nx, const int nz, co
                     const float ex = fx - q.x, ez = fz - q.y;
                     const float cl = q.z + margin;
                     if (ex * ex + ez * ez < cl * cl) {
-                        poisson_dead_cell(pts, i, x, z, c, q.x, q.y, q.z);
+                        poisson_dead_cell(pts, li, x, z, c, q.x, q.y, q.z);
                         return;
                     }
                 }
             }
         }
     }
-    pts[i] = (float4)(fx, fz, r, unit(hash4(key, (uint)i, pass, 3u)));
+    pts[li] = (float4)(fx, fz, r, unit(hash4(key, (uint)i, pass, 3u)));
 }
 
 /* ------------------------------------------------------------------ grass tufts

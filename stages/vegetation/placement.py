@@ -160,6 +160,21 @@ def _obstacles(prev: list[tuple[Placed, float]], coll: float, dom: Domain, c: fl
     return start.astype(np.int32), pts, onx, onz, oc
 
 
+POISSON_ROUND_HALO = ref.PN * (ref.PN + 1) ** 2  # Poisson cells a window needs around a tile for one pass
+
+
+def poisson_window(x0: int, z0: int, wnx: int, wnz: int, c: float, dom: Domain) -> tuple[ref.PoissonWindow, tuple]:
+    """The PoissonWindow of Poisson cells [x0, x0 + wnx) x [z0, z0 + wnz) and
+    the terrain cells (row slice, col slice) its darts can land in (the
+    radius field's window)."""
+    def span(first, n, cells):
+        lo = max(int(math.floor(first * c / dom.dx)) - 1, 0)
+        hi = min(int(math.ceil((first + n) * c / dom.dx)) + 2, cells)
+        return slice(lo, hi)
+    rs, cs = span(z0, wnz, dom.rows), span(x0, wnx, dom.cols)
+    return ref.PoissonWindow(x0, z0, wnx, wnz, rs.start, cs.start, dom.rows, dom.cols), (rs, cs)
+
+
 def poisson_sample(rad: np.ndarray, r_lo: float, dom: Domain, passes: int, key: int, backend, obstacles=None,
                    local=None) -> tuple[np.ndarray, dict]:
     """Candidates (n, 4: x, z, r, key) and their Poisson cell index, from a

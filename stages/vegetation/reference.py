@@ -462,36 +462,69 @@ class Sim:
 
 # --------------------------------------------------------------------------- Poisson disk
 
+class PoissonWindow(NamedTuple):
+    """A window of a species' Poisson grid and of the terrain: the Poisson
+    cells [x0, x0 + wnx) x [z0, z0 + wnz) of the world's, and the radius
+    field's array from terrain cell (trow0, tcol0) of a wrows x wcols world.
+    Darts are hashed and placed by world cell; cells outside the window
+    count as free, so a window's cells k cells from its edge are the world's
+    after k / PN phases."""
+    x0: int
+    z0: int
+    wnx: int
+    wnz: int
+    trow0: int
+    tcol0: int
+    wrows: int
+    wcols: int
+
+    @staticmethod
+    def whole(nx: int, nz: int, rad_shape) -> "PoissonWindow":
+        return PoissonWindow(0, 0, nx, nz, 0, 0, int(rad_shape[0]), int(rad_shape[1]))
+
+    def first(self, px: int, pz: int) -> tuple[int, int]:
+        """The window's first world cells of phase (px, pz)."""
+        P = PN + 1
+        return self.x0 + (px - self.x0) % P, self.z0 + (pz - self.z0) % P
+
+
 class Poisson:
     """Dart throwing by grid phases on numpy (device.DevicePoisson is the same
-    on the OpenCL device). pts: (nz, nx, 4) float32 (x, z, r, key)."""
+    on the OpenCL device). pts: (wnz, wnx, 4) float32 (x, z, r, key) of the
+    window (PoissonWindow; default the world's nx x nz), starting from `pts`
+    (default: free)."""
 
-    def __init__(self, nx, nz, c, wdom, ddom, rad, dx, margin, obs_start, obs, onx, onz, oc, local=None):
+    def __init__(self, nx, nz, c, wdom, ddom, rad, dx, margin, obs_start, obs, onx, onz, oc, local=None,
+                 window=None, pts=None):
         self.nx, self.nz, self.c = nx, nz, F(c)
         self.wdom, self.ddom = F(wdom), F(ddom)
         self.rad = np.asarray(rad, F)
+        self.win = PoissonWindow.whole(nx, nz, self.rad.shape) if window is None else window
         self.dx, self.margin = F(dx), F(margin)
         self.obs_start, self.obs = np.asarray(obs_start, np.int64), np.asarray(obs, F)
         self.onx, self.onz, self.oc = onx, onz, F(oc)
-        self.pts = np.zeros((nz, nx, 4), F)
+        shape = (self.win.wnz, self.win.wnx, 4)
+        self.pts = np.zeros(shape, F) if pts is None else np.array(pts, F).reshape(shape)
 
     def phase(self, px, pz, pss, key):
         P = PN + 1
-        zs = np.arange(pz, self.nz, P)
-        xs = np.arange(px, self.nx, P)
+        w = self.win
+        xf, zf = w.first(px, pz)
+        zs = np.arange(zf, w.z0 + w.wnz, P)
+        xs = np.arange(xf, w.x0 + w.wnx, P)
         if not len(zs) or not len(xs):
             return
-        Z, X = np.meshgrid(zs, xs, indexing="ij")
+        Z, X = np.meshgrid(zs, xs, indexing="ij")  # world cells
         i = Z * self.nx + X
-        free = self.pts[Z, X, 2] <= F(0)
+        free = self.pts[Z - w.z0, X - w.x0, 2] <= F(0)
         u1 = uniform(key, i, pss, 1)
         u2 = uniform(key, i, pss, 2)
         fx = (X.astype(F) + u1) * self.c
         fz = (Z.astype(F) + u2) * self.c
         ok = free & (fx <= self.wdom) & (fz <= self.ddom)
         rows, cols = self.rad.shape
-        tc = np.minimum(np.floor(fx / self.dx + F(0.5)).astype(np.int64), cols - 1)
-        tr = np.minimum(np.floor(fz / self.dx + F(0.5)).astype(np.int64), rows - 1)
+        tc = np.minimum(np.floor(fx / self.dx + F(0.5)).astype(np.int64), w.wcols - 1) - w.tcol0
+        tr = np.minimum(np.floor(fz / self.dx + F(0.5)).astype(np.int64), w.wrows - 1) - w.trow0
         r = self.rad[np.clip(tr, 0, rows - 1), np.clip(tc, 0, cols - 1)]
         ok &= r > F(0)
         if self.onx > 0:
@@ -512,14 +545,14 @@ class Poisson:
         for dz in range(-PN, PN + 1):
             for ddx in range(-PN, PN + 1):
                 zz, xx = Z + dz, X + ddx
-                inside = (zz >= 0) & (zz < self.nz) & (xx >= 0) & (xx < self.nx)
-                q = self.pts[np.clip(zz, 0, self.nz - 1), np.clip(xx, 0, self.nx - 1)]
+                inside = (zz >= w.z0) & (zz < w.z0 + w.wnz) & (xx >= w.x0) & (xx < w.x0 + w.wnx)
+                q = self.pts[np.clip(zz - w.z0, 0, w.wnz - 1), np.clip(xx - w.x0, 0, w.wnx - 1)]
                 occ = inside & (q[..., 2] > F(0))
                 ex, ez = fx - q[..., 0], fz - q[..., 1]
                 rr = np.maximum(r, q[..., 2]) + self.margin
                 ok &= ~(occ & (ex * ex + ez * ez < rr * rr))
         key3 = uniform(key, i, pss, 3)
-        self.pts[Z[ok], X[ok]] = np.stack([fx[ok], fz[ok], r[ok], key3[ok]], -1)
+        self.pts[Z[ok] - w.z0, X[ok] - w.x0] = np.stack([fx[ok], fz[ok], r[ok], key3[ok]], -1)
 
     def read(self):
         return self.pts.reshape(-1, 4).copy()

@@ -223,6 +223,46 @@ def test_poisson_kernel_matches_reference(cl_env):
     assert len(want) > 50
 
 
+def test_poisson_of_tiles_in_rounds_is_the_whole_worlds(cl_env):
+    """Tiles of the Poisson grid, each read with POISSON_ROUND_HALO cells of
+    the last round's points around it and run through one pass (all its
+    phases), keep exactly the points the whole grid gets, pass after pass,
+    with obstacles; on the device and in the reference."""
+    dom = pl.Domain(120, 150, 4.0, (0.0, 0.0))
+    rng = np.random.default_rng(8)
+    rad = np.where(rng.random((120, 150)) < 0.85, 4.0 + 4.0 * rng.random((120, 150)), 0.0).astype(np.float32)
+    prev = pl.Placed("big", (rng.random(80) * dom.width).astype(np.float32),
+                     (rng.random(80) * dom.depth).astype(np.float32), np.full(80, 6.0, np.float32), np.arange(80), {})
+    c = 4.0 / np.sqrt(2)
+    obst = pl._obstacles([(prev, 1.5)], 0.5, dom, c)
+    nx, nz = int(dom.width // c) + 1, int(dom.depth // c) + 1
+    P, halo, tile = ref.PN + 1, pl.POISSON_ROUND_HALO, 64
+    assert nx > tile + 2 * halo  # the windows are smaller than the grid
+    for backend in (ref, dev.on(cl_env)):
+        whole = backend.Poisson(nx, nz, c, dom.width, dom.depth, rad, dom.dx, pl.MARGIN_M, *obst)
+        state = np.zeros((nz, nx, 4), np.float32)
+        for k in range(3):
+            for pz in range(P):
+                for px in range(P):
+                    whole.phase(px, pz, k, 99)
+            after = state.copy()
+            for tz in range(0, nz, tile):
+                for tx in range(0, nx, tile):
+                    x0, z0 = max(tx - halo, 0), max(tz - halo, 0)
+                    x1, z1 = min(tx + tile + halo, nx), min(tz + tile + halo, nz)
+                    win, (rs, cs) = pl.poisson_window(x0, z0, x1 - x0, z1 - z0, c, dom)
+                    part = backend.Poisson(nx, nz, c, dom.width, dom.depth, rad[rs, cs], dom.dx, pl.MARGIN_M, *obst,
+                                           window=win, pts=state[z0:z1, x0:x1])
+                    for pz in range(P):
+                        for px in range(P):
+                            part.phase(px, pz, k, 99)
+                    got = part.read().reshape(z1 - z0, x1 - x0, 4)
+                    after[tz:tz + tile, tx:tx + tile] = got[tz - z0:tz - z0 + tile, tx - x0:tx - x0 + tile]
+            state = after
+            np.testing.assert_array_equal(state.reshape(-1, 4), whole.read(), err_msg=f"pass {k}")
+        assert (state[..., 2] > 0).sum() > 500
+
+
 def test_grass_tufts_match_reference(cl_env):
     dens = np.random.default_rng(6).random((30, 33)).astype(np.float32)
     args = (dens, 4.0, 40, 35, 3.1, 0.8, 32 * 4.0, 29 * 4.0, 1234)
