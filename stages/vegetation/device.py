@@ -175,7 +175,7 @@ class Poisson:
         self.prg = program(env)
         rad = np.ascontiguousarray(rad, F)
         self.rows, self.cols = rad.shape
-        self.win = ref.PoissonWindow.whole(nx, nz, rad.shape) if window is None else window
+        self.win = ref.PointWindow.whole(nx, nz, rad.shape) if window is None else window
         start = np.zeros((self.win.wnz * self.win.wnx, 4), F) if pts is None else np.array(pts, F).reshape(-1, 4)
         self.pts = b.arr(start, True)
         self.rad = b.arr(rad)
@@ -204,11 +204,14 @@ class Poisson:
         return pts
 
 
-def grass_tufts(env, dens, dx, nx, nz, sp, jitter, wdom, ddom, key, local=None):
+def grass_tufts(env, dens, dx, nx, nz, sp, jitter, wdom, ddom, key, local=None, window=None):
     b = Buffers(env)
     dens = np.ascontiguousarray(dens, F)
     rows, cols = dens.shape
-    out = b.empty(nx * nz * 16)
-    b.run(program(env).grass_tufts, (nx, nz), local, b.arr(dens), np.int32(rows), np.int32(cols), F(dx),
-          np.int32(nx), np.int32(nz), F(sp), F(jitter), F(wdom), F(ddom), np.uint32(key), out)
-    return b.get(out, (nz * nx, 4), F)
+    w = ref.PointWindow.whole(nx, nz, dens.shape) if window is None else window
+    out = b.empty(w.wnx * w.wnz * 16)
+    i32 = np.int32
+    b.run(program(env).grass_tufts, (w.wnx, w.wnz), local, b.arr(dens), i32(rows), i32(cols), i32(w.trow0),
+          i32(w.tcol0), i32(w.wrows), i32(w.wcols), F(dx), i32(nx), i32(nz), i32(w.x0), i32(w.z0), i32(w.wnx),
+          i32(w.wnz), F(sp), F(jitter), F(wdom), F(ddom), np.uint32(key), out)
+    return b.get(out, (w.wnz * w.wnx, 4), F)

@@ -660,25 +660,30 @@ __kernel void poisson_phase(__global float4 *pts, const int nx, const int nz, co
  * One candidate tuft per cell of a grid of spacing sp (metres): jittered
  * inside the middle `jitter` share of its cell, kept with probability equal
  * to the grass density of the terrain cell it lands in (seed 000:
- * P(keep) = density). out[cell] = (x, z, random, kept ? 1 : 0).
+ * P(keep) = density). out[cell] = (x, z, random, kept ? 1 : 0), for the
+ * wnx x wnz cells from the world's (x0, z0); dens: the rows x cols terrain
+ * cells from (trow0, tcol0) of a wrows x wcols terrain.
  */
-__kernel void grass_tufts(__global const float *dens, const int rows, const int cols, const float dx,
-                          const int nx, const int nz, const float sp, const float jitter, const float wdom,
-                          const float ddom, const uint key, __global float4 *out)
+__kernel void grass_tufts(__global const float *dens, const int rows, const int cols, const int trow0,
+                          const int tcol0, const int wrows, const int wcols, const float dx, const int nx,
+                          const int nz, const int x0, const int z0, const int wnx, const int wnz, const float sp,
+                          const float jitter, const float wdom, const float ddom, const uint key,
+                          __global float4 *out)
 {
-    const int x = get_global_id(0), z = get_global_id(1);
-    if (x >= nx || z >= nz)
+    const int ox = get_global_id(0), oz = get_global_id(1);
+    if (ox >= wnx || oz >= wnz)
         return;
+    const int x = x0 + ox, z = z0 + oz;  /* world cell */
     const uint i = (uint)(z * nx + x);
     const float lo = 0.5f - 0.5f * jitter;
     const float fx = ((float)x + (lo + jitter * unit(hash4(key, i, 1u, 0u)))) * sp;
     const float fz = ((float)z + (lo + jitter * unit(hash4(key, i, 2u, 0u)))) * sp;
     float kept = 0.0f;
     if (fx <= wdom && fz <= ddom) {
-        const int tc = min((int)floor(fx / dx + 0.5f), cols - 1);
-        const int tr = min((int)floor(fz / dx + 0.5f), rows - 1);
+        const int tc = min((int)floor(fx / dx + 0.5f), wcols - 1) - tcol0;
+        const int tr = min((int)floor(fz / dx + 0.5f), wrows - 1) - trow0;
         if (unit(hash4(key, i, 3u, 0u)) < dens[tr * cols + tc])
             kept = 1.0f;
     }
-    out[i] = (float4)(fx, fz, unit(hash4(key, i, 4u, 0u)), kept);
+    out[oz * wnx + ox] = (float4)(fx, fz, unit(hash4(key, i, 4u, 0u)), kept);
 }

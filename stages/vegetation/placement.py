@@ -163,8 +163,8 @@ def _obstacles(prev: list[tuple[Placed, float]], coll: float, dom: Domain, c: fl
 POISSON_ROUND_HALO = ref.PN * (ref.PN + 1) ** 2  # Poisson cells a window needs around a tile for one pass
 
 
-def poisson_window(x0: int, z0: int, wnx: int, wnz: int, c: float, dom: Domain) -> tuple[ref.PoissonWindow, tuple]:
-    """The PoissonWindow of Poisson cells [x0, x0 + wnx) x [z0, z0 + wnz) and
+def point_window(x0: int, z0: int, wnx: int, wnz: int, c: float, dom: Domain) -> tuple[ref.PointWindow, tuple]:
+    """The PointWindow of Poisson cells [x0, x0 + wnx) x [z0, z0 + wnz) and
     the terrain cells (row slice, col slice) its darts can land in (the
     radius field's window)."""
     def span(first, n, cells):
@@ -172,7 +172,7 @@ def poisson_window(x0: int, z0: int, wnx: int, wnz: int, c: float, dom: Domain) 
         hi = min(int(math.ceil((first + n) * c / dom.dx)) + 2, cells)
         return slice(lo, hi)
     rs, cs = span(z0, wnz, dom.rows), span(x0, wnx, dom.cols)
-    return ref.PoissonWindow(x0, z0, wnx, wnz, rs.start, cs.start, dom.rows, dom.cols), (rs, cs)
+    return ref.PointWindow(x0, z0, wnx, wnz, rs.start, cs.start, dom.rows, dom.cols), (rs, cs)
 
 
 def poisson_sample(rad: np.ndarray, r_lo: float, dom: Domain, passes: int, key: int, backend, obstacles=None,

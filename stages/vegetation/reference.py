@@ -462,13 +462,14 @@ class Sim:
 
 # --------------------------------------------------------------------------- Poisson disk
 
-class PoissonWindow(NamedTuple):
-    """A window of a species' Poisson grid and of the terrain: the Poisson
-    cells [x0, x0 + wnx) x [z0, z0 + wnz) of the world's, and the radius
-    field's array from terrain cell (trow0, tcol0) of a wrows x wcols world.
-    Darts are hashed and placed by world cell; cells outside the window
-    count as free, so a window's cells k cells from its edge are the world's
-    after k / PN phases."""
+class PointWindow(NamedTuple):
+    """A window of a grid of points (a species' Poisson grid, the grass
+    tufts' grid) and of the terrain: the point cells [x0, x0 + wnx) x [z0,
+    z0 + wnz) of the world's, and the terrain field's array (radius,
+    density) from terrain cell (trow0, tcol0) of a wrows x wcols world.
+    Points are hashed and placed by world cell. Poisson: cells outside the
+    window count as free, so a window's cells k cells from its edge are the
+    world's after k / PN phases."""
     x0: int
     z0: int
     wnx: int
@@ -479,8 +480,8 @@ class PoissonWindow(NamedTuple):
     wcols: int
 
     @staticmethod
-    def whole(nx: int, nz: int, rad_shape) -> "PoissonWindow":
-        return PoissonWindow(0, 0, nx, nz, 0, 0, int(rad_shape[0]), int(rad_shape[1]))
+    def whole(nx: int, nz: int, rad_shape) -> "PointWindow":
+        return PointWindow(0, 0, nx, nz, 0, 0, int(rad_shape[0]), int(rad_shape[1]))
 
     def first(self, px: int, pz: int) -> tuple[int, int]:
         """The window's first world cells of phase (px, pz)."""
@@ -491,7 +492,7 @@ class PoissonWindow(NamedTuple):
 class Poisson:
     """Dart throwing by grid phases on numpy (device.DevicePoisson is the same
     on the OpenCL device). pts: (wnz, wnx, 4) float32 (x, z, r, key) of the
-    window (PoissonWindow; default the world's nx x nz), starting from `pts`
+    window (PointWindow; default the world's nx x nz), starting from `pts`
     (default: free)."""
 
     def __init__(self, nx, nz, c, wdom, ddom, rad, dx, margin, obs_start, obs, onx, onz, oc, local=None,
@@ -499,7 +500,7 @@ class Poisson:
         self.nx, self.nz, self.c = nx, nz, F(c)
         self.wdom, self.ddom = F(wdom), F(ddom)
         self.rad = np.asarray(rad, F)
-        self.win = PoissonWindow.whole(nx, nz, self.rad.shape) if window is None else window
+        self.win = PointWindow.whole(nx, nz, self.rad.shape) if window is None else window
         self.dx, self.margin = F(dx), F(margin)
         self.obs_start, self.obs = np.asarray(obs_start, np.int64), np.asarray(obs, F)
         self.onx, self.onz, self.oc = onx, onz, F(oc)
@@ -560,19 +561,21 @@ class Poisson:
 
 # --------------------------------------------------------------------------- grass tufts
 
-def grass_tufts(dens, dx, nx, nz, sp, jitter, wdom, ddom, key, local=None):
-    """(nz * nx, 4) float32: x, z, random, kept."""
+def grass_tufts(dens, dx, nx, nz, sp, jitter, wdom, ddom, key, local=None, window=None):
+    """(wnz * wnx, 4) float32 of the window's cells (PointWindow; default
+    the world's nx x nz, dens the world's): x, z, random, kept."""
     dens = np.asarray(dens, F)
     rows, cols = dens.shape
-    Z, X = np.meshgrid(np.arange(nz), np.arange(nx), indexing="ij")
+    w = PointWindow.whole(nx, nz, dens.shape) if window is None else window
+    Z, X = np.meshgrid(np.arange(w.z0, w.z0 + w.wnz), np.arange(w.x0, w.x0 + w.wnx), indexing="ij")
     i = Z * nx + X
     jitter = F(jitter)
     lo = F(0.5) - F(0.5) * jitter
     fx = (X.astype(F) + (lo + jitter * uniform(key, i, 1, 0))) * F(sp)
     fz = (Z.astype(F) + (lo + jitter * uniform(key, i, 2, 0))) * F(sp)
     inside = (fx <= F(wdom)) & (fz <= F(ddom))
-    tc = np.minimum(np.floor(fx / F(dx) + F(0.5)).astype(np.int64), cols - 1)
-    tr = np.minimum(np.floor(fz / F(dx) + F(0.5)).astype(np.int64), rows - 1)
+    tc = np.minimum(np.floor(fx / F(dx) + F(0.5)).astype(np.int64), w.wcols - 1) - w.tcol0
+    tr = np.minimum(np.floor(fz / F(dx) + F(0.5)).astype(np.int64), w.wrows - 1) - w.trow0
     d = dens[np.clip(tr, 0, rows - 1), np.clip(tc, 0, cols - 1)]
     kept = inside & (uniform(key, i, 3, 0) < d)
     out = np.stack([fx, fz, uniform(key, i, 4, 0), kept.astype(F)], -1)

@@ -250,7 +250,7 @@ def test_poisson_of_tiles_in_rounds_is_the_whole_worlds(cl_env):
                 for tx in range(0, nx, tile):
                     x0, z0 = max(tx - halo, 0), max(tz - halo, 0)
                     x1, z1 = min(tx + tile + halo, nx), min(tz + tile + halo, nz)
-                    win, (rs, cs) = pl.poisson_window(x0, z0, x1 - x0, z1 - z0, c, dom)
+                    win, (rs, cs) = pl.point_window(x0, z0, x1 - x0, z1 - z0, c, dom)
                     part = backend.Poisson(nx, nz, c, dom.width, dom.depth, rad[rs, cs], dom.dx, pl.MARGIN_M, *obst,
                                            window=win, pts=state[z0:z1, x0:x1])
                     for pz in range(P):
@@ -271,3 +271,18 @@ def test_grass_tufts_match_reference(cl_env):
         same(cl_env, dev.grass_tufts(cl_env, *args, local=local), want)
     kept = want[want[:, 3] > 0]
     assert 0.3 < len(kept) / len(want) < 0.7  # density is uniform 0..1: about half kept
+
+
+def test_grass_tufts_of_tiles_are_the_whole_worlds(cl_env):
+    """A window of the tufts' grid with the density field's window under it
+    gets the world's tufts bit for bit."""
+    dom = pl.Domain(30, 33, 4.0, (0.0, 0.0))
+    dens = np.random.default_rng(6).random((30, 33)).astype(np.float32)
+    nx, nz, sp = 40, 35, 3.1
+    args = (4.0, nx, nz, sp, 0.8, 32 * 4.0, 29 * 4.0, 1234)
+    for backend in (ref, dev.on(cl_env)):
+        whole = backend.grass_tufts(dens, *args).reshape(nz, nx, 4)
+        for z0, x0, wnz, wnx in ((0, 0, 12, 17), (11, 23, 24, 17), (30, 5, 5, 9)):
+            win, (rs, cs) = pl.point_window(x0, z0, wnx, wnz, sp, dom)
+            part = backend.grass_tufts(dens[rs, cs], *args, window=win).reshape(wnz, wnx, 4)
+            np.testing.assert_array_equal(part, whole[z0:z0 + wnz, x0:x0 + wnx])
