@@ -35,6 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from worldlib.terrain.blocks import block_mean, coarse_factor
+
 # smooth residual corrections before the exact per-block one (Prolongation.conserving): the block means of the
 # cubic keep 0.40 .. 1 of a residual (the checkerboard the least), so a gain of 1.4 shrinks every part at least
 # 0.44x per sweep and 20 sweeps leave 1e-7 of it: the last per-block step is far below what a hillshade shows
@@ -42,31 +44,7 @@ PROLONG_SWEEPS = 20
 PROLONG_GAIN = 1.4
 
 
-def coarse_factor(rows: int, cols: int, dx: float, coarse_cell_m: float) -> int:
-    """Cells per block side of a coarse grid: the largest f <= coarse_cell_m / dx
-    (with a 1e-9 tolerance) dividing rows and cols; 1 when coarse_cell_m is 0 or <= dx."""
-    if coarse_cell_m <= 0:
-        return 1
-    most = int(math.floor(coarse_cell_m / dx * (1.0 + 1e-9)))
-    for f in range(min(most, rows, cols), 1, -1):
-        if rows % f == 0 and cols % f == 0:
-            return f
-    return 1
-
-
 storm_factor = coarse_factor  # the storm's: storm_cell_m
-
-
-def block_mean(a: np.ndarray, f: int) -> np.ndarray:
-    """The mean over each f x f block (float64), summed in a fixed order
-    (block row by block row, cell by cell): the same bits for a block
-    whatever the array around it, so a tile's block means are the whole map's."""
-    a = np.asarray(a, np.float64)
-    total = np.zeros((a.shape[0] // f, a.shape[1] // f))
-    for i in range(f):
-        for j in range(f):
-            total += a[i::f, j::f]
-    return total / (f * f)
 
 
 def _cubic_weights(t: np.ndarray) -> tuple[np.ndarray, ...]:

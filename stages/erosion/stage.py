@@ -43,7 +43,9 @@ def _thermal_and_storm(cl, h: np.ndarray, params: ErosionParams, ph: Physics, pl
     since h) and the metrics."""
     import dataclasses
 
-    from .coarse_grid import block_mean, storm_factor
+    from worldlib.terrain.blocks import block_mean
+
+    from .coarse_grid import storm_factor
     from .device import DeviceSim
 
     dx = ph.dx
@@ -177,7 +179,7 @@ def check(params: ErosionParams, ctx: CheckContext) -> Check:
 def _tiled_memory(params: ErosionParams, shape: tuple[int, int], dx: float, held: int) -> Check:
     """A tiled run holds one tile with its halo at a time, and the coarse
     grids of geology and the storm (with their prolongations) whole."""
-    from .coarse_grid import coarse_factor
+    from worldlib.terrain.blocks import coarse_factor
 
     cells = shape[0] * shape[1]
     parts = [(BYTES_PER_CELL_STORM * held * held, f"a tile and its halo ({held}^2 cells x {BYTES_PER_CELL_STORM} B)")]

@@ -91,7 +91,7 @@ def geology(cl, h: np.ndarray, dx: float, params: ErosionParams, progress) -> tu
     (geological_cell_m, coarse_grid.py): the heights after it (float32) and
     its metrics. On its own grid the solve runs on the f x f block means and
     its result comes back to the fine cells (FineGeology)."""
-    from .coarse_grid import block_mean, coarse_factor
+    from worldlib.terrain.blocks import block_mean, coarse_factor
 
     fac = coarse_factor(h.shape[0], h.shape[1], dx, params.geological_cell_m)
     coarse = block_mean(h, fac) if fac > 1 else h.astype(np.float64)

@@ -42,7 +42,7 @@ THERMAL_ROUND = 32  # talus-rule iterations per round: a halo of 64 cells (1.27x
 
 def whole_reason(params, shape: tuple[int, int], dx: float, tile_cells: int) -> str | None:
     """Why this run cannot go per tile (it runs whole), or None."""
-    from .coarse_grid import coarse_factor
+    from worldlib.terrain.blocks import coarse_factor
 
     if params.boundary == "periodic":
         return "periodic edges wrap every tile's halo around the world"
@@ -91,7 +91,7 @@ def _geology(ctx, src, params, progress, metrics: dict):
     """The input checked per tile, then geological time on its own grid from
     the tiles' block means; the heights after it (TileArrays, each tile's
     own cells, steps.FineGeology), or the input's when there is none."""
-    from .coarse_grid import coarse_factor
+    from worldlib.terrain.blocks import coarse_factor
 
     tiles, shape, dx = ctx.tiles, tuple(src.shape), float(src.cell_size_m)
     fg = coarse_factor(*shape, dx, params.geological_cell_m) if params.geological_years > 0 else 0
@@ -143,7 +143,7 @@ def _talus_rounds(tiles, inputs: dict, params, metrics: dict, progress):
 def _storm(ctx, inputs: dict, params, progress, metrics: dict) -> dict | None:
     """The storm on its own grid from the tiles' block means of the
     weathered heights; its final state as Prolongations (None: no storm grid)."""
-    from .coarse_grid import coarse_factor
+    from worldlib.terrain.blocks import coarse_factor
 
     src = inputs["height"]
     shape, dx = tuple(src.shape), float(src.cell_size_m)
@@ -202,7 +202,7 @@ def _heights_and_change(tctx, inputs: dict[str, Any], halo: int):
 
 def prepare_tile(tctx, inputs: dict[str, Any], params, fg: int) -> TileOutput:
     """The input checks of steps.check_input on the tile, and its block means for geology."""
-    from .coarse_grid import block_mean
+    from worldlib.terrain.blocks import block_mean
 
     h = _read(inputs["height"], tctx.tile.window())
     summary: dict[str, Any] = {"error": st.input_problem(h, (tctx.tile.row0, tctx.tile.col0))}
@@ -251,7 +251,7 @@ def _any_above_talus(Tb: np.ndarray, dT: np.ndarray, t_ax: np.float32, t_dg: np.
 
 def storm_input_tile(tctx, inputs: dict[str, Any], params, fs: int) -> TileOutput:
     """The tile's block means of the weathered heights: the storm's grid."""
-    from .coarse_grid import block_mean
+    from worldlib.terrain.blocks import block_mean
 
     _, h, dT = _heights_and_change(tctx, inputs, 0)
     return TileOutput({}, {"block_mean": block_mean(h + dT.astype(np.float64), fs)})

@@ -48,6 +48,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from worldlib.terrain.blocks import block_mean, coarse_factor
+
 from . import reference as ref
 from .params import VegetationParams
 
@@ -77,10 +79,26 @@ def sim_grid(cols: int, rows: int, dx: float, g: float) -> SimGrid:
     return SimGrid(max(1, math.ceil(cols * dx / g - 1e-9)), max(1, math.ceil(rows * dx / g - 1e-9)), g)
 
 
+def block_factor(rows: int, cols: int, dx: float, grid: SimGrid) -> int:
+    """f when the simulation cell is f x f whole terrain cells tiling the
+    terrain exactly (f >= 2), else 0."""
+    f = coarse_factor(rows, cols, dx, grid.g)
+    exact = f >= 2 and abs(f * dx - grid.g) <= 1e-9 * grid.g and grid.nx * f == cols and grid.nz * f == rows
+    return f if exact else 0
+
+
 def to_sim_grid(a: np.ndarray, dx: float, grid: SimGrid) -> np.ndarray:
     """Terrain-grid fields (..., rows, cols) sampled at the simulation cell
-    centres (area mean when the simulation cell is coarser)."""
+    centres (area mean when the simulation cell is coarser). When it is f x f
+    whole terrain cells, the means are worldlib's block means (a fixed
+    order: a tile's blocks have the whole map's bits); otherwise a box
+    filter of the cell's size read at each centre (the same area)."""
     rows, cols = a.shape[-2:]
+    f = block_factor(rows, cols, dx, grid)
+    if f:
+        lead = a.reshape((-1, rows, cols))
+        return np.ascontiguousarray(np.stack([block_mean(x, f) for x in lead]).reshape(
+            a.shape[:-2] + (grid.nz, grid.nx)).astype(F))
     k = grid.g / dx
     if k > 1.5:
         size = (1,) * (a.ndim - 2) + (int(round(k)),) * 2
@@ -249,26 +267,43 @@ def alone_density(params: VegetationParams, names: list[str], g: float, seed: in
 
 
 def relative_yield(res: SimResult, params: VegetationParams, suit_sim: np.ndarray, alone: np.ndarray, dx: float,
-                   shape: tuple[int, int]) -> np.ndarray:
+                   shape: tuple[int, int], first=(0, 0), cells=None) -> np.ndarray:
     """Per species (nsp, rows, cols) on the terrain grid: plants of the
     species within share_radius_m over the number it reaches alone on the
     same cells (alone density interpolated at each cell's suitability),
-    clipped to [0, 1]; 0 where it cannot grow."""
+    clipped to [0, 1]; 0 where it cannot grow. shape: the terrain's; the
+    cells of a window of it: `cells` (rows, cols) from its cell `first`
+    (row, col), the whole terrain's values there bit for bit."""
+    return yield_on_terrain(sim_yield(res, params, suit_sim, alone), res.grid.g, dx, shape, first, cells)
+
+
+def sim_yield(res: SimResult, params: VegetationParams, suit_sim: np.ndarray, alone: np.ndarray) -> np.ndarray:
+    """(nsp, nz, nx) the relative yield on the simulation grid (0..1)."""
     names, g = res.names, res.grid.g
-    nsp = len(names)
-    rows, cols = shape
     k = 2 * int(round(params.share_radius_m / g)) + 1
     levels = np.arange(LEVELS + 1) / LEVELS
-    xc = (np.arange(cols) + 0.5) * dx / g - 0.5
-    zc = (np.arange(rows) + 0.5) * dx / g - 0.5
-    Z, X = np.meshgrid(zc, xc, indexing="ij")
-    out = np.zeros((nsp, rows, cols))
-    for s in range(nsp):
+    out = np.zeros((len(names), res.grid.nz, res.grid.nx))
+    for s in range(len(names)):
         have = (res.sp == s).astype(np.float64)
         want = np.interp(suit_sim[s].astype(np.float64), levels, alone[s])
         if k > 1:
             have = ndimage.uniform_filter(have, size=k, mode="constant")
             want = ndimage.uniform_filter(want, size=k, mode="constant")
         ry = np.where(want > 1e-9, have / np.where(want > 1e-9, want, 1.0), 0.0)
-        out[s] = ndimage.map_coordinates(np.clip(ry, 0.0, 1.0), [Z, X], order=1, mode="nearest")
+        out[s] = np.clip(ry, 0.0, 1.0)
+    return out
+
+
+def yield_on_terrain(ry: np.ndarray, g: float, dx: float, shape: tuple[int, int], first=(0, 0),
+                     cells=None) -> np.ndarray:
+    """sim_yield's (nsp, nz, nx) read bilinearly at terrain cell centres:
+    the whole terrain of `shape`, or `cells` (rows, cols) from its cell
+    `first` (coordinates from world indices: a window has the world's bits)."""
+    rows, cols = shape if cells is None else cells
+    xc = (first[1] + np.arange(cols) + 0.5) * dx / g - 0.5
+    zc = (first[0] + np.arange(rows) + 0.5) * dx / g - 0.5
+    Z, X = np.meshgrid(zc, xc, indexing="ij")
+    out = np.zeros((len(ry), rows, cols))
+    for s in range(len(ry)):
+        out[s] = ndimage.map_coordinates(ry[s], [Z, X], order=1, mode="nearest")
     return np.clip(out, 0.0, 1.0)

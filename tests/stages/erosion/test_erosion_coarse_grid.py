@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.erosion.coarse_grid import block_mean, prolong_conserving, prolong_linear, storm_factor
+from stages.erosion.coarse_grid import prolong_conserving, prolong_linear, storm_factor
+from worldlib.terrain.blocks import block_mean
 
 from .helpers import run_stage, world
 

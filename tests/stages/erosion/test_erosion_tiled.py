@@ -13,12 +13,13 @@ import pytest
 from pipeline.contract import CheckContext, GridInfo
 from pipeline.tiles import tiles_of
 from stages.erosion import ErosionParams
-from stages.erosion.coarse_grid import (Prolongation, block_mean, block_mean_of_cubic, block_mean_of_linear,
-                                        coarse_span, prolong_linear)
+from stages.erosion.coarse_grid import (Prolongation, block_mean_of_cubic, block_mean_of_linear, coarse_span,
+                                        prolong_linear)
 from pipeline.opencl import get_cl
 from stages.erosion.stage import check
 from stages.erosion.steps import geology, slope_excess, slope_excess_counts, slope_excess_of, solve_geology
 from stages.erosion.tiled import whole_reason
+from worldlib.terrain.blocks import block_mean
 
 from .helpers import run_stage, world
 

@@ -99,3 +99,30 @@ def test_relative_yield_follows_the_winner(cl_env):
     ry1 = eco.relative_yield(one, solo, suit[:1], alone[:1], 8.0, (40, 80))
     assert abs(ry1[0, 5:35, 5:75].mean() - 1.0) < 0.15
     assert math.isfinite(res.stats["plateau_relative_change"])
+
+
+def test_simulation_grid_by_blocks_and_yield_by_window():
+    """On 1 m cells the 8 m simulation cells are 8 x 8 blocks: their means
+    (worldlib's, the same bits for a tile) equal the box filter's to
+    round-off and have a tile's bits; the relative yield read back on a
+    window of the terrain has the whole terrain's bits."""
+    from pipeline.tiles import tiles_of
+    from scipy import ndimage
+
+    rng = np.random.default_rng(3)
+    suit = rng.random((2, 64, 96)).astype(np.float32)
+    grid = eco.sim_grid(96, 64, 1.0, 8.0)
+    assert eco.block_factor(64, 96, 1.0, grid) == 8 and eco.block_factor(64, 96, 3.0, grid) == 0
+    blocks = eco.to_sim_grid(suit, 1.0, grid)
+    box = ndimage.uniform_filter(suit.astype(np.float64), size=(1, 8, 8), mode="nearest")[:, 4::8, 4::8]
+    np.testing.assert_allclose(blocks, box, rtol=0, atol=1e-6)
+    for tile in tiles_of((64, 96), 32):
+        part = suit[:, tile.row0:tile.row0 + tile.rows, tile.col0:tile.col0 + tile.cols]
+        np.testing.assert_array_equal(eco.to_sim_grid(part, 1.0, eco.sim_grid(tile.cols, tile.rows, 1.0, 8.0)),
+                                      blocks[:, tile.row0 // 8:(tile.row0 + tile.rows) // 8,
+                                             tile.col0 // 8:(tile.col0 + tile.cols) // 8])
+    ry = rng.random((2, grid.nz, grid.nx))
+    whole = eco.yield_on_terrain(ry, 8.0, 1.0, (64, 96))
+    for first, cells in (((0, 0), (20, 30)), ((17, 41), (47, 55)), ((63, 95), (1, 1))):
+        np.testing.assert_array_equal(eco.yield_on_terrain(ry, 8.0, 1.0, (64, 96), first, cells),
+                                      whole[:, first[0]:first[0] + cells[0], first[1]:first[1] + cells[1]])
