@@ -33,6 +33,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from worldlib.terrain.blocks import block_sum
+from worldlib.terrain.stats import exact_mean, exact_sum
+
 from . import reference as ref
 from .params import FILL, KAPPA, VegetationParams
 
@@ -197,20 +200,31 @@ def poisson_sample(rad: np.ndarray, r_lo: float, dom: Domain, passes: int, key: 
     return pts[idx], idx.astype(np.int64), {"poisson_cells": nx * nz, "poisson_cell_m": c, "poisson_seconds": seconds}
 
 
-def select_counts(pts: np.ndarray, cells: np.ndarray, n_t: np.ndarray, dom: Domain, block: int, key: int):
+def select_counts(pts: np.ndarray, cells: np.ndarray, n_t: np.ndarray, dom: Domain, block: int, key: int,
+                  first=(0, 0)):
     """Keep floor(E_b + u_b) candidates per block, E_b the target count of
     the block, chosen by weighted sampling without replacement (Efraimidis
     and Spirakis: the smallest -ln(u) / w), w = the candidate's expected keep
     rate n_t r^2 / KAPPA, so the kept points follow the target inside the
-    block too. Returns (kept mask, stats)."""
+    block too. n_t: the world's target, or a window of whole blocks of it
+    from terrain cell `first` (row, col), with the candidates landing in it:
+    blocks are numbered and summed as the world's, so a window's choice is
+    the world's. Returns (kept mask, stats, the target count as
+    worldlib.terrain.stats.exact_sum's integer: windows' add up exactly)."""
     rows, cols = n_t.shape
+    r0, c0 = first
+    if r0 % block or c0 % block or (rows % block and r0 + rows != dom.rows) or (cols % block and c0 + cols != dom.cols):
+        raise ValueError(f"select_counts: a window of {rows}x{cols} cells from {first} cuts blocks of {block}")
     nbr, nbc = -(-rows // block), -(-cols // block)
     pad = np.zeros((nbr * block, nbc * block))
     pad[:rows, :cols] = n_t * dom.dx * dom.dx
-    expect = pad.reshape(nbr, block, nbc, block).sum(axis=(1, 3)).ravel()
-    bid = np.arange(nbr * nbc, dtype=np.int64)
+    expect = block_sum(pad, block).ravel()
+    world_nbc = -(-dom.cols // block)
+    bid = ((r0 // block + np.arange(nbr, dtype=np.int64))[:, None] * world_nbc
+           + (c0 // block + np.arange(nbc, dtype=np.int64))[None, :]).ravel()
     want = np.floor(expect + ref.uniform(key, bid, 0, 0).astype(np.float64)).astype(np.int64)
     tr, tc = dom.cell_of(pts[:, 0], pts[:, 1])
+    tr, tc = tr - r0, tc - c0
     b = (tr // block) * nbc + (tc // block)
     have = np.bincount(b, minlength=nbr * nbc)
     w = n_t[tr, tc] * pts[:, 2].astype(np.float64) ** 2 / KAPPA
@@ -218,14 +232,15 @@ def select_counts(pts: np.ndarray, cells: np.ndarray, n_t: np.ndarray, dom: Doma
     rank_key = -np.log(u) / np.maximum(w, 1e-12)
     order = np.lexsort((cells, rank_key, b))
     sb = b[order]
-    first = np.searchsorted(sb, sb, side="left")
+    start = np.searchsorted(sb, sb, side="left")
     rank = np.empty(len(b), np.int64)
-    rank[order] = np.arange(len(b)) - first
+    rank[order] = np.arange(len(b)) - start
     kept = rank < want[b]
     short = np.maximum(want - have, 0)
-    stats = {"target_plants": float(expect.sum()), "candidates": int(len(b)), "placed": int(kept.sum()),
+    target = exact_sum(expect)
+    stats = {"target_plants": exact_mean(target, 1), "candidates": int(len(b)), "placed": int(kept.sum()),
              "shortfall_plants": int(short.sum()), "blocks_short": int((short > 0).sum())}
-    return kept, stats
+    return kept, stats, target
 
 
 def place_species(params: VegetationParams, names: list[str], n_t: np.ndarray, dom: Domain, seed: int, backend,
@@ -254,7 +269,7 @@ def place_species(params: VegetationParams, names: list[str], n_t: np.ndarray, d
         obstacles = _obstacles(prev, e.collision_radius_m, dom, c)
         pts, cells, pinfo = poisson_sample(rad, r_lo, dom, params.poisson_passes,
                                            ref.stream_key(seed, "poisson", name), backend, obstacles, local)
-        kept, stats = select_counts(pts, cells, n, dom, block, ref.stream_key(seed, "select", name))
+        kept, stats, _ = select_counts(pts, cells, n, dom, block, ref.stream_key(seed, "select", name))
         stats.update(pinfo, r_lo_m=r_lo, seconds=time.perf_counter() - t0,
                      obstacles=int(len(obstacles[1])) if obstacles[2] else 0)
         done[name] = Placed(name, pts[kept, 0], pts[kept, 1], pts[kept, 2], cells[kept], stats)

@@ -21,13 +21,18 @@ def coarse_factor(rows: int, cols: int, dx: float, coarse_cell_m: float) -> int:
     return 1
 
 
-def block_mean(a: np.ndarray, f: int) -> np.ndarray:
-    """The mean over each f x f block (float64), summed in a fixed order
-    (block row by block row, cell by cell): the same bits for a block
-    whatever the array around it, so a tile's block means are the whole map's."""
+def block_sum(a: np.ndarray, f: int) -> np.ndarray:
+    """The sum over each f x f block (float64), in a fixed order (block row
+    by block row, cell by cell): the same bits for a block whatever the
+    array around it, so a tile's block sums are the whole map's."""
     a = np.asarray(a, np.float64)
     total = np.zeros((a.shape[0] // f, a.shape[1] // f))
     for i in range(f):
         for j in range(f):
             total += a[i::f, j::f]
-    return total / (f * f)
+    return total
+
+
+def block_mean(a: np.ndarray, f: int) -> np.ndarray:
+    """block_sum's means."""
+    return block_sum(a, f) / (f * f)

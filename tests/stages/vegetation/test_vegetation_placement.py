@@ -7,6 +7,7 @@ from scipy.spatial import cKDTree
 
 from stages.vegetation import device as dev
 from stages.vegetation import placement as pl
+from stages.vegetation import reference as ref
 from stages.vegetation.params import KAPPA, VegetationParams
 from worldlib.terrain.mesh import build_terrain_mesh, height_on_mesh
 from pipeline.grid import Grid
@@ -176,3 +177,28 @@ def test_nothing_stands_in_a_river_wider_than_its_cells():
     assert from_line(kept.positions).min() >= 6.5, "an instance stands in the river"
     assert len(kept) == (from_line(pos) >= 6.5).sum(), "an instance off the river was dropped"
     assert dropped == n - len(kept) and len(inst) == n  # the input is not modified
+
+
+def test_select_counts_of_block_windows_is_the_whole_worlds():
+    """Windows of whole blocks (the last ones cut by the world's edge) keep
+    the candidates the whole world keeps, and their exact targets add up to
+    the world's; a window cutting a block is refused."""
+    dom = pl.Domain(90, 110, 4.0, (0.0, 0.0))
+    rng = np.random.default_rng(2)
+    n_t = (rng.random((90, 110)) * 0.02).astype(np.float64)
+    rad = np.full((90, 110), 5.0, np.float32)
+    pts, cells, _ = pl.poisson_sample(rad, 5.0, dom, 2, 17, ref)
+    block = 16
+    kept, stats, target = pl.select_counts(pts, cells, n_t, dom, block, 23)
+    assert 0 < kept.sum() < len(kept)
+    tr, tc = dom.cell_of(pts[:, 0], pts[:, 1])
+    total = 0
+    for r0, r1 in ((0, 48), (48, 90)):
+        for c0, c1 in ((0, 32), (32, 96), (96, 110)):
+            mine = (tr >= r0) & (tr < r1) & (tc >= c0) & (tc < c1)
+            k, _, t = pl.select_counts(pts[mine], cells[mine], n_t[r0:r1, c0:c1], dom, block, 23, (r0, c0))
+            np.testing.assert_array_equal(k, kept[mine])
+            total += t
+    assert total == target
+    with pytest.raises(ValueError, match="cuts blocks"):
+        pl.select_counts(pts[:0], cells[:0], n_t[:40, :32], dom, block, 23)
