@@ -1,0 +1,326 @@
+"""The vegetation's fields tile by tile (issue 28): the passes a tiled
+vegetation bake runs before its simulation, each a module-level function
+for pipeline.tiles.TileRunner.map, each tile's values the whole world's bit
+for bit (tests/stages/vegetation/test_vegetation_tiled.py).
+
+1. scan_tile: the lowest finite height (no-data cells stand there) and the
+   widest river's half width (the riparian index's reach).
+2. land_tile: read with the attributes' halo (the horizon scan's reach,
+   attributes.halo_cells) or the riparian index's if wider: the attributes
+   (kernels by window), moisture, water, effective altitude, riparian index,
+   clearings and avalanche releases; the tile's avalanche lines spread
+   (sites.RunOut on the tile and a one-cell halo), those crossing into a
+   neighbour returned for it.
+3. avalanche_tile, in rounds until no line crosses a tile's edge: each tile
+   takes the lines handed to it and spreads them on (RunOut's states are
+   the highest over all paths, whatever the order).
+4. path_tile: where the lines stand at or above the ground.
+5. sites_tile: the avalanche tracks (the distance to a path, read with the
+   track's halo), the sites, the splat weights (the moisture filter by
+   window) and each species' suitability.
+
+Not yet here: the simulation's block means (ecosystem.to_sim_grid), the
+targets, the Poisson rounds (placement.POISSON_ROUND_HALO), the block
+selection (placement.select_counts by window), the instances, the maps and
+the statistics; until they are, the stage runs whole on a tiled world.
+A tiled run needs the moisture input: the topographic fallback is a box
+filter whose running sums differ by window.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import ndimage
+
+from pipeline.tiles import Tile, TileContext, TileOutput
+
+from . import attributes as attrs
+from . import reference as ref
+from . import sites as sites_mod
+from .params import VegetationParams
+
+F = np.float32
+# the land pass's fields, one grid of these channels per tile
+FIELDS = ("slope", "aspect", "grad", "curvature", "sky_view", "sunlight", "moisture", "altitude.effective",
+          "site.riparian", "site.clearing", "water", "nodata")
+
+
+def backend(tctx: TileContext):
+    """The kernels on the tile's device, else the numpy references."""
+    if tctx.cl is not None:
+        from . import device
+
+        return device.on(tctx.cl)
+    return ref
+
+
+def _window(source, tile: Tile, halo: int, channel: str) -> np.ndarray:
+    return np.asarray(source.read(*tile.window(halo), channel=channel))
+
+
+def _channel(source, wanted: str) -> str:
+    return wanted if wanted in source.channels else source.channels[0]
+
+
+def scan_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared) -> TileOutput:
+    """The tile's lowest finite height and its widest water's half width."""
+    terrain = inputs["terrain"]
+    h = _window(terrain, tctx.tile, 0, _channel(terrain, "height")).astype(F)
+    finite = np.isfinite(h)
+    water = _water(inputs, tctx.tile, 0)
+    half = _half_widths(inputs, tctx.tile, 0, water)
+    return TileOutput(summary={"lowest": float(h[finite].min()) if finite.any() else math.inf,
+                               "max_half_m": float(half.max()) if half.size else 0.0})
+
+
+def _water(inputs: dict, tile: Tile, halo: int) -> np.ndarray:
+    """stage._water on a window: lakes or rivers."""
+    shape = tile.window(halo)[2:]
+    water = np.zeros(shape, bool)
+    lakes, rivers = inputs.get("lakes"), inputs.get("rivers")
+    if lakes is not None:
+        water |= np.nan_to_num(_window(lakes, tile, halo, _channel(lakes, "lake.depth")).astype(np.float64)) > 0
+    if rivers is not None:
+        water |= np.nan_to_num(_window(rivers, tile, halo, _channel(rivers, "river.mask")).astype(np.float64)) > 0.5
+    return water
+
+
+def _half_widths(inputs: dict, tile: Tile, halo: int, water: np.ndarray) -> np.ndarray:
+    rivers = inputs.get("rivers")
+    if rivers is None or "river.width" not in rivers.channels:
+        return np.zeros(water.shape)
+    w = np.nan_to_num(_window(rivers, tile, halo, "river.width").astype(np.float64), nan=0.0)
+    return np.where(water, 0.5 * np.maximum(w, 0.0), 0.0)
+
+
+def _levels(inputs: dict, tile: Tile, halo: int, h: np.ndarray) -> np.ndarray:
+    """stage._water_levels' levels on a window: a lake's level, else the ground."""
+    level = h.astype(np.float64).copy()
+    lakes = inputs.get("lakes")
+    if lakes is not None and "lake.level" in lakes.channels and "lake.depth" in lakes.channels:
+        depth = np.nan_to_num(_window(lakes, tile, halo, "lake.depth").astype(np.float64), nan=0.0)
+        lv = _window(lakes, tile, halo, "lake.level").astype(np.float64)
+        use = (depth > 0) & np.isfinite(lv)
+        level = np.where(use, lv, level)
+    return level
+
+
+def land_halo(dx: float, params: VegetationParams, max_half_m: float) -> int:
+    return max(attrs.halo_cells(dx, params), sites_mod.riparian_halo(dx, params, max_half_m), 1)
+
+
+def land_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared: dict) -> TileOutput:
+    """Pass 2 (the module's doc). shared: lowest, max_half_m, dx, origin."""
+    tile, dx, origin = tctx.tile, shared["dx"], tuple(shared["origin"])
+    halo = land_halo(dx, params, shared["max_half_m"])
+    terrain = inputs["terrain"]
+    raw = _window(terrain, tile, halo, _channel(terrain, "height")).astype(F)
+    h = np.where(np.isfinite(raw), raw, F(shared["lowest"])).astype(F)
+    inner = tile.inner(halo)
+    a = attrs.compute(h, dx, params, backend(tctx), window=ref.Window.of(tile, halo))
+    moisture = _moisture(inputs, tile)
+    water_w = _water(inputs, tile, halo)
+    water, nodata = water_w[inner], ~np.isfinite(raw[inner])
+    blocked = water | nodata
+    half_w = _half_widths(inputs, tile, halo, water_w)
+    level_w = _levels(inputs, tile, halo, h)
+    p = params
+    ht = h[inner]
+    alt = sites_mod.effective_altitude(ht, a["slope"], a["aspect"], p.treeline_aspect_shift_m, p.latitude_deg)
+    rip = sites_mod.riparian_index(h, water_w, level_w, half_w, dx, p.riparian_height_m,
+                                   p.riparian_distance_m)[inner]
+    first = (tile.row0, tile.col0)
+    clr = sites_mod.clearings(ht.shape, p, dx, origin, int(tctx.seed), first)
+    release = sites_mod.release_cells(ht, a["slope"], blocked, p, dx, origin, int(tctx.seed), first)
+    run, frame = _run_out(h, tile, halo, dx, p)
+    cells = np.flatnonzero(_in_frame(release, tile, frame).ravel())
+    crossing = run.spread(run.seed(cells, np.full(cells.size, sites_mod.NO_HEADING), run.hf[cells]))
+    fields = np.stack([a["slope"], a["aspect"], a["grad"], a["curvature"], a["sky_view"], a["sunlight"], moisture,
+                       alt, rip, clr, water.astype(F), nodata.astype(F)], -1).astype(F)
+    return TileOutput(grids={"fields": fields},
+                      summary={**_state(run), **_crossings(crossing, frame), "release_cells": int(release.sum())})
+
+
+def _moisture(inputs: dict, tile: Tile) -> np.ndarray:
+    src = inputs.get("moisture")
+    if src is None:
+        raise ValueError("vegetation: a tiled run needs the moisture input (the topographic fallback runs whole)")
+    m = np.nan_to_num(_window(src, tile, 0, _channel(src, "moisture")).astype(np.float64), nan=0.0)
+    return np.clip(m, 0.0, 1.0).astype(F)
+
+
+def _run_out(h_halo: np.ndarray, tile: Tile, halo: int, dx: float, params: VegetationParams):
+    """RunOut on the tile and one cell around it (cut from a window of
+    `halo`), the tile's cells owned; and that frame's (row0, col0, cols)."""
+    r0, c0, rows, cols = tile.window(1)
+    wr0, wc0, _, _ = tile.window(halo)
+    h = h_halo[r0 - wr0:r0 - wr0 + rows, c0 - wc0:c0 - wc0 + cols]
+    own = np.zeros(h.shape, bool)
+    own[tile.inner(1)] = True
+    return sites_mod.RunOut(h, sites_mod.d8_receivers(h, dx), dx, params.avalanche_alpha_deg, own), (r0, c0, cols)
+
+
+def _in_frame(a: np.ndarray, tile: Tile, frame) -> np.ndarray:
+    """A tile-sized array placed in its one-cell frame (False around)."""
+    out = np.zeros(tile.window(1)[2:], bool)
+    out[tile.inner(1)] = a
+    return out
+
+
+def _state(run: sites_mod.RunOut) -> dict:
+    """RunOut's raised states, sparse: what the next round restores."""
+    flat = run.line.ravel()
+    idx = np.flatnonzero(np.isfinite(flat))
+    return {"state_index": idx.astype(np.int64), "state_line": flat[idx]}
+
+
+def _crossings(crossing, frame) -> dict:
+    """The lines handed on, as world flat cells of the frame's grid."""
+    cells, headings, values = crossing
+    r0, c0, cols = frame
+    return {"cross_row": (r0 + cells // cols).astype(np.int64), "cross_col": (c0 + cells % cols).astype(np.int64),
+            "cross_heading": headings.astype(np.int64), "cross_line": values.astype(np.float64)}
+
+
+def avalanche_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared: dict) -> TileOutput:
+    """Pass 3, one round: the tile's states restored, the lines handed to it
+    seeded, spread on. shared (this tile's): lowest, dx, state, incoming."""
+    tile, dx = tctx.tile, shared["dx"]
+    terrain = inputs["terrain"]
+    raw = _window(terrain, tile, 1, _channel(terrain, "height")).astype(F)
+    h = np.where(np.isfinite(raw), raw, F(shared["lowest"])).astype(F)
+    run, frame = _run_out(h, tile, 1, dx, params)
+    run.line.ravel()[shared["state_index"]] = shared["state_line"]
+    r0, c0, cols = frame
+    rows_in, cols_in, headings, lines = shared["incoming"]
+    cells = (rows_in - r0) * cols + (cols_in - c0)
+    crossing = run.spread(run.seed(cells, run.slot(cells, headings), lines))
+    return TileOutput(summary={**_state(run), **_crossings(crossing, frame)})
+
+
+def path_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared: dict) -> TileOutput:
+    """Pass 4: where the tile's lines stand at or above the ground."""
+    tile = tctx.tile
+    terrain = inputs["terrain"]
+    raw = _window(terrain, tile, 1, _channel(terrain, "height")).astype(F)
+    h = np.where(np.isfinite(raw), raw, F(shared["lowest"])).astype(F)
+    run, _ = _run_out(h, tile, 1, shared["dx"], params)
+    run.line.ravel()[shared["state_index"]] = shared["state_line"]
+    return TileOutput(grids={"path": run.path()[tile.inner(1)].astype(np.uint8)})
+
+
+def track_halo(dx: float, params: VegetationParams) -> int:
+    """Cells within which a path widens into its track (1.5 half widths)."""
+    return int(math.ceil(0.75 * params.avalanche_track_width_m / dx)) + 1
+
+
+def sites_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared: dict) -> TileOutput:
+    """Pass 5: tracks, sites, splat weights and suitability. inputs: the
+    land pass's fields and the path pass's paths (TileArrays), the
+    moisture; shared: dx, grow (the species to grow), splat table,
+    preference table, jitter key."""
+    tile, dx, p = tctx.tile, shared["dx"], params
+    fields = np.asarray(inputs["fields"].read(*tile.window(0)), F)
+    f = {name: fields[..., k] for k, name in enumerate(FIELDS)}
+    blocked = (f["water"] > 0) | (f["nodata"] > 0)
+    half = 0.5 * p.avalanche_track_width_m
+    halo = track_halo(dx, p)
+    path = np.asarray(inputs["path"].read(*tile.window(halo))) > 0
+    if not path.any():
+        track = np.zeros(blocked.shape, F)
+    elif half > 0.0:
+        d = ndimage.distance_transform_edt(~path)[tile.inner(halo)] * dx
+        track = (1.0 - sites_mod.smooth01((d - 0.5 * half) / half)).astype(F)
+    else:
+        track = path[tile.inner(halo)].astype(F)
+    site = sites_mod.Sites(f["altitude.effective"], f["site.riparian"], np.where(blocked, F(0), track).astype(F),
+                           f["site.clearing"])
+    be = backend(tctx)
+    mhalo = ref.moisture_filter_halo(p.moisture_jitter_m / dx)
+    src = inputs["moisture"]
+    m = np.clip(np.nan_to_num(_window(src, tile, mhalo, _channel(src, "moisture")).astype(np.float64), nan=0.0),
+                0.0, 1.0).astype(F)
+    mf = be.moisture_filter(m, p.moisture_jitter_m / dx, shared["jitter_key"], window=ref.Window.of(tile, mhalo))
+    terrain = inputs["terrain"]
+    raw = _window(terrain, tile, 0, _channel(terrain, "height")).astype(F)
+    h = np.where(np.isfinite(raw), raw, F(shared["lowest"])).astype(F)
+    splat = be.splat(h, f["slope"], f["grad"], mf, (f["water"] > 0).astype(np.uint8), shared["splat_table"])
+    grow = list(shared["grow"])
+    if grow:
+        suit = be.suitability(site.altitude, f["slope"], f["moisture"], f["sunlight"], f["curvature"],
+                              blocked.astype(np.uint8), shared["preferences"])
+        suit = sites_mod.apply(suit, grow, p, site)
+    else:
+        suit = np.zeros((0,) + blocked.shape, F)
+    sites_grid, _ = site.channels()
+    return TileOutput(grids={"sites": sites_grid, "splat": splat, "moisture_filtered": mf,
+                             "suitability": np.moveaxis(suit, 0, -1)},
+                      summary={"path_cells": int(path[tile.inner(halo)].sum())})
+
+
+def fields(runner, inputs: dict, params: VegetationParams, shape: tuple[int, int], dx: float, origin, seed: int,
+           grow: list[str], progress=lambda f, m: None) -> dict:
+    """Passes 1 to 5 on a TileRunner: the TileArrays fields, path, sites,
+    splat, moisture_filtered and suitability (channels: grow), and the
+    avalanche rounds run."""
+    from .reference import stream_key
+    from .stage import preference_table, splat_table
+
+    common = {"dx": dx, "origin": tuple(origin)}
+    grid = {"cell_size_m": dx, "origin_m": tuple(origin)}
+    _, scans = runner.map(scan_tile, "scan", shape, inputs, params, common, keep=False, **grid)
+    finite = [s["lowest"] for s in scans if math.isfinite(s["lowest"])]
+    if not finite:
+        raise ValueError("vegetation: the terrain has no finite height")
+    common.update(lowest=min(finite), max_half_m=max(s["max_half_m"] for s in scans))
+    progress(0.02, "attributes and sites by tile")
+    land, summaries = runner.map(land_tile, "land", shape, inputs, params, common, grids={"fields": FIELDS}, **grid)
+    tiles = runner.tiles(shape)
+    states = {t.name: (s["state_index"], s["state_line"]) for t, s in zip(tiles, summaries)}
+    rounds = 0
+    while True:
+        incoming = _route(tiles, summaries, runner.tile_cells or max(shape))
+        if not any(len(v[0]) for v in incoming.values()):
+            break
+        rounds += 1
+        progress(0.03, f"avalanche lines across tiles, round {rounds}")
+        per_tile = {t.name: {**common, "state_index": states[t.name][0], "state_line": states[t.name][1],
+                             "incoming": incoming[t.name]} for t in tiles}
+        _, summaries = runner.map(avalanche_tile, f"avalanche{rounds}", shape, inputs, params, keep=False,
+                                  per_tile=per_tile, **grid)
+        states = {t.name: (s["state_index"], s["state_line"]) for t, s in zip(tiles, summaries)}
+    per_tile = {t.name: {**common, "state_index": states[t.name][0], "state_line": states[t.name][1]}
+                for t in tiles}
+    paths, _ = runner.map(path_tile, "path", shape, inputs, params, keep=False, per_tile=per_tile,
+                          grids={"path": ("path",)}, **grid)
+    common.update(grow=list(grow), splat_table=splat_table(params), preferences=preference_table(params, list(grow)),
+                  jitter_key=stream_key(seed, "moisture-jitter"))
+    from worldlib.ground import SPLAT_CHANNELS
+
+    from .sites import CHANNELS as SITE_CHANNELS
+
+    out, _ = runner.map(sites_tile, "sites", shape, {**inputs, "fields": land["fields"], "path": paths["path"]},
+                        params, common, grids={"sites": SITE_CHANNELS, "splat": SPLAT_CHANNELS,
+                                               "moisture_filtered": ("moisture",),
+                                               "suitability": tuple(f"suitability.{n}" for n in grow)}, **grid)
+    return {**land, **paths, **out, "avalanche_rounds": rounds}
+
+
+def _route(tiles: list[Tile], summaries: list[dict], tile_cells: int) -> dict:
+    """The lines each tile hands on, gathered per receiving tile: (rows,
+    cols, headings, lines) in world cells."""
+    parts = {t.name: [] for t in tiles}
+    by_place = {(t.row, t.col): t.name for t in tiles}
+    for s in summaries:
+        r, c = s["cross_row"], s["cross_col"]
+        if not len(r):
+            continue
+        owner_r, owner_c = r // tile_cells, c // tile_cells
+        for key in set(zip(owner_r.tolist(), owner_c.tolist())):
+            mine = (owner_r == key[0]) & (owner_c == key[1])
+            parts[by_place[key]].append((r[mine], c[mine], s["cross_heading"][mine], s["cross_line"][mine]))
+    cat = np.concatenate
+    return {name: tuple(cat([p[k] for p in got]) for k in range(4)) if got else
+            (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+            for name, got in parts.items()}
