@@ -17,6 +17,8 @@ import math
 
 import numpy as np
 
+from worldlib.terrain.stats import exact_mean, exact_sum
+
 from . import reference as ref
 from .params import VegetationParams
 from .placement import Domain, Placed, quaternions, value_noise, world_positions, Instances
@@ -34,8 +36,9 @@ def canopy_cover(params: VegetationParams, names: list[str], n_t: np.ndarray) ->
 
 
 def grass_maps(params: VegetationParams, name: str | None, suit: np.ndarray | None, splat: np.ndarray,
-               cover: np.ndarray, moisture: np.ndarray, dx: float, origin, seed: int):
-    """(density 0..1, height m) float32 fields."""
+               cover: np.ndarray, moisture: np.ndarray, dx: float, origin, seed: int, first=(0, 0)):
+    """(density 0..1, height m) float32 fields; first: the arrays' first
+    cell in the world (a window has the world's bits)."""
     shape = splat.shape[:2]
     if name is None:
         return np.zeros(shape, F), np.zeros(shape, F)
@@ -44,7 +47,7 @@ def grass_maps(params: VegetationParams, name: str | None, suit: np.ndarray | No
     d = suit.astype(np.float64) * grassy * (1.0 - params.grass_canopy_shade * cover)
     if e.clustering > 0:
         d = d * np.maximum(0.0, 1.0 + e.clustering * value_noise(shape, dx, origin, e.cluster_size_m,
-                                                                    ref.stream_key(seed, "clump", name)))
+                                                                    ref.stream_key(seed, "clump", name), first))
     d = np.clip(d, 0.0, 1.0)
     m = np.clip(moisture.astype(np.float64), 0.0, 1.0)
     vigour = m * m * (3 - 2 * m)
@@ -56,8 +59,14 @@ def grass_maps(params: VegetationParams, name: str | None, suit: np.ndarray | No
 def tuft_spacing(params: VegetationParams, name: str, density: np.ndarray, dx: float) -> tuple[float, float]:
     """(spacing m, expected tufts): the species' spacing, grown so the
     expected count stays under grass_max_tufts."""
+    return tuft_spacing_of(params, name, exact_sum(density), dx)
+
+
+def tuft_spacing_of(params: VegetationParams, name: str, density_sum: int, dx: float) -> tuple[float, float]:
+    """tuft_spacing from the density's exact_sum integer (a tiled run's
+    tiles' sums add up to it)."""
     sp = 100.0 / math.sqrt(params.species[name].density_per_ha)
-    expected = float(density.astype(np.float64).sum()) * dx * dx / sp ** 2
+    expected = exact_mean(density_sum, 1) * dx * dx / sp ** 2
     if params.grass_max_tufts == 0:
         return math.inf, 0.0
     if expected > params.grass_max_tufts:

@@ -107,23 +107,36 @@ def value_noise(shape: tuple[int, int], dx: float, origin: tuple[float, float], 
 def target_density(params: VegetationParams, names: list[str], suit: np.ndarray, share: np.ndarray,
                    dx: float, origin: tuple[float, float], seed: int) -> tuple[np.ndarray, dict]:
     """(nsp, rows, cols) plants per m^2, and per species how much was capped."""
-    nsp, rows, cols = suit.shape
-    out = np.zeros((nsp, rows, cols))
+    out = np.zeros(suit.shape)
     info = {}
     for s, name in enumerate(names):
-        e = params.species[name]
-        n = e.density_per_ha / 1e4 * suit[s].astype(np.float64) * share[s]
-        if e.clustering > 0:
-            n = n * np.maximum(0.0, 1.0 + e.clustering * value_noise(
-                (rows, cols), dx, origin, e.cluster_size_m, ref.stream_key(seed, "clump", name)))
-        cap = KAPPA * FILL / e.min_spacing_m ** 2
-        capped = float(np.maximum(n - cap, 0).sum() * dx * dx)
-        n = np.minimum(n, cap)
-        n[0, :] = n[-1, :] = 0.0
-        n[:, 0] = n[:, -1] = 0.0
-        out[s] = n
-        info[name] = {"capped_plants": capped}
+        out[s], excess = species_target(params, name, suit[s], share[s], dx, origin, seed)
+        info[name] = {"capped_plants": exact_mean(excess, 1) * dx * dx}
     return out, info
+
+
+def species_target(params: VegetationParams, name: str, suit: np.ndarray, share: np.ndarray, dx: float,
+                   origin: tuple[float, float], seed: int, first=(0, 0), world=None) -> tuple[np.ndarray, int]:
+    """One species' target (plants per m^2) on the world's cells, or on a
+    window of them from cell `first` of a `world` (rows, cols): the world's
+    bits. 0 on the world's border cells (half outside the terrain mesh).
+    With it the density over the min_spacing_m cap, an exact_sum integer
+    (windows' add up to the world's)."""
+    e = params.species[name]
+    rows, cols = suit.shape
+    world = (rows, cols) if world is None else world
+    n = e.density_per_ha / 1e4 * suit.astype(np.float64) * share
+    if e.clustering > 0:
+        n = n * np.maximum(0.0, 1.0 + e.clustering * value_noise(
+            (rows, cols), dx, origin, e.cluster_size_m, ref.stream_key(seed, "clump", name), first))
+    cap = KAPPA * FILL / e.min_spacing_m ** 2
+    excess = exact_sum(np.maximum(n - cap, 0))
+    n = np.minimum(n, cap)
+    r = first[0] + np.arange(rows)
+    c = first[1] + np.arange(cols)
+    n[(r == 0) | (r == world[0] - 1), :] = 0.0
+    n[:, (c == 0) | (c == world[1] - 1)] = 0.0
+    return n, excess
 
 
 def placement_order(params: VegetationParams, names: list[str]) -> list[str]:

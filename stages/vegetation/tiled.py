@@ -19,8 +19,16 @@ for bit (tests/stages/vegetation/test_vegetation_tiled.py).
    track's halo), the sites, the splat weights (the moisture filter by
    window) and each species' suitability.
 
-Not yet here: the simulation's block means (ecosystem.to_sim_grid), the
-targets, the Poisson rounds (placement.POISSON_ROUND_HALO), the block
+6. sim_tile: each plant species' suitability on the simulation grid
+   (ecosystem.to_sim_grid: block means when a simulation cell is f x f
+   whole cells and f divides the tile; the cells themselves when it is
+   one). The simulation then runs whole on that grid (1/f^2 of the cells),
+   and its relative yield (ecosystem.sim_yield) is read back per tile:
+7. targets_tile: relative yield, target density (placement.species_target),
+   canopy cover and the grass maps; the largest target and the exact sums
+   (capped plants, grass density) for the placement.
+
+Not yet here: the Poisson rounds (placement.POISSON_ROUND_HALO), the block
 selection (placement.select_counts by window), the instances, the maps and
 the statistics; until they are, the stage runs whole on a tiled world.
 A tiled run needs the moisture input: the topographic fallback is a box
@@ -34,8 +42,10 @@ import numpy as np
 from scipy import ndimage
 
 from pipeline.tiles import Tile, TileContext, TileOutput
+from worldlib.terrain.stats import exact_mean, exact_sum
 
 from . import attributes as attrs
+from . import ecosystem, grass, placement
 from . import reference as ref
 from . import sites as sites_mod
 from .params import VegetationParams
@@ -324,3 +334,87 @@ def _route(tiles: list[Tile], summaries: list[dict], tile_cells: int) -> dict:
     return {name: tuple(cat([p[k] for p in got]) for k in range(4)) if got else
             (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
             for name, got in parts.items()}
+
+
+def sim_factor(shape: tuple[int, int], dx: float, params: VegetationParams, tile_cells: int) -> int | None:
+    """Terrain cells per simulation cell side when the simulation grid can be
+    made tile by tile (1: the cells themselves; f: f x f blocks dividing the
+    tile), else None."""
+    grid = ecosystem.sim_grid(shape[1], shape[0], dx, params.sim_cell_m)
+    if grid.nx == shape[1] and grid.nz == shape[0] and abs(params.sim_cell_m - dx) <= 1e-9 * dx:
+        return 1
+    f = ecosystem.block_factor(shape[0], shape[1], dx, grid)
+    return f if f and (tile_cells or max(shape)) % f == 0 else None
+
+
+def sim_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared: dict) -> TileOutput:
+    """Pass 6: the tile's plant suitability on the simulation grid."""
+    tile, dx = tctx.tile, shared["dx"]
+    suit = np.moveaxis(np.asarray(inputs["suitability"].read(*tile.window(0)), F), -1, 0)[:shared["plants"]]
+    grid = ecosystem.sim_grid(tile.cols, tile.rows, dx, params.sim_cell_m)
+    return TileOutput(summary={"sim_suitability": ecosystem.to_sim_grid(suit, dx, grid)})
+
+
+def targets_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared: dict) -> TileOutput:
+    """Pass 7: relative yield, targets, canopy and grass maps of the tile.
+    shared: dx, origin, world (rows, cols), plants, grass, ry (sim_yield's),
+    g (the simulation cell)."""
+    tile, dx, origin, p = tctx.tile, shared["dx"], tuple(shared["origin"]), params
+    first, cells = (tile.row0, tile.col0), (tile.rows, tile.cols)
+    plants, gname = list(shared["plants"]), shared["grass"]
+    suit = np.moveaxis(np.asarray(inputs["suitability"].read(*tile.window(0)), F), -1, 0)
+    share = ecosystem.yield_on_terrain(shared["ry"], shared["g"], dx, shared["world"], first, cells)
+    n_t = np.zeros((len(plants),) + cells)
+    excess, nmax = [], []
+    for s, name in enumerate(plants):
+        n_t[s], over = placement.species_target(p, name, suit[s], share[s], dx, origin, int(tctx.seed), first,
+                                                shared["world"])
+        excess.append(over)
+        nmax.append(float(n_t[s].max()) if n_t[s].size else 0.0)
+    cover = grass.canopy_cover(p, plants, n_t)
+    splat = np.asarray(inputs["splat"].read(*tile.window(0)), F)
+    mf = np.asarray(inputs["moisture_filtered"].read(*tile.window(0)), F).reshape(cells)
+    gdens, gheight = grass.grass_maps(p, gname, suit[len(plants)] if gname else None, splat, cover, mf, dx, origin,
+                                      int(tctx.seed), first)
+    total = n_t.sum(axis=0) * 1e4 if plants else np.zeros(cells)
+    return TileOutput(grids={"share": np.moveaxis(share, 0, -1), "target": np.moveaxis(n_t, 0, -1),
+                             "grass": np.stack([gdens, gheight], -1), "canopy": np.stack([cover, total], -1)},
+                      summary={"capped_exact": excess, "target_max": nmax, "grass_density_exact": exact_sum(gdens)})
+
+
+def growth(runner, out: dict, inputs: dict, params: VegetationParams, shape: tuple[int, int], dx: float, origin,
+           seed: int, backend_, progress=lambda f, m: None) -> dict:
+    """Passes 6 and 7 around the simulation on fields()'s output: the
+    TileArrays share, target, grass and canopy, the simulation, the
+    calibration, and per plant species its largest target and capped
+    plants, the grass density's exact sum."""
+    plants, gname = params.plant_species(), params.grass_species()
+    grid_kw = {"cell_size_m": dx, "origin_m": tuple(origin)}
+    common = {"dx": dx, "origin": tuple(origin), "world": tuple(shape), "plants": plants, "grass": gname}
+    sim = ry = None
+    grid = ecosystem.sim_grid(shape[1], shape[0], dx, params.sim_cell_m)
+    if plants:
+        f = sim_factor(shape, dx, params, runner.tile_cells)
+        if f is None:
+            raise ValueError("vegetation: the simulation grid is not whole blocks of the tiles")
+        _, parts = runner.map(sim_tile, "sim", shape, {"suitability": out["suitability"]}, params,
+                              {"dx": dx, "plants": len(plants)}, keep=False, **grid_kw)
+        suit_sim = np.zeros((len(plants), grid.nz, grid.nx), F)
+        for t, part in zip(runner.tiles(shape), parts):
+            suit_sim[:, t.row0 // f:(t.row0 + t.rows) // f, t.col0 // f:(t.col0 + t.cols) // f] = part["sim_suitability"]
+        progress(0.15, "ecosystem simulation")
+        sim = ecosystem.simulate(suit_sim, grid, params, plants, seed, backend_)
+        alone = ecosystem.alone_density(params, plants, grid.g, seed, backend_)
+        ry = ecosystem.sim_yield(sim, params, suit_sim, alone)
+    maps, parts = runner.map(targets_tile, "targets", shape,
+                             {k: out[k] for k in ("suitability", "splat", "moisture_filtered")}, params,
+                             {**common, "ry": ry if ry is not None else np.zeros((0, 1, 1)), "g": grid.g},
+                             grids={"share": tuple(f"yield.{n}" for n in plants),
+                                    "target": tuple(f"target.{n}" for n in plants),
+                                    "grass": ("grass.density", "grass.height"),
+                                    "canopy": ("canopy.cover", "canopy.density")}, **grid_kw)
+    capped = {n: sum(p["capped_exact"][s] for p in parts) for s, n in enumerate(plants)}
+    return {**maps, "sim": sim, "sim_yield": ry, "sim_grid": grid,
+            "target_max": {n: max(p["target_max"][s] for p in parts) for s, n in enumerate(plants)},
+            "capped_plants": {n: exact_mean(v, 1) * dx * dx for n, v in capped.items()},
+            "grass_density_exact": sum(p["grass_density_exact"] for p in parts)}

@@ -71,3 +71,48 @@ def test_tiled_fields_are_the_whole_runs(world, tmp_path, tile_cells):
                                   out["moisture_filtered"].read(0, 0, *shape), splat.moisture_filtered)
     np.testing.assert_array_equal(out["splat"].read(0, 0, *shape), splat.weights)
     np.testing.assert_array_equal(np.moveaxis(out["suitability"].read(0, 0, *shape), -1, 0), suit)
+
+
+@pytest.mark.parametrize("dx, tile_cells", [(8.0, 32), (2.0, 40)])
+def test_tiled_growth_maps_are_the_whole_runs(tmp_path, dx, tile_cells):
+    """The simulation fed by the tiles (its grid the cells themselves at 8 m,
+    4 x 4 blocks at 2 m), the relative yield, targets, canopy and grass maps
+    read back per tile, and the exact sums: the whole run's bits."""
+    from stages.vegetation import ecosystem, grass, placement
+
+    base = world_inputs()
+    inputs = {k: Grid(np.asarray(g.data), dx, g.channels, g.origin_m) for k, g in base.items()}
+    params = small_params(horizon_distance_m=60.0, clearing_share=0.2)
+    cl = get_cl()
+    be = vs.backend_modules(cl)
+    seed = 7
+    grid = inputs["terrain"]
+    shape = grid.data.shape[:2]
+    ctx = SimpleNamespace(seed=seed, input_artifacts={"moisture": "hydrology.moisture"}, progress=lambda *a: None)
+    land = vs._land(ctx, inputs, vs._terrain(grid), params, be, vs._PhaseClock())
+    splat = vs._splat(land, params, seed, be)
+    plants, gname = params.plant_species(), params.grass_species()
+    suit = vs._suitability(land, params, plants + [gname], be)
+    sim, share = vs._compete(ctx, land, suit[:len(plants)], params, plants, seed, be)
+    n_t, cap_info = placement.target_density(params, plants, suit[:len(plants)], share, dx, grid.origin_m, seed)
+    cover = grass.canopy_cover(params, plants, n_t)
+    gdens, gheight = grass.grass_maps(params, gname, suit[len(plants)], splat.weights, cover,
+                                      splat.moisture_filtered, dx, grid.origin_m, seed)
+
+    runner = TileRunner(tile_cells, stage=vs.STAGE, run_key="test", seed=seed, project_root=tmp_path, units=None,
+                        work=tmp_path / "work")
+    windows = {k: Window(g) for k, g in inputs.items()}
+    out = tiled.fields(runner, windows, params, shape, dx, grid.origin_m, seed, plants + [gname])
+    got = tiled.growth(runner, out, windows, params, shape, dx, grid.origin_m, seed, be)
+    assert tiled.sim_factor(shape, dx, params, tile_cells) == (1 if dx == 8.0 else 4)
+    np.testing.assert_array_equal(got["sim"].sp, sim.sp)
+    np.testing.assert_array_equal(np.moveaxis(got["share"].read(0, 0, *shape), -1, 0), share)
+    np.testing.assert_array_equal(np.moveaxis(got["target"].read(0, 0, *shape), -1, 0), n_t)
+    np.testing.assert_array_equal(got["grass"].read(0, 0, *shape), np.stack([gdens, gheight], -1))
+    np.testing.assert_array_equal(got["canopy"].read(0, 0, *shape)[..., 0], cover)
+    for s, name in enumerate(plants):
+        assert got["target_max"][name] == float(n_t[s].max())
+        assert got["capped_plants"][name] == cap_info[name]["capped_plants"]
+    assert grass.tuft_spacing_of(params, gname, got["grass_density_exact"], dx) == \
+        grass.tuft_spacing(params, gname, gdens, dx)
+    assert ecosystem.block_factor(*shape, dx, got["sim_grid"]) == (0 if dx == 8.0 else 4)
