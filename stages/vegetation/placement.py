@@ -256,6 +256,20 @@ def select_counts(pts: np.ndarray, cells: np.ndarray, n_t: np.ndarray, dom: Doma
     return kept, stats, target
 
 
+def lowest_radius(e, nmax: float) -> float:
+    """A species' smallest Poisson radius: its min_spacing_m, or the spacing
+    its densest target fills if wider."""
+    return max(e.min_spacing_m, math.sqrt(KAPPA * FILL / nmax))
+
+
+def radius_field(n: np.ndarray, r_lo: float) -> np.ndarray:
+    """float32 Poisson radius per terrain cell from the target n (plants per
+    m^2): the spacing that fills it, within [r_lo, 2 r_lo]; 0 where n is 0."""
+    with np.errstate(divide="ignore"):
+        rad = np.where(n > 0, np.clip(np.sqrt(KAPPA * FILL / np.where(n > 0, n, 1.0)), r_lo, 2.0 * r_lo), 0.0)
+    return rad.astype(F)
+
+
 def place_species(params: VegetationParams, names: list[str], n_t: np.ndarray, dom: Domain, seed: int, backend,
                   local=None, progress=None) -> dict[str, Placed]:
     """Every plant species, in placement order, on the terrain grid's domain."""
@@ -274,10 +288,8 @@ def place_species(params: VegetationParams, names: list[str], n_t: np.ndarray, d
                                 {"target_plants": 0.0, "candidates": 0, "placed": 0, "shortfall_plants": 0})
             prev.append((done[name], e.collision_radius_m))
             continue
-        r_lo = max(e.min_spacing_m, math.sqrt(KAPPA * FILL / nmax))
-        with np.errstate(divide="ignore"):
-            rad = np.where(n > 0, np.clip(np.sqrt(KAPPA * FILL / np.where(n > 0, n, 1.0)), r_lo, 2.0 * r_lo), 0.0)
-        rad = rad.astype(F)
+        r_lo = lowest_radius(e, nmax)
+        rad = radius_field(n, r_lo)
         c = r_lo / math.sqrt(2.0)
         obstacles = _obstacles(prev, e.collision_radius_m, dom, c)
         pts, cells, pinfo = poisson_sample(rad, r_lo, dom, params.poisson_passes,

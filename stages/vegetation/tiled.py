@@ -28,9 +28,16 @@ for bit (tests/stages/vegetation/test_vegetation_tiled.py).
    canopy cover and the grass maps; the largest target and the exact sums
    (capped plants, grass density) for the placement.
 
-Not yet here: the Poisson rounds (placement.POISSON_ROUND_HALO), the block
-selection (placement.select_counts by window), the instances, the maps and
-the statistics; until they are, the stage runs whole on a tiled world.
+8. poisson_tile, per plant species in placement order, one round per
+   Poisson pass: each tile's share of the species' Poisson grid (the cells
+   over its terrain cells), read with placement.POISSON_ROUND_HALO cells of
+   the last round's points around it and its radius field's window, runs
+   the pass's phases; then each tile's whole blocks keep their counts
+   (placement.select_counts by window). The stage's process holds the
+   species' Poisson grid (16 B a Poisson cell) and the placed plants.
+
+Not yet here: the grass tufts by tile, the instances, the maps and the
+statistics; until they are, the stage runs whole on a tiled world.
 A tiled run needs the moisture input: the topographic fallback is a box
 filter whose running sums differ by window.
 """
@@ -418,3 +425,110 @@ def growth(runner, out: dict, inputs: dict, params: VegetationParams, shape: tup
             "target_max": {n: max(p["target_max"][s] for p in parts) for s, n in enumerate(plants)},
             "capped_plants": {n: exact_mean(v, 1) * dx * dx for n, v in capped.items()},
             "grass_density_exact": sum(p["grass_density_exact"] for p in parts)}
+
+
+def poisson_span(tile: Tile, c: float, dx: float, n_points: tuple[int, int]) -> tuple[int, int, int, int]:
+    """The Poisson cells a tile owns, (x0, x1, z0, z1): those whose first
+    corner lies over its terrain cells (the last tiles take the rest)."""
+    def edge(cell: int, cells: int, n: int) -> int:
+        return n if cell >= cells else min(n, math.ceil(cell * dx / c))
+    rows, cols = tile.world_shape
+    nx, nz = n_points
+    return (edge(tile.col0, cols, nx), edge(tile.col0 + tile.cols, cols, nx),
+            edge(tile.row0, rows, nz), edge(tile.row0 + tile.rows, rows, nz))
+
+
+def poisson_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared: dict) -> TileOutput:
+    """Pass 8, one round: one Poisson pass on the tile's share of the grid.
+    shared (this tile's): species (target channel), r_lo, c, n_points,
+    domain (rows, cols, dx, origin), pass, key, obstacles, window (wx0, wz0)
+    and its points (the last round's), span (poisson_span)."""
+    dom = placement.Domain(*shared["domain"])
+    nx, nz = shared["n_points"]
+    state = shared["points"]
+    wx0, wz0 = shared["window"]
+    win, (rs, cs) = placement.point_window(wx0, wz0, state.shape[1], state.shape[0], shared["c"], dom)
+    n = np.asarray(inputs["target"].read(rs.start, cs.start, rs.stop - rs.start, cs.stop - cs.start),
+                   np.float64)[..., shared["species"]]
+    rad = placement.radius_field(n, shared["r_lo"])
+    sampler = backend(tctx).Poisson(nx, nz, shared["c"], dom.width, dom.depth, rad, dom.dx, placement.MARGIN_M,
+                                    *shared["obstacles"], window=win, pts=state)
+    P = ref.PN + 1
+    for pz in range(P):
+        for px in range(P):
+            sampler.phase(px, pz, shared["pass"], shared["key"])
+    pts = sampler.read().reshape(state.shape)
+    x0, x1, z0, z1 = shared["span"]
+    return TileOutput(summary={"points": np.ascontiguousarray(pts[z0 - wz0:z1 - wz0, x0 - wx0:x1 - wx0])})
+
+
+def place(runner, grown: dict, params: VegetationParams, shape: tuple[int, int], dx: float, origin, seed: int,
+          progress=lambda f, m: None) -> dict:
+    """Pass 8 for every plant species in placement order: placement.Placed
+    per species, the whole run's (placement.place_species) bit for bit."""
+    import time
+
+    plants = params.plant_species()
+    dom = placement.Domain(shape[0], shape[1], dx, tuple(origin))
+    block = max(1, int(round(params.density_block_m / dx)))
+    tiles = runner.tiles(shape)
+    if any((t.rows % block and t.row0 + t.rows != shape[0]) or (t.cols % block and t.col0 + t.cols != shape[1])
+           for t in tiles):
+        raise ValueError(f"vegetation: tiles of {runner.tile_cells} cells cut the density blocks of {block} cells")
+    done: dict[str, placement.Placed] = {}
+    prev: list[tuple[placement.Placed, float]] = []
+    grid_kw = {"cell_size_m": dx, "origin_m": tuple(origin)}
+    for k, name in enumerate(placement.placement_order(params, plants)):
+        s, e, t0 = plants.index(name), params.species[name], time.perf_counter()
+        nmax = grown["target_max"][name]
+        if nmax <= 0:
+            done[name] = placement.Placed(name, np.zeros(0, F), np.zeros(0, F), np.zeros(0, F), np.zeros(0, np.int64),
+                                          {"target_plants": 0.0, "candidates": 0, "placed": 0, "shortfall_plants": 0})
+            prev.append((done[name], e.collision_radius_m))
+            continue
+        r_lo = placement.lowest_radius(e, nmax)
+        c = r_lo / math.sqrt(2.0)
+        nx, nz = int(dom.width // c) + 1, int(dom.depth // c) + 1
+        obstacles = placement._obstacles(prev, e.collision_radius_m, dom, c)
+        points = np.zeros((nz, nx, 4), F)
+        key, halo = ref.stream_key(seed, "poisson", name), placement.POISSON_ROUND_HALO
+        spans = {t.name: poisson_span(t, c, dx, (nx, nz)) for t in tiles}
+        for pss in range(params.poisson_passes):
+            progress(k / len(plants), f"{name}: Poisson pass {pss + 1} of {params.poisson_passes}")
+            per_tile = {}
+            for t in tiles:
+                x0, x1, z0, z1 = spans[t.name]
+                wx0, wz0, wx1, wz1 = max(x0 - halo, 0), max(z0 - halo, 0), min(x1 + halo, nx), min(z1 + halo, nz)
+                per_tile[t.name] = {"species": s, "r_lo": r_lo, "c": c, "n_points": (nx, nz), "pass": pss,
+                                    "domain": (dom.rows, dom.cols, dx, tuple(origin)), "key": key,
+                                    "obstacles": obstacles, "window": (wx0, wz0), "span": spans[t.name],
+                                    "points": points[wz0:wz1, wx0:wx1].copy()}
+            _, parts = runner.map(poisson_tile, f"poisson-{name}-{pss}", shape, {"target": grown["target"]}, params,
+                                  keep=False, per_tile=per_tile, **grid_kw)
+            after = points.copy()
+            for t, part in zip(tiles, parts):
+                x0, x1, z0, z1 = spans[t.name]
+                after[z0:z1, x0:x1] = part["points"]
+            points = after
+        flat = points.reshape(-1, 4)
+        cells = np.nonzero(flat[:, 2] > 0)[0].astype(np.int64)
+        pts = flat[cells]
+        kept = np.zeros(len(pts), bool)
+        tr, tc = dom.cell_of(pts[:, 0], pts[:, 1])
+        totals = {"candidates": 0, "placed": 0, "shortfall_plants": 0, "blocks_short": 0}
+        target = 0
+        for t in tiles:
+            mine = np.flatnonzero((tr >= t.row0) & (tr < t.row0 + t.rows) & (tc >= t.col0) & (tc < t.col0 + t.cols))
+            n_tile = np.asarray(grown["target"].read(*t.window(0)), np.float64)[..., s]
+            kept_tile, stats, exact = placement.select_counts(pts[mine], cells[mine], n_tile, dom, block,
+                                                              ref.stream_key(seed, "select", name), (t.row0, t.col0))
+            kept[mine] = kept_tile
+            target += exact
+            for key_ in totals:
+                totals[key_] += stats[key_]
+        stats = {"target_plants": exact_mean(target, 1), **totals, "poisson_cells": nx * nz, "poisson_cell_m": c,
+                 "r_lo_m": r_lo, "seconds": time.perf_counter() - t0,
+                 "obstacles": int(len(obstacles[1])) if obstacles[2] else 0}
+        done[name] = placement.Placed(name, pts[kept, 0], pts[kept, 1], pts[kept, 2], cells[kept], stats)
+        prev.append((done[name], e.collision_radius_m))
+    return done

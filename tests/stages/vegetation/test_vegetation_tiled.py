@@ -116,3 +116,38 @@ def test_tiled_growth_maps_are_the_whole_runs(tmp_path, dx, tile_cells):
     assert grass.tuft_spacing_of(params, gname, got["grass_density_exact"], dx) == \
         grass.tuft_spacing(params, gname, gdens, dx)
     assert ecosystem.block_factor(*shape, dx, got["sim_grid"]) == (0 if dx == 8.0 else 4)
+
+
+@pytest.mark.parametrize("dx, tile_cells", [(8.0, 32), (4.0, 48)])
+def test_tiled_placement_is_the_whole_runs(tmp_path, dx, tile_cells):
+    """Every plant species placed tile by tile (Poisson passes in rounds,
+    block selection per tile) is the whole run's placement bit for bit:
+    positions, radii, Poisson cells and counts."""
+    from stages.vegetation import placement
+
+    base = world_inputs()
+    inputs = {k: Grid(np.asarray(g.data), dx, g.channels, g.origin_m) for k, g in base.items()}
+    params = small_params(horizon_distance_m=60.0, density_block_m=8 * dx, poisson_passes=3)
+    cl = get_cl()
+    be = vs.backend_modules(cl)
+    seed = 11
+    grid = inputs["terrain"]
+    shape = grid.data.shape[:2]
+    runner = TileRunner(tile_cells, stage=vs.STAGE, run_key="test", seed=seed, project_root=tmp_path, units=None,
+                        work=tmp_path / "work")
+    windows = {k: Window(g) for k, g in inputs.items()}
+    plants, gname = params.plant_species(), params.grass_species()
+    out = tiled.fields(runner, windows, params, shape, dx, grid.origin_m, seed, plants + [gname])
+    grown = tiled.growth(runner, out, windows, params, shape, dx, grid.origin_m, seed, be)
+    got = tiled.place(runner, grown, params, shape, dx, grid.origin_m, seed)
+    n_t = np.moveaxis(grown["target"].read(0, 0, *shape), -1, 0)
+    want = placement.place_species(params, plants, n_t, placement.Domain(*shape, dx, grid.origin_m), seed, be)
+    placed = 0
+    for name in plants:
+        for field in ("x", "z", "r", "cell"):
+            np.testing.assert_array_equal(getattr(got[name], field), getattr(want[name], field), err_msg=name)
+        for key in ("target_plants", "candidates", "placed", "shortfall_plants", "blocks_short", "poisson_cells",
+                    "obstacles"):
+            assert got[name].stats.get(key) == want[name].stats.get(key), (name, key)
+        placed += len(got[name].x)
+    assert placed > 100
