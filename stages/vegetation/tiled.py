@@ -36,8 +36,11 @@ for bit (tests/stages/vegetation/test_vegetation_tiled.py).
    (placement.select_counts by window). The stage's process holds the
    species' Poisson grid (16 B a Poisson cell) and the placed plants.
 
-Not yet here: the grass tufts by tile, the instances, the maps and the
-statistics; until they are, the stage runs whole on a tiled world.
+9. tufts_tile: the grass tufts of the tile's share of the tufts' grid
+   (the density read by window), gathered in the grid's order.
+
+Not yet here: the instances, the maps and the statistics; until they are,
+the stage runs whole on a tiled world.
 A tiled run needs the moisture input: the topographic fallback is a box
 filter whose running sums differ by window.
 """
@@ -532,3 +535,44 @@ def place(runner, grown: dict, params: VegetationParams, shape: tuple[int, int],
         done[name] = placement.Placed(name, pts[kept, 0], pts[kept, 1], pts[kept, 2], cells[kept], stats)
         prev.append((done[name], e.collision_radius_m))
     return done
+
+
+def tufts_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared: dict) -> TileOutput:
+    """Pass 9: the kept tufts of the tile's share of the tufts' grid: their
+    grid cells and positions. shared: sp, n_points, key, domain."""
+    dom = placement.Domain(*shared["domain"])
+    nx, nz = shared["n_points"]
+    x0, x1, z0, z1 = poisson_span(tctx.tile, shared["sp"], dom.dx, (nx, nz))
+    if x1 <= x0 or z1 <= z0:
+        return TileOutput(summary={"cell": np.zeros(0, np.int64), "x": np.zeros(0, F), "z": np.zeros(0, F)})
+    win, (rs, cs) = placement.point_window(x0, z0, x1 - x0, z1 - z0, shared["sp"], dom)
+    dens = np.asarray(inputs["grass"].read(rs.start, cs.start, rs.stop - rs.start, cs.stop - cs.start), F)[..., 0]
+    out = backend(tctx).grass_tufts(np.ascontiguousarray(dens), dom.dx, nx, nz, shared["sp"], params.grass_jitter,
+                                    dom.width, dom.depth, shared["key"], window=win)
+    kept = np.nonzero(out[:, 3] > 0)[0]
+    zz, xx = np.divmod(kept, x1 - x0)
+    return TileOutput(summary={"cell": ((z0 + zz) * nx + x0 + xx).astype(np.int64), "x": out[kept, 0].copy(),
+                               "z": out[kept, 1].copy()})
+
+
+def tufts(runner, grown: dict, params: VegetationParams, shape: tuple[int, int], dx: float, origin,
+          seed: int) -> tuple[placement.Placed | None, dict]:
+    """grass.place_tufts by tile: the same Placed, tufts in the grid's order."""
+    name = params.grass_species()
+    if name is None or not grown["grass_density_exact"] or params.grass_max_tufts == 0:
+        return None, {"tufts": 0}
+    dom = placement.Domain(shape[0], shape[1], dx, tuple(origin))
+    sp, expected = grass.tuft_spacing_of(params, name, grown["grass_density_exact"], dx)
+    nx, nz = int(dom.width // sp) + 1, int(dom.depth // sp) + 1
+    shared = {"sp": sp, "n_points": (nx, nz), "key": ref.stream_key(seed, "tufts", name),
+              "domain": (dom.rows, dom.cols, dx, tuple(origin))}
+    _, parts = runner.map(tufts_tile, "tufts", shape, {"grass": grown["grass"]}, params, shared, keep=False,
+                          cell_size_m=dx, origin_m=tuple(origin))
+    cell = np.concatenate([p["cell"] for p in parts])
+    order = np.argsort(cell, kind="stable")
+    x, z = np.concatenate([p["x"] for p in parts])[order], np.concatenate([p["z"] for p in parts])[order]
+    min_dist = (1.0 - params.grass_jitter) * sp
+    p = placement.Placed(name, x, z, np.full(len(x), min_dist, F), cell[order],
+                         {"tuft_spacing_m": sp, "expected_tufts": expected, "tufts": int(len(x)),
+                          "candidates": nx * nz})
+    return p, p.stats

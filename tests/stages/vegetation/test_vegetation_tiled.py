@@ -151,3 +151,28 @@ def test_tiled_placement_is_the_whole_runs(tmp_path, dx, tile_cells):
             assert got[name].stats.get(key) == want[name].stats.get(key), (name, key)
         placed += len(got[name].x)
     assert placed > 100
+
+
+def test_tiled_tufts_are_the_whole_runs(tmp_path):
+    """The grass tufts gathered from the tiles' shares of the tufts' grid are
+    grass.place_tufts' on the whole density, in the same order."""
+    from stages.vegetation import grass, placement
+
+    base = world_inputs()
+    inputs = {k: Grid(np.asarray(g.data), 4.0, g.channels, g.origin_m) for k, g in base.items()}
+    params = small_params(horizon_distance_m=60.0)
+    be = vs.backend_modules(get_cl())
+    grid = inputs["terrain"]
+    shape = grid.data.shape[:2]
+    runner = TileRunner(48, stage=vs.STAGE, run_key="test", seed=5, project_root=tmp_path, units=None,
+                        work=tmp_path / "work")
+    windows = {k: Window(g) for k, g in inputs.items()}
+    plants, gname = params.plant_species(), params.grass_species()
+    out = tiled.fields(runner, windows, params, shape, 4.0, grid.origin_m, 5, plants + [gname])
+    grown = tiled.growth(runner, out, windows, params, shape, 4.0, grid.origin_m, 5, be)
+    got, stats = tiled.tufts(runner, grown, params, shape, 4.0, grid.origin_m, 5)
+    density = grown["grass"].read(0, 0, *shape)[..., 0]
+    want, want_stats = grass.place_tufts(params, gname, density, placement.Domain(*shape, 4.0, grid.origin_m), 5, be)
+    assert stats == want_stats and len(want.x) > 200
+    for field in ("x", "z", "r", "cell"):
+        np.testing.assert_array_equal(getattr(got, field), getattr(want, field), err_msg=field)
