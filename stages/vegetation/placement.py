@@ -41,6 +41,7 @@ from .params import FILL, KAPPA, VegetationParams
 
 F = np.float32
 MARGIN_M = 0.002  # extra distance the sampler keeps, so float32 world coordinates still respect the radii
+BANK_MARGIN_M = 0.5  # a stem stands this far clear of the water's edge
 
 
 @dataclass
@@ -352,24 +353,34 @@ def keep_allowed(inst: Instances, allowed: np.ndarray, dom: Domain) -> tuple[Ins
 
 def keep_out_of_water(inst: Instances, water: np.ndarray, half_m: np.ndarray, dom: Domain,
                       margin_m: float) -> tuple[Instances, int]:
-    """Drop the instances standing in a river: a cell of a wide river's bank
+    """The instances not in_water, and how many were."""
+    wet = in_water(inst, water, half_m, dom, margin_m)
+    return (inst, 0) if not wet.any() else (inst.subset(~wet), int(wet.sum()))
+
+
+def in_water(inst: Instances, water: np.ndarray, half_m: np.ndarray, dom: Domain, margin_m: float,
+             first=(0, 0)) -> np.ndarray:
+    """bool per instance: standing in a river. A cell of a wide river's bank
     is allowed, but the river's ribbon covers part of it. The ribbon is
     taken as half_m (a water cell's half bankfull width, the hydrology
     stage's) either side of the segments joining the centres of 8-adjacent
     water cells (the larger half width of the two ends); an instance within
-    it plus margin_m goes."""
+    it plus margin_m is in. water, half_m: the world's, or a window of it
+    from cell `first` holding the cells within the widest half width of
+    every instance (a tile's instances and that halo: the world's answer)."""
     if not len(inst) or not water.any():
-        return inst, 0
+        return np.zeros(len(inst), bool)
     from scipy import ndimage
 
     rows, cols = water.shape
     reach = int(np.ceil((float(half_m.max()) + margin_m) / dom.dx)) + 1
     near = ndimage.binary_dilation(water, np.ones((2 * reach + 1, 2 * reach + 1), bool))
     tr, tc = dom.world_cell(inst.positions)
+    tr, tc = tr - first[0], tc - first[1]
     cand = np.nonzero(near[tr, tc])[0]
     # positions in cells from the candidate's own cell centre: exact segment distances on a small lattice
-    fx = (inst.positions[cand, 0].astype(np.float64) - dom.origin_m[0]) / dom.dx - (tc[cand] + 0.5)
-    fz = (inst.positions[cand, 2].astype(np.float64) - dom.origin_m[1]) / dom.dx - (tr[cand] + 0.5)
+    fx = (inst.positions[cand, 0].astype(np.float64) - dom.origin_m[0]) / dom.dx - (tc[cand] + first[1] + 0.5)
+    fz = (inst.positions[cand, 2].astype(np.float64) - dom.origin_m[1]) / dom.dx - (tr[cand] + first[0] + 0.5)
     wet = np.zeros(len(cand), bool)
     at = lambda r, c: (np.clip(r, 0, rows - 1), np.clip(c, 0, cols - 1), (r >= 0) & (r < rows) & (c >= 0) & (c < cols))
     for dr in range(-reach, reach + 1):
@@ -385,11 +396,9 @@ def keep_out_of_water(inst: Instances, water: np.ndarray, half_m: np.ndarray, do
                 t = np.clip(((fx - dc) * sc + (fz - dr) * sr) / max(sc * sc + sr * sr, 1), 0.0, 1.0)
                 d = np.hypot(fx - dc - t * sc, fz - dr - t * sr) * dom.dx
                 wet |= seg & (d < np.maximum(half_m[r, c], half_m[r2, c2]) + margin_m)
-    if not wet.any():
-        return inst, 0
-    keep = np.ones(len(inst), bool)
-    keep[cand[wet]] = False
-    return inst.subset(keep), int(wet.sum())
+    out = np.zeros(len(inst), bool)
+    out[cand[wet]] = True
+    return out
 
 
 def world_positions(x: np.ndarray, z: np.ndarray, dom: Domain, mesh) -> np.ndarray:

@@ -59,7 +59,6 @@ SITE_CHANNELS = sites_mod.CHANNELS
 SITE_COLOURS = (("other", (120, 150, 90)), ("riparian", (60, 120, 200)), ("avalanche", (235, 235, 245)),
                 ("clearing", (230, 190, 80)))
 F = np.float32
-BANK_MARGIN_M = 0.5  # a stem stands this far clear of the water's edge
 
 
 def backend_modules(env):
@@ -451,7 +450,7 @@ def _instances(land: _Land, growth: _Growth, grass_layer: _Grass, params: Vegeta
     in_rivers = {}
     for name in sets:  # a river's ribbon is wider than its cells: nothing stands in it
         sets[name], in_rivers[name] = placement.keep_out_of_water(sets[name], land.water, land.water_half_m, dom,
-                                                                  BANK_MARGIN_M)
+                                                                  placement.BANK_MARGIN_M)
     dropped = {"cell_edges": dropped, "in_rivers": in_rivers}
     tints = {}
     for name, inst in sets.items():

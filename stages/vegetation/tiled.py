@@ -39,7 +39,12 @@ for bit (tests/stages/vegetation/test_vegetation_tiled.py).
 9. tufts_tile: the grass tufts of the tile's share of the tufts' grid
    (the density read by window), gathered in the grid's order.
 
-Not yet here: the instances, the maps and the statistics; until they are,
+10. instances: the terrain mesh's lattice read tile by tile, each plant's
+   and tuft's instance on it; those on cells where the species may not
+   grow or in a river's ribbon dropped (the water read around each tile's
+   instances with the widest ribbon's reach), and their tints.
+
+Not yet here: the USD layer, the maps and the statistics; until they are,
 the stage runs whole on a tiled world.
 A tiled run needs the moisture input: the topographic fallback is a box
 filter whose running sums differ by window.
@@ -576,3 +581,103 @@ def tufts(runner, grown: dict, params: VegetationParams, shape: tuple[int, int],
                          {"tuft_spacing_m": sp, "expected_tufts": expected, "tufts": int(len(x)),
                           "candidates": nx * nz})
     return p, p.stats
+
+
+class AtCells:
+    """A tiled grid's channel read at cells (`grid[rows, cols]`, as the whole
+    run indexes its arrays), tile by tile."""
+
+    def __init__(self, arrays, channel: int, fn=None):
+        self.arrays, self.channel, self.fn = arrays, channel, fn
+
+    def __getitem__(self, cells):
+        rows, cols = (np.asarray(c, np.int64) for c in cells)
+        t = self.arrays.tile_cells
+        out = None
+        tile_of = (rows // t) * (1 << 32) + cols // t
+        for key in np.unique(tile_of).tolist():
+            mine = np.flatnonzero(tile_of == key)
+            i, j = divmod(key, 1 << 32)
+            part = np.asarray(self.arrays.read(i * t, j * t, min(t, self.arrays.shape[0] - i * t),
+                                               min(t, self.arrays.shape[1] - j * t)))
+            part = part[..., self.channel] if part.ndim == 3 else part
+            v = part[rows[mine] - i * t, cols[mine] - j * t]
+            v = self.fn(v) if self.fn is not None else v
+            if out is None:
+                out = np.empty(rows.shape, v.dtype)
+            out[mine] = v
+        if out is None:  # no cells
+            empty = np.zeros(rows.shape, F)
+            return self.fn(empty) if self.fn is not None else empty
+        return out
+
+
+def terrain_mesh(runner, inputs: dict, shape: tuple[int, int], dx: float, origin, lowest: float,
+                 max_vertices: int):
+    """worldlib.terrain.mesh.build_terrain_mesh of the filled heights, its
+    lattice read tile by tile."""
+    from worldlib.terrain.mesh import bilinear_taps, lattice_of, lattice_taps, mesh_from_lattice
+
+    ri, ci = lattice_of(*shape, max_vertices)
+    rt, ct = lattice_taps(shape[0], ri), lattice_taps(shape[1], ci)
+    hv = np.zeros((len(ri), len(ci)))
+    terrain = inputs["terrain"]
+    for t in runner.tiles(shape):
+        rs = np.flatnonzero((rt[0] >= t.row0) & (rt[0] < t.row0 + t.rows))
+        cs = np.flatnonzero((ct[0] >= t.col0) & (ct[0] < t.col0 + t.cols))
+        if not len(rs) or not len(cs):
+            continue
+        r0, c0 = t.row0, t.col0
+        nr, nc = min(t.rows + 1, shape[0] - r0), min(t.cols + 1, shape[1] - c0)
+        raw = np.asarray(terrain.read(r0, c0, nr, nc, channel=_channel(terrain, "height")), F)
+        h = np.where(np.isfinite(raw), raw, F(lowest)).astype(F)
+        hv[np.ix_(rs, cs)] = bilinear_taps(h, tuple(x[rs] for x in rt), tuple(x[cs] for x in ct), origin=(r0, c0))
+    size = (shape[1] * dx, shape[0] * dx)
+    return mesh_from_lattice(hv, ri, ci, dx, tuple(origin), size)
+
+
+def instances(runner, inputs: dict, out: dict, grown: dict, placed: dict, tuft_set, params: VegetationParams,
+              shape: tuple[int, int], dx: float, origin, seed: int, lowest: float, max_half_m: float):
+    """stage._instances by tile: (sets, dropped, tints)."""
+    from . import tint
+
+    plants, gname = params.plant_species(), params.grass_species()
+    dom = placement.Domain(shape[0], shape[1], dx, tuple(origin))
+    mesh = terrain_mesh(runner, inputs, shape, dx, origin, lowest, params.mesh_max_vertices)
+    sets, dropped = {}, {}
+    positive = lambda v: v > 0  # noqa: E731
+    for s, name in enumerate(plants):
+        inst = placement.instances(placed[name], s, params, dom, mesh, grown["sim"], seed)
+        sets[name], dropped[name] = placement.keep_allowed(inst, AtCells(grown["target"], s, positive), dom)
+    if tuft_set is not None:
+        inst = grass.tuft_instances(tuft_set, params, AtCells(grown["grass"], 1), dom, mesh, seed)
+        sets[gname], dropped[gname] = placement.keep_allowed(inst, AtCells(grown["grass"], 0, positive), dom)
+    reach = int(np.ceil((max_half_m + placement.BANK_MARGIN_M) / dx)) + 1
+    in_rivers = {}
+    for name in sets:
+        sets[name], in_rivers[name] = _out_of_water(runner, inputs, sets[name], dom, shape, reach)
+    moisture = AtCells(out["fields"], FIELDS.index("moisture"))
+    tints = {}
+    for name, inst in sets.items():
+        e = params.species[name]
+        tints[name] = tint.instance_tints(seed, name, inst.ids, moisture[dom.world_cell(inst.positions)], inst.age,
+                                          e.maturity_years if e.kind == "plant" else 1.0, params.tint_variation)
+    return sets, {"cell_edges": dropped, "in_rivers": in_rivers}, tints
+
+
+def _out_of_water(runner, inputs: dict, inst, dom, shape, reach: int):
+    """placement.keep_out_of_water tile by tile: each tile's instances with
+    the water `reach` cells around the tile."""
+    if not len(inst):
+        return inst, 0
+    tr, tc = dom.world_cell(inst.positions)
+    wet = np.zeros(len(inst), bool)
+    for t in runner.tiles(shape):
+        mine = np.flatnonzero((tr >= t.row0) & (tr < t.row0 + t.rows) & (tc >= t.col0) & (tc < t.col0 + t.cols))
+        if not len(mine):
+            continue
+        water = _water(inputs, t, reach)
+        half = _half_widths(inputs, t, reach, water)
+        r0, c0, _, _ = t.window(reach)
+        wet[mine] = placement.in_water(inst.subset(mine), water, half, dom, placement.BANK_MARGIN_M, (r0, c0))
+    return (inst, 0) if not wet.any() else (inst.subset(~wet), int(wet.sum()))

@@ -176,3 +176,45 @@ def test_tiled_tufts_are_the_whole_runs(tmp_path):
     assert stats == want_stats and len(want.x) > 200
     for field in ("x", "z", "r", "cell"):
         np.testing.assert_array_equal(getattr(got, field), getattr(want, field), err_msg=field)
+
+
+def test_tiled_instances_are_the_whole_runs(tmp_path):
+    """Every species' instances made tile by tile (the terrain mesh's
+    lattice read by tile, drops on cells where it may not grow and in the
+    river's ribbon, tints): the whole run's bit for bit."""
+    from stages.vegetation import grass
+
+    base = world_inputs()
+    dx = 4.0
+    inputs = {k: Grid(np.asarray(g.data), dx, g.channels, g.origin_m) for k, g in base.items()}
+    params = small_params(horizon_distance_m=60.0, density_block_m=8 * dx, poisson_passes=3, mesh_max_vertices=50)
+    be = vs.backend_modules(get_cl())
+    seed = 3
+    grid = inputs["terrain"]
+    shape = grid.data.shape[:2]
+    ctx = SimpleNamespace(seed=seed, input_artifacts={"moisture": "hydrology.moisture"}, progress=lambda *a: None)
+    land = vs._land(ctx, inputs, vs._terrain(grid), params, be, vs._PhaseClock())
+    splat = vs._splat(land, params, seed, be)
+    growth = vs._grow(ctx, land, params, seed, be, vs._PhaseClock())
+    grass_layer = vs._grass(land, growth, splat, params, seed, be)
+    want_sets, want_dropped, want_tints = vs._instances(land, growth, grass_layer, params, seed)
+
+    runner = TileRunner(32, stage=vs.STAGE, run_key="test", seed=seed, project_root=tmp_path, units=None,
+                        work=tmp_path / "work")
+    windows = {k: Window(g) for k, g in inputs.items()}
+    plants, gname = params.plant_species(), params.grass_species()
+    out = tiled.fields(runner, windows, params, shape, dx, grid.origin_m, seed, plants + [gname])
+    grown = tiled.growth(runner, out, windows, params, shape, dx, grid.origin_m, seed, be)
+    placed = tiled.place(runner, grown, params, shape, dx, grid.origin_m, seed)
+    tufts, _ = tiled.tufts(runner, grown, params, shape, dx, grid.origin_m, seed)
+    half = 0.5 * float(np.nanmax(inputs["rivers"].channel("river.width")))
+    sets, dropped, tints = tiled.instances(runner, windows, out, grown, placed, tufts, params, shape, dx,
+                                           grid.origin_m, seed, float(np.nanmin(grid.channel("height"))), half)
+    assert sorted(sets) == sorted(want_sets) and dropped == want_dropped
+    assert sum(dropped["in_rivers"].values()) > 0  # the river's ribbon took some
+    for name, inst in sets.items():
+        want = want_sets[name]
+        for field in ("positions", "orientations", "scales", "age", "random", "ids", "radius"):
+            np.testing.assert_array_equal(getattr(inst, field), getattr(want, field), err_msg=f"{name} {field}")
+        np.testing.assert_array_equal(tints[name], want_tints[name])
+    assert gname in sets and len(sets[gname]) > 100
