@@ -266,6 +266,11 @@ def alone_density(params: VegetationParams, names: list[str], g: float, seed: in
     return out
 
 
+def alone_at_full(alone: np.ndarray, names: list[str], g: float) -> dict:
+    """alone_density's plants per ha at suitability 1, per species (stats.json)."""
+    return {n: float(alone[s, -1] * 1e4 / g ** 2) for s, n in enumerate(names)}
+
+
 def relative_yield(res: SimResult, params: VegetationParams, suit_sim: np.ndarray, alone: np.ndarray, dx: float,
                    shape: tuple[int, int], first=(0, 0), cells=None) -> np.ndarray:
     """Per species (nsp, rows, cols) on the terrain grid: plants of the

@@ -465,17 +465,45 @@ def density_error(x: np.ndarray, z: np.ndarray, n_t: np.ndarray, dom: Domain, wi
     """Placed count against the target count over non-overlapping windows of
     window x window terrain cells (whole windows only) whose target count is
     at least `floor`: the largest and the mean relative error."""
-    rows, cols = n_t.shape
-    w = min(window, rows, cols)
-    nr, nc = rows // w, cols // w
-    expect = (n_t[: nr * w, : nc * w] * dom.dx * dom.dx).reshape(nr, w, nc, w).sum(axis=(1, 3))
+    w = density_window(dom, window)
+    expect, got = density_windows(x, z, n_t, dom, w)
+    return density_error_of(expect.ravel(), got.ravel(), w, floor)
+
+
+def density_window(dom: Domain, window: int = WINDOW_CELLS) -> int:
+    return min(window, dom.rows, dom.cols)
+
+
+def density_windows(x: np.ndarray, z: np.ndarray, n_t: np.ndarray, dom: Domain, w: int,
+                    first=(0, 0)) -> tuple[np.ndarray, np.ndarray]:
+    """Target and placed counts of the whole w x w windows in n_t (the
+    world's, or the windows of a part from cell `first`, a multiple of w)
+    whose cells all lie in the world; x, z: the plants in that part."""
     tr, tc = dom.cell_of(np.asarray(x), np.asarray(z))
-    inside = (tr < nr * w) & (tc < nc * w)
+    return density_windows_of_cells(tr, tc, n_t, dom, w, first)
+
+
+def density_windows_of_cells(tr: np.ndarray, tc: np.ndarray, n_t: np.ndarray, dom: Domain, w: int,
+                             first=(0, 0)) -> tuple[np.ndarray, np.ndarray]:
+    """density_windows from the plants' terrain cells (Domain.cell_of)."""
+    rows, cols = n_t.shape
+    nr = max(min(rows, dom.rows // w * w - first[0]) // w, 0)
+    nc = max(min(cols, dom.cols // w * w - first[1]) // w, 0)
+    expect = block_sum(n_t[: nr * w, : nc * w] * dom.dx * dom.dx, w) if nr and nc else np.zeros((nr, nc))
+    tr, tc = tr - first[0], tc - first[1]
+    inside = (tr >= 0) & (tc >= 0) & (tr < nr * w) & (tc < nc * w)
     got = np.zeros((nr, nc))
     np.add.at(got, (tr[inside] // w, tc[inside] // w), 1)
+    return expect, got
+
+
+def density_error_of(expect: np.ndarray, got: np.ndarray, w: int, floor: float = WINDOW_FLOOR_PLANTS) -> dict:
+    """density_error's statistics from the windows' counts (in any order:
+    exact sums)."""
     judged = expect >= floor
     rel = np.abs(got - expect)[judged] / expect[judged]
+    total_expect, total_got = exact_mean(exact_sum(expect), 1), exact_mean(exact_sum(got), 1)
     return {"windows": int(judged.sum()), "window_cells": w, "floor_plants": floor,
             "max_relative_error": float(rel.max()) if rel.size else 0.0,
-            "mean_relative_error": float(rel.mean()) if rel.size else 0.0,
-            "total_relative_error": float(abs(got.sum() - expect.sum()) / expect.sum()) if expect.sum() > 0 else 0.0}
+            "mean_relative_error": exact_mean(exact_sum(rel), rel.size) if rel.size else 0.0,
+            "total_relative_error": float(abs(total_got - total_expect) / total_expect) if total_expect > 0 else 0.0}

@@ -339,17 +339,30 @@ def apply(suit: np.ndarray, names: list[str], params: VegetationParams, sites: S
     return out.astype(F)
 
 
+def slope_class(slope: np.ndarray) -> np.ndarray:
+    """The forest-by-slope table's class of each slope (deg)."""
+    edges = np.asarray(SLOPE_CLASSES_DEG)
+    return np.clip(np.digitize(slope, edges[1:-1]), 0, len(edges) - 2)
+
+
 def forest_by_slope(slope: np.ndarray, land: np.ndarray, trees: list[tuple[np.ndarray, np.ndarray]], dx: float) -> dict:
     """Per slope class: its share of the land, its share of the trees
     (instances of tree species; their cell's slope) and trees per hectare
     of the class's land."""
-    edges = np.asarray(SLOPE_CLASSES_DEG)
-    cls = np.clip(np.digitize(slope, edges[1:-1]), 0, len(edges) - 2)
-    nclass = len(edges) - 1
-    land_cells = np.bincount(cls[land], minlength=nclass).astype(np.float64)
-    counts = np.zeros(nclass)
+    nclass = len(SLOPE_CLASSES_DEG) - 1
+    cls = slope_class(slope)
+    counts = np.zeros(nclass, np.int64)
     for tr, tc in trees:
         counts += np.bincount(cls[tr, tc], minlength=nclass)
+    return forest_table(np.bincount(cls[land], minlength=nclass), counts, dx)
+
+
+def forest_table(land_cells: np.ndarray, tree_counts: np.ndarray, dx: float) -> dict:
+    """forest_by_slope's table from the land cells and the trees per class
+    (integers: a tiled run's tiles add them up)."""
+    edges = np.asarray(SLOPE_CLASSES_DEG)
+    nclass = len(edges) - 1
+    land_cells, counts = np.asarray(land_cells, np.float64), np.asarray(tree_counts, np.float64)
     total_land, total_trees = max(land_cells.sum(), 1.0), max(counts.sum(), 1.0)
     labels = [f"{edges[k]:g}-{edges[k + 1]:g}" if k < nclass - 1 else f">{edges[k]:g}" for k in range(nclass)]
     return {"classes_deg": labels,
@@ -368,10 +381,17 @@ def plants_on_banks(riparian: np.ndarray, land: np.ndarray, cells: dict, dx: flo
     (riparian index >= BANK_INDEX) and elsewhere: the banks' own mix."""
     banks = land & (riparian >= BANK_INDEX)
     rest = land & ~banks
-    ha_banks, ha_rest = banks.sum() * dx * dx / 1e4, rest.sum() * dx * dx / 1e4
     species = sorted(cells)
     on = [int(banks[tr, tc].sum()) for tr, tc in (cells[n] for n in species)]
     off = [int(rest[tr, tc].sum()) for tr, tc in (cells[n] for n in species)]
+    return banks_table(int(banks.sum()), int(rest.sum()), species, on, off, dx)
+
+
+def banks_table(bank_cells: int, rest_cells: int, species: list[str], on: list[int], off: list[int],
+                dx: float) -> dict:
+    """plants_on_banks' table from cell and instance counts (a tiled run's
+    tiles add them up)."""
+    ha_banks, ha_rest = bank_cells * dx * dx / 1e4, rest_cells * dx * dx / 1e4
     return {"species": species, "bank_ha": round(float(ha_banks), 3), "elsewhere_ha": round(float(ha_rest), 3),
             "banks_per_ha": [round(k / ha_banks, 3) if ha_banks else 0.0 for k in on],
             "elsewhere_per_ha": [round(k / ha_rest, 3) if ha_rest else 0.0 for k in off]}

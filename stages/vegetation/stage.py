@@ -46,6 +46,7 @@ from worldlib.ground import GROUND_MAP_COLOURS, SPLAT_CHANNELS
 from worldlib.plant_asset import prototype_prim
 from worldlib.terrain import GROUND_SOURCES, TERRAIN_SOURCES
 from worldlib.terrain.hillshade import hillshade
+from worldlib.terrain.stats import exact_mean, exact_sum
 
 from . import attributes as attrs
 from . import ecosystem, grass, placement, tint, usd_layer
@@ -108,21 +109,31 @@ def _optional_channel(inputs: dict, role: str, channel: str, shape) -> np.ndarra
 
 
 def preview(height: Grid, splat: np.ndarray, gdens: np.ndarray, water: np.ndarray, sets: dict, dom, names) -> np.ndarray:
-    img = hillshade(height).astype(np.float32)
+    rows, cols = gdens.shape
+    drawn = {}
+    for name, inst in sets.items():
+        drawn[name] = (np.clip(((inst.positions[:, 0] - dom.origin_m[0]) / dom.dx).astype(np.int64), 0, cols - 1),
+                       np.clip(((inst.positions[:, 2] - dom.origin_m[1]) / dom.dx).astype(np.int64), 0, rows - 1))
+    return preview_colours(hillshade(height).astype(np.float32), splat, water, drawn, names)
+
+
+def preview_colours(img: np.ndarray, splat: np.ndarray, water: np.ndarray, drawn: dict, names,
+                    first=(0, 0)) -> np.ndarray:
+    """The preview from the hillshade (float32 RGB), the ground's colours,
+    the water and the instances drawn at world cells (drawn: name -> (col,
+    row)); a window from cell `first` gets the whole preview's pixels."""
     ground = (splat[..., 0:1] * np.array([120, 115, 110]) + splat[..., 1:2] * np.array([150, 140, 125])
               + splat[..., 2:3] * np.array([90, 140, 60]) + splat[..., 3:4] * np.array([170, 160, 100])
               + splat[..., 4:5] * np.array([100, 80, 60]) + splat[..., 5:6] * np.array([245, 245, 250]))
     img = img * (0.35 + 0.65 * ground / 255.0)
     img = np.where(water[..., None], 0.3 * img + 0.7 * np.array([40, 90, 170]), img)
-    rows, cols = gdens.shape
     for k, name in enumerate(names):
-        inst = sets.get(name)
-        if inst is None or not len(inst):
+        col, row = drawn.get(name, (np.zeros(0, np.int64), np.zeros(0, np.int64)))
+        if not len(col):
             continue
         c = np.array(usd_layer.colour(name, k)) * 255.0
-        col = np.clip(((inst.positions[:, 0] - dom.origin_m[0]) / dom.dx).astype(np.int64), 0, cols - 1)
-        row = np.clip(((inst.positions[:, 2] - dom.origin_m[1]) / dom.dx).astype(np.int64), 0, rows - 1)
         a = 0.35 if name == "grass" else 0.8
+        row, col = row - first[0], col - first[1]
         img[row, col] = (1 - a) * img[row, col] + a * c
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)
 
@@ -319,22 +330,17 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
         sets, dropped, tints = _instances(land, growth, grass_layer, params, seed)
         forest = _forest(land, growth, sets, params)
     ctx.progress(0.8, "USD layer")
-    usd_path, ustats = _write_usd(ctx, land, sets, tints, params, clock,
+    usd_path, ustats = _write_usd(ctx, land.shape, land.dx, land.origin, sets, tints, params, clock,
                                   {usd_layer.FOREST_BY_SLOPE_KEY: forest["by_slope"],
                                    **({usd_layer.BANKS_KEY: forest["banks"]} if forest["banks"]["species"] else {})})
     ctx.progress(0.9, "maps")
     with clock.lap("maps_s"):
         species_maps = _species_maps(growth.plants, growth.grass_name, sets, growth.dom, growth.suit, growth.share,
                                      growth.n_t, grass_layer.suit, grass_layer.density, _grid_maker(land))
-    report = _report(params, sets, growth, grass_layer, species_maps)
+    report = _report(params, sets, growth.placed, grass_layer.stats, species_maps)
     stats, timings = _stats(land, splat, growth, grass_layer, sets, dropped, tints, ustats, clock)
-    by = forest["by_slope"]
-    stats.update(forest_by_slope=by, plants_on_banks=forest["banks"],
-                 forest_by_slope_class={c: {"land_pct": round(100 * a, 2), "trees_pct": round(100 * t, 2),
-                                            "trees_per_ha": d} for c, a, t, d in
-                                        zip(by["classes_deg"], by["land_share"], by["tree_share"], by["trees_per_ha"])},
-                 steepest_instance_slope_deg=forest["steepest"], sites=land.sites.stats)
-    ctx.metrics.update(_metrics(stats, report, growth), timings=timings)
+    with_forest(stats, forest, land.sites.stats)
+    ctx.metrics.update(_metrics(stats, report, growth.plants), timings=timings)
     ctx.progress(1.0, "done")
     return _outputs(land, splat, growth, grass_layer, sets, usd_path, report, species_maps, stats)
 
@@ -415,8 +421,7 @@ def _compete(ctx: RunContext, land: _Land, suit: np.ndarray, params: VegetationP
     ctx.progress(0.4, "ecosystem calibration (each species alone)")
     alone = ecosystem.alone_density(params, plants, grid.g, seed, be)
     share = ecosystem.relative_yield(sim, params, suit_sim, alone, dx, (rows, cols))
-    sim.stats["alone_plants_per_ha_at_full_suitability"] = {
-        n: float(alone[s, -1] * 1e4 / grid.g ** 2) for s, n in enumerate(plants)}
+    sim.stats["alone_plants_per_ha_at_full_suitability"] = ecosystem.alone_at_full(alone, plants, grid.g)
     return sim, share
 
 
@@ -484,18 +489,18 @@ def _forest(land: _Land, growth: _Growth, sets: dict, params: VegetationParams) 
             "steepest": steepest}
 
 
-def _write_usd(ctx: RunContext, land: _Land, sets: dict, tints: dict, params: VegetationParams,
+def _write_usd(ctx: RunContext, shape, dx: float, origin, sets: dict, tints: dict, params: VegetationParams,
                clock: _PhaseClock, custom: dict) -> tuple[Path, dict]:
     """Step 7: the instances layer, written and validated."""
     from pipeline import usdio
 
-    rows, cols = land.shape
+    rows, cols = shape
     with clock.lap("usd_s"):
         usd_path = ctx.path("vegetation.instances")
-        size = max(cols, rows) * land.dx
+        size = max(cols, rows) * dx
         written = {n: s for n, s in sets.items() if len(s)}
         ustats = usd_layer.write(usd_path, ctx.provenance, written, {n: params.species[n].height_m for n in written},
-                                 {n: params.species[n].kind for n in written}, land.origin[0], land.origin[1], size,
+                                 {n: params.species[n].kind for n in written}, origin[0], origin[1], size,
                                  params.tile_max_instances, params.tile_min_size_m, {n: tints[n] for n in written},
                                  custom)
     with clock.lap("usd_validate_s"):
@@ -512,9 +517,19 @@ def _grid_maker(land: _Land):
     return g
 
 
-def _report(params: VegetationParams, sets: dict, growth: _Growth, grass_layer: _Grass, species_maps) -> dict:
+def with_forest(stats: dict, forest: dict, sites_stats: dict) -> None:
+    """stats.json's forest by slope, plants on the banks, steepest instances and sites."""
+    by = forest["by_slope"]
+    stats.update(forest_by_slope=by, plants_on_banks=forest["banks"],
+                 forest_by_slope_class={c: {"land_pct": round(100 * a, 2), "trees_pct": round(100 * t, 2),
+                                            "trees_per_ha": d} for c, a, t, d in
+                                        zip(by["classes_deg"], by["land_share"], by["tree_share"], by["trees_per_ha"])},
+                 steepest_instance_slope_deg=forest["steepest"], sites=sites_stats)
+
+
+def _report(params: VegetationParams, sets: dict, placed: dict, tuft_stats: dict, species_maps) -> dict:
     """vegetation.species: which species were placed, their prototypes and the maps' channels."""
-    species_report = _species_report(params, sets, growth.placed, grass_layer.stats)
+    species_report = _species_report(params, sets, placed, tuft_stats)
     placed_names = [n for n in params.grow if species_report[n]["placed"]]
     return {
         "placed": placed_names,
@@ -530,32 +545,56 @@ def _stats(land: _Land, splat: _Splat, growth: _Growth, grass_layer: _Grass, set
            tints: dict, ustats: dict, clock: _PhaseClock) -> tuple[dict, dict]:
     """stats.json, what the run made (the same every bake), and the run's
     timings (the manifest's metrics, a run record)."""
-    rows, cols = land.shape
-    sim, placed, mf, moist = growth.sim, growth.placed, splat.moisture_filtered, land.moisture
-    errors_by_species = {name: placement.density_error(placed[name].x, placed[name].z, growth.n_t[s], growth.dom)
-                         for s, name in enumerate(growth.plants)}
+    placed = growth.placed
+    errors = {name: placement.density_error(placed[name].x, placed[name].z, growth.n_t[s], growth.dom)
+              for s, name in enumerate(growth.plants)}
+    sums = splat_sums(splat.sums, splat.seed004_sum, splat.moisture_filtered, land.moisture)
+    return stats_of(land.shape, land.dx, land.moisture_source, sums, growth.sim, growth.plants, placed,
+                    growth.cap_info, errors, grass_layer.stats, ustats, sets, dropped, tints, clock)
+
+
+def splat_sums(sums: np.ndarray, seed004: np.ndarray, mf: np.ndarray, moisture: np.ndarray) -> dict:
+    """The splat's and moisture filter's reductions of stats.json over some
+    cells (the world's, or a tile's: maxima, counts and exact sums combine
+    with combine_splat_sums)."""
+    return {"max_sum_error": float(np.abs(sums - 1).max()), "seed004_max": float(seed004.max()),
+            "seed004_over": int((seed004 > 1 + 1e-6).sum()), "filtered": exact_sum(mf), "moisture": exact_sum(moisture)}
+
+
+def combine_splat_sums(parts: list[dict]) -> dict:
+    return {"max_sum_error": max(p["max_sum_error"] for p in parts), "seed004_max": max(p["seed004_max"] for p in parts),
+            "seed004_over": sum(p["seed004_over"] for p in parts), "filtered": sum(p["filtered"] for p in parts),
+            "moisture": sum(p["moisture"] for p in parts)}
+
+
+def stats_of(shape, dx: float, moisture_source: str, sums: dict, sim, plants: list, placed: dict, cap_info: dict,
+             errors: dict, grass_stats: dict, ustats: dict, sets: dict, dropped: dict, tints: dict,
+             clock: _PhaseClock) -> tuple[dict, dict]:
+    """stats.json and the timings from what the run made and its reductions."""
+    rows, cols = shape
+    n = rows * cols
     stats = {
-        "moisture_source": land.moisture_source,
-        "cells": int(rows * cols), "cell_size_m": land.dx,
-        "splat_max_sum_error": float(np.abs(splat.sums - 1).max()),
-        "seed004_unfixed_sum_max": float(splat.seed004_sum.max()),
-        "seed004_unfixed_cells_over_1": float((splat.seed004_sum > 1 + 1e-6).mean()),
-        "moisture_filter_mean_gain": float(mf.astype(np.float64).mean() / max(float(moist.astype(np.float64).mean()), 1e-12)),
+        "moisture_source": moisture_source,
+        "cells": int(n), "cell_size_m": dx,
+        "splat_max_sum_error": sums["max_sum_error"],
+        "seed004_unfixed_sum_max": sums["seed004_max"],
+        "seed004_unfixed_cells_over_1": sums["seed004_over"] / n,
+        "moisture_filter_mean_gain": exact_mean(sums["filtered"], n) / max(exact_mean(sums["moisture"], n), 1e-12),
         "ecosystem": _without_times(sim.stats) if sim else {},
         "ecosystem_history": sim.history if sim else [],
-        "placement": {n: {**_without_times(placed[n].stats), **growth.cap_info[n], "density_error": errors_by_species[n]}
-                      for n in growth.plants},
-        "grass": grass_layer.stats,
+        "placement": {p: {**_without_times(placed[p].stats), **cap_info[p], "density_error": errors[p]}
+                      for p in plants},
+        "grass": grass_stats,
         "usd": ustats,
-        "instances": {n: int(len(s)) for n, s in sets.items()},
+        "instances": {p: int(len(s)) for p, s in sets.items()},
         "dropped_at_cell_edges": dropped["cell_edges"], "dropped_in_rivers": dropped["in_rivers"],
-        "tint": {n: {"mean": [round(float(v), 4) for v in t.mean(axis=0)],
-                     "std": [round(float(v), 4) for v in t.std(axis=0)]} for n, t in tints.items() if len(t)},
+        "tint": {p: {"mean": [round(float(v), 4) for v in t.mean(axis=0)],
+                     "std": [round(float(v), 4) for v in t.std(axis=0)]} for p, t in tints.items() if len(t)},
     }
     timings = {**clock.wall, "total_s": round(time.perf_counter() - clock.t_all, 4), **clock.cpu,
                "ecosystem_simulation_s": sim.stats.get("seconds") if sim else None,
-               "placement_species_s": {n: placed[n].stats.get("seconds") for n in growth.plants},
-               "poisson_species_s": {n: placed[n].stats.get("poisson_seconds") for n in growth.plants}}
+               "placement_species_s": {p: placed[p].stats.get("seconds") for p in plants},
+               "poisson_species_s": {p: placed[p].stats.get("poisson_seconds") for p in plants}}
     return stats, timings
 
 
@@ -566,12 +605,12 @@ def _without_times(stats: dict) -> dict:
     return {k: v for k, v in stats.items() if k not in _RUN_TIMES}
 
 
-def _metrics(stats: dict, report: dict, growth: _Growth) -> dict:
+def _metrics(stats: dict, report: dict, plants: list) -> dict:
     return {
         "instances": stats["instances"], "unplaced": report["unplaced"], "moisture_source": stats["moisture_source"],
         "splat_max_sum_error": stats["splat_max_sum_error"],
         "density_max_relative_error": {n: stats["placement"][n]["density_error"]["max_relative_error"]
-                                       for n in growth.plants},
+                                       for n in plants},
         "ecosystem_plateau_relative_change": stats["ecosystem"].get("plateau_relative_change"),
         "ecosystem_species_shares": stats["ecosystem"].get("species_shares"),
     }
@@ -614,6 +653,31 @@ MAX_CELL_STEPS = 1e10  # simulation cell-steps and Poisson cell-passes of a run 
 MAX_HORIZON_SAMPLES = 256  # samples per direction of the horizon scan (growth 1.3 over 1500 m of 1 m cells: 28)
 
 
+def run_tiled(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> dict[str, Any]:
+    """run on a tiled world: every step per tile (tiled.py, tiled_run.py),
+    the same files; the world's simulation grid and Poisson grid in this
+    process. Runs whole (and says why) where a step cannot be tiled exactly."""
+    from pipeline import exr
+    from pipeline.tiles import GridFile
+
+    from . import tiled_run
+
+    terrain = inputs["terrain"]
+    why = tiled_run.whole_reason(inputs, params, tuple(terrain.shape), float(terrain.cell_size_m),
+                                 ctx.tiles.tile_cells)
+    if why is None:
+        return tiled_run.run(ctx, inputs, params)
+    ctx.metrics["tiled_steps"] = f"none: {why}; the stage ran whole"
+    return run(ctx, {role: exr.read_grid(v.path) if isinstance(v, GridFile) else v for role, v in inputs.items()},
+               params)
+
+
+# a tiled run holds a tile pass at a time: the tile's maps (as the whole run's cells) and the heights around it
+# the horizon scan reads; and in this process the world's simulation grid and one species' Poisson grid (16 B a
+# Poisson cell) with the placed plants
+BYTES_PER_HALO_CELL = 16
+
+
 def check(params: VegetationParams, ctx: CheckContext) -> Check:
     """The horizon scan's samples and the memory of the maps and of the
     simulation grid, from the terrain's size, before any stage runs. Work, in
@@ -633,14 +697,28 @@ def check(params: VegetationParams, ctx: CheckContext) -> Check:
                          f"(at most {MAX_HORIZON_SAMPLES}); raise it or lower horizon_distance_m")
     sim = ecosystem.sim_grid(cols, rows, dx, params.sim_cell_m)
     n = len(params.grow)
-    memory = (rows * cols * (BYTES_PER_CELL + BYTES_PER_CELL_SPECIES * n)
-              + sim.nx * sim.nz * (BYTES_PER_SIM_CELL + BYTES_PER_SIM_CELL_SPECIES * n))
+    held = rows * cols
+    how = f"the terrain's {rows * cols:,} cells"
+    extra, extra_how = 0, ""
+    if ctx.tile_cells and ctx.tile_cells < max(rows, cols):
+        from .attributes import halo_cells
+
+        t = ctx.tile_cells
+        held = t * t
+        how = f"a tile's {held:,} cells"
+        halo = min(t + 2 * halo_cells(dx, params), max(rows, cols))
+        largest = max(species_poisson_cells(params, (cols - 1) * dx, (rows - 1) * dx).values(), default=0.0)
+        extra = BYTES_PER_HALO_CELL * halo * halo + 16 * int(largest)
+        extra_how = (f" + the horizon's heights ({halo}^2 cells x {BYTES_PER_HALO_CELL} B) + a species' Poisson "
+                     f"grid ({int(largest):,} cells x 16 B)")
+    memory = (held * (BYTES_PER_CELL + BYTES_PER_CELL_SPECIES * n)
+              + sim.nx * sim.nz * (BYTES_PER_SIM_CELL + BYTES_PER_SIM_CELL_SPECIES * n) + extra)
     steps = params.years // params.step_years + 1  # the first thinning, then one a step
     poisson = poisson_cells(params, (cols - 1) * dx, (rows - 1) * dx)
     return Check(memory_bytes=memory,
-                 memory_how=f"the terrain's {rows * cols:,} cells x ({BYTES_PER_CELL} + {BYTES_PER_CELL_SPECIES} x {n} "
+                 memory_how=f"{how} x ({BYTES_PER_CELL} + {BYTES_PER_CELL_SPECIES} x {n} "
                  f"species) B + vegetation.sim_cell_m = {params.sim_cell_m:g}: {sim.nx * sim.nz:,} simulation cells x "
-                 f"({BYTES_PER_SIM_CELL} + {BYTES_PER_SIM_CELL_SPECIES} x {n}) B",
+                 f"({BYTES_PER_SIM_CELL} + {BYTES_PER_SIM_CELL_SPECIES} x {n}) B{extra_how}",
                  work=sim.nx * sim.nz * steps + poisson * params.poisson_passes, work_unit="cell-steps",
                  work_limit=MAX_CELL_STEPS, work_how=f"{sim.nx * sim.nz:,} simulation cells x {steps:,} steps "
                  f"(years // step_years + 1) + at most {poisson:,.0f} Poisson-disk cells x {params.poisson_passes} "
@@ -652,15 +730,20 @@ def poisson_cells(params: VegetationParams, width_m: float, depth_m: float) -> f
     """The Poisson-disk grid cells of every plant species grown, at most:
     placement.poisson_sample's cell is r_lo / sqrt(2), r_lo at least
     min_spacing_m and the spacing its density_per_ha fills at most."""
-    total = 0.0
+    return sum(species_poisson_cells(params, width_m, depth_m).values())
+
+
+def species_poisson_cells(params: VegetationParams, width_m: float, depth_m: float) -> dict[str, float]:
+    """poisson_cells per plant species grown."""
+    out = {}
     for name in params.grow:
         e = params.species.get(name)
         if e is None or e.kind != "plant":
             continue
         r_lo = max(e.min_spacing_m, math.sqrt(KAPPA * FILL * 1e4 / e.density_per_ha))
         c = r_lo / math.sqrt(2.0)
-        total += (width_m // c + 1) * (depth_m // c + 1)
-    return total
+        out[name] = (width_m // c + 1) * (depth_m // c + 1)
+    return out
 
 
 STAGE = Stage(
@@ -719,6 +802,7 @@ STAGE = Stage(
     ),
     params=VegetationParams,
     run=run,
+    run_tiled=run_tiled,
     check=check,
     report=(ReportTable("Forest by slope class, plants on the banks", forest_tables),
             ReportMap("vegetation.splat", "splat.{ground}", name="ground",

@@ -279,9 +279,15 @@ def sites_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared
     else:
         suit = np.zeros((0,) + blocked.shape, F)
     sites_grid, _ = site.channels()
+    from .reference import seed004_sum
+    from .stage import splat_sums
+
+    sums = splat_sums(splat.astype(np.float64).sum(axis=-1), seed004_sum(h, f["slope"], f["grad"], mf,
+                                                                        shared["splat_table"]), mf, f["moisture"])
     return TileOutput(grids={"sites": sites_grid, "splat": splat, "moisture_filtered": mf,
                              "suitability": np.moveaxis(suit, 0, -1)},
-                      summary={"path_cells": int(path[tile.inner(halo)].sum())})
+                      summary={"path_cells": int(path[tile.inner(halo)].sum()), "track_cells": int((track >= 0.5).sum()),
+                               "splat_sums": sums})
 
 
 def fields(runner, inputs: dict, params: VegetationParams, shape: tuple[int, int], dx: float, origin, seed: int,
@@ -301,6 +307,7 @@ def fields(runner, inputs: dict, params: VegetationParams, shape: tuple[int, int
     common.update(lowest=min(finite), max_half_m=max(s["max_half_m"] for s in scans))
     progress(0.02, "attributes and sites by tile")
     land, summaries = runner.map(land_tile, "land", shape, inputs, params, common, grids={"fields": FIELDS}, **grid)
+    land_summaries = summaries
     tiles = runner.tiles(shape)
     states = {t.name: (s["state_index"], s["state_line"]) for t, s in zip(tiles, summaries)}
     rounds = 0
@@ -325,11 +332,15 @@ def fields(runner, inputs: dict, params: VegetationParams, shape: tuple[int, int
 
     from .sites import CHANNELS as SITE_CHANNELS
 
-    out, _ = runner.map(sites_tile, "sites", shape, {**inputs, "fields": land["fields"], "path": paths["path"]},
+    out, site_summaries = runner.map(sites_tile, "sites", shape, {**inputs, "fields": land["fields"], "path": paths["path"]},
                         params, common, grids={"sites": SITE_CHANNELS, "splat": SPLAT_CHANNELS,
                                                "moisture_filtered": ("moisture",),
                                                "suitability": tuple(f"suitability.{n}" for n in grow)}, **grid)
-    return {**land, **paths, **out, "avalanche_rounds": rounds}
+    return {**land, **paths, **out, "avalanche_rounds": rounds, "lowest": common["lowest"],
+            "max_half_m": common["max_half_m"], "release_cells": sum(s_["release_cells"] for s_ in land_summaries),
+            "path_cells": sum(s_["path_cells"] for s_ in site_summaries),
+            "track_cells": sum(s_["track_cells"] for s_ in site_summaries),
+            "splat_sums": [s_["splat_sums"] for s_ in site_summaries]}
 
 
 def _route(tiles: list[Tile], summaries: list[dict], tile_cells: int) -> dict:
@@ -421,6 +432,7 @@ def growth(runner, out: dict, inputs: dict, params: VegetationParams, shape: tup
         sim = ecosystem.simulate(suit_sim, grid, params, plants, seed, backend_)
         alone = ecosystem.alone_density(params, plants, grid.g, seed, backend_)
         ry = ecosystem.sim_yield(sim, params, suit_sim, alone)
+        sim.stats["alone_plants_per_ha_at_full_suitability"] = ecosystem.alone_at_full(alone, plants, grid.g)
     maps, parts = runner.map(targets_tile, "targets", shape,
                              {k: out[k] for k in ("suitability", "splat", "moisture_filtered")}, params,
                              {**common, "ry": ry if ry is not None else np.zeros((0, 1, 1)), "g": grid.g},

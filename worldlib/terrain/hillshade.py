@@ -19,6 +19,7 @@ def hillshade(height: Grid, azimuth_deg: float = 315.0, altitude_deg: float = 45
     sun = np.array([np.sin(az) * np.cos(alt), np.cos(az) * np.cos(alt), np.sin(alt)], dtype=np.float32)  # east, north, up
     n = np.stack([-dz_dx, -dz_dy, np.ones_like(h)], axis=-1)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    shade = np.clip(n @ sun, 0.0, 1.0)
+    # the dot product per cell, not a BLAS product: a window's cells get the whole grid's bits
+    shade = np.clip(n[..., 0] * sun[0] + n[..., 1] * sun[1] + n[..., 2] * sun[2], 0.0, 1.0)
     grey = (shade * 255.0 + 0.5).astype(np.uint8)
     return np.repeat(grey[:, :, None], 3, axis=2)

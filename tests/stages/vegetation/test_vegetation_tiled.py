@@ -1,6 +1,15 @@
-"""The vegetation's fields tile by tile (stages/vegetation/tiled.py): on a
-small world with lakes, a river, no-data cells and avalanches crossing tile
-edges, every field of the tiled passes equals the whole run's bit for bit."""
+"""The vegetation on a tiled world (stages/vegetation/tiled.py,
+tiled_run.py): a tiled bake writes the untiled bake's files byte for byte,
+in this process and on Dask; and pass by pass, on a small world with lakes,
+a river, no-data cells and avalanches crossing tile edges, every field,
+placement and instance equals the whole run's."""
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -13,6 +22,40 @@ from stages.vegetation import stage as vs
 from stages.vegetation import tiled
 
 from .test_vegetation_stage import small_params, world_inputs
+
+REPO = Path(__file__).resolve().parents[3]
+# the vegetation on hydrology's moisture, without erosion; 8 m cells (the simulation's own)
+SETS = ('outputs=["vegetation"]', "hydrology.depression=fill", "erosion.enabled=false")
+
+
+def bake(project: Path, build: str, *sets: str, executor: str = "local") -> dict:
+    cmd = [sys.executable, "-m", "pipeline.cli", "--build", build, "bake", "configs/default.toml", "--json",
+           "--executor", executor, *[a for s in sets for a in ("--set", s)]]
+    proc = subprocess.run(cmd, cwd=project, capture_output=True, text=True, env={**os.environ, "WORLDBAKE_REPORT": "0"})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return {s["stage"]: s["key"] for s in json.loads(proc.stdout)[0]["steps"]}
+
+
+def files(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*"))
+            if p.is_file() and p.name != "manifest.json"}
+
+
+@pytest.mark.parametrize("resolution, executor", [(512, "local"), (640, "dask")])
+def test_tiled_vegetation_writes_the_untiled_files(tmp_path, resolution, executor):
+    """2 x 2 tiles, and 3 x 3 with part tiles on Dask: maps, instances
+    (layer and tiles), species, stats and preview, byte for byte."""
+    shutil.copytree(REPO / "configs", tmp_path / "configs")
+    sets = (*SETS, f"heightmap.resolution={resolution}", f"heightmap.size_m={resolution * 8}")
+    whole = bake(tmp_path, "b_whole", *sets)
+    tiled_keys = bake(tmp_path, "b_tiled", *sets, "tiling.tile_cells=256", executor=executor)
+    assert whole == tiled_keys
+    key = whole["vegetation"]
+    made = files(tmp_path / "b_whole" / "artifacts" / "vegetation" / key)
+    assert {"instances.usdc", "stats.json", "preview.png", "species.exr", "splat.exr"} <= set(made)
+    assert made == files(tmp_path / "b_tiled" / "artifacts" / "vegetation" / key)
+    manifest = json.loads((tmp_path / "b_tiled" / "artifacts" / "vegetation" / key / "manifest.json").read_text())
+    assert manifest["metrics"]["tiled_steps"].startswith("every step")
 
 
 class Window:
