@@ -145,16 +145,21 @@ def land_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared:
     inner = tile.inner(halo)
     a = attrs.compute(h, dx, params, backend(tctx), window=ref.Window.of(tile, halo))
     moisture = _moisture(inputs, tile)
-    water_w = _water(inputs, tile, halo)
-    water, nodata = water_w[inner], ~np.isfinite(raw[inner])
+    # the riparian index on its own (narrower) window: the distance transform's cost is that window's
+    rhalo = sites_mod.riparian_halo(dx, params, shared["max_half_m"])
+    r0, c0, rows, cols = tile.window(rhalo)
+    wr0, wc0, _, _ = tile.window(halo)
+    h_r = h[r0 - wr0:r0 - wr0 + rows, c0 - wc0:c0 - wc0 + cols]
+    water_r = _water(inputs, tile, rhalo)
+    rinner = tile.inner(rhalo)
+    water, nodata = water_r[rinner], ~np.isfinite(raw[inner])
     blocked = water | nodata
-    half_w = _half_widths(inputs, tile, halo, water_w)
-    level_w = _levels(inputs, tile, halo, h)
     p = params
     ht = h[inner]
     alt = sites_mod.effective_altitude(ht, a["slope"], a["aspect"], p.treeline_aspect_shift_m, p.latitude_deg)
-    rip = sites_mod.riparian_index(h, water_w, level_w, half_w, dx, p.riparian_height_m,
-                                   p.riparian_distance_m)[inner]
+    rip = sites_mod.riparian_index(h_r, water_r, _levels(inputs, tile, rhalo, h_r),
+                                   _half_widths(inputs, tile, rhalo, water_r), dx, p.riparian_height_m,
+                                   p.riparian_distance_m)[rinner]
     first = (tile.row0, tile.col0)
     clr = sites_mod.clearings(ht.shape, p, dx, origin, int(tctx.seed), first)
     release = sites_mod.release_cells(ht, a["slope"], blocked, p, dx, origin, int(tctx.seed), first)
