@@ -285,7 +285,7 @@ def sites_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared
         suit = np.zeros((0,) + blocked.shape, F)
     sites_grid, _ = site.channels()
     from .reference import seed004_sum
-    from .stage import splat_sums
+    from .results import splat_sums
 
     sums = splat_sums(splat.astype(np.float64).sum(axis=-1), seed004_sum(h, f["slope"], f["grad"], mf,
                                                                         shared["splat_table"]), mf, f["moisture"])
@@ -301,7 +301,7 @@ def fields(runner, inputs: dict, params: VegetationParams, shape: tuple[int, int
     splat, moisture_filtered and suitability (channels: grow), and the
     avalanche rounds run."""
     from .reference import stream_key
-    from .stage import preference_table, splat_table
+    from .results import preference_table, splat_table
 
     common = {"dx": dx, "origin": tuple(origin)}
     grid = {"cell_size_m": dx, "origin_m": tuple(origin)}

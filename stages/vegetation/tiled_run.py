@@ -14,7 +14,7 @@ from pipeline.grid import Grid
 from pipeline.tiles import TileContext, TileOutput
 from worldlib.terrain.hillshade import hillshade
 
-from . import placement, tiled, usd_layer
+from . import placement, results, tiled, usd_layer
 from . import sites as sites_mod
 from .params import VegetationParams
 
@@ -40,14 +40,12 @@ def whole_reason(inputs: dict, params: VegetationParams, shape, dx: float, tile_
 
 
 def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> dict[str, Any]:
-    from . import stage as vs
-
-    clock = vs._PhaseClock()
+    clock = results.PhaseClock()
     terrain = inputs["terrain"]
     shape, dx, origin = tuple(terrain.shape), float(terrain.cell_size_m), tuple(terrain.origin_m)
     if shape[0] < 2 or shape[1] < 2:
         raise StageError(f"vegetation: the terrain grid is {shape[0]}x{shape[1]}; at least 2x2 cells are needed")
-    runner, seed, be = ctx.tiles, int(ctx.seed), vs.backend_modules(ctx.cl)
+    runner, seed, be = ctx.tiles, int(ctx.seed), results.backend_modules(ctx.cl)
     plants, gname = params.plant_species(), params.grass_species()
     grow = plants + ([gname] if gname else [])
     with clock.lap("attributes_s"):
@@ -71,18 +69,18 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
     maps, parts = _maps(runner, inputs, out, grown, placed, sets, params, shape, dx, origin, grow)
     forest = _forest(out, sets, parts, params, dom)
     ctx.progress(0.8, "USD layer")
-    usd_path, ustats = vs._write_usd(ctx, shape, dx, origin, sets, tints, params, clock,
+    usd_path, ustats = results.write_usd(ctx, shape, dx, origin, sets, tints, params, clock,
                                      {usd_layer.FOREST_BY_SLOPE_KEY: forest["by_slope"],
                                       **({usd_layer.BANKS_KEY: forest["banks"]} if forest["banks"]["species"] else {})})
     species_maps = maps.get("species_maps")
-    report = vs._report(params, sets, placed, tuft_stats, species_maps)
+    report = results.species_json(params, sets, placed, tuft_stats, species_maps)
     errors = _density_errors(plants, parts, placement.density_window(dom))
-    sums = vs.combine_splat_sums(out["splat_sums"])
-    stats, timings = vs.stats_of(shape, dx, ctx.input_artifacts.get("moisture", ""), sums, grown["sim"], plants,
+    sums = results.combine_splat_sums(out["splat_sums"])
+    stats, timings = results.stats_of(shape, dx, ctx.input_artifacts.get("moisture", ""), sums, grown["sim"], plants,
                                  placed, {n: {"capped_plants": grown["capped_plants"][n]} for n in plants}, errors,
                                  tuft_stats, ustats, sets, dropped, tints, clock)
-    vs.with_forest(stats, forest, _sites_stats(out, parts, shape))
-    ctx.metrics.update(vs._metrics(stats, report, plants), timings=timings,
+    results.with_forest(stats, forest, _sites_stats(out, parts, shape))
+    ctx.metrics.update(results.run_metrics(stats, report, plants), timings=timings,
                        tiled_steps=f"every step; avalanche lines in {out['avalanche_rounds']} rounds")
     ctx.progress(1.0, "done")
     return {"vegetation.attributes": maps["attributes"], "vegetation.splat": out["splat"],
@@ -207,15 +205,13 @@ def _height(terrain) -> str:
 
 def _preview(inputs, t, shared, f, splat, gdens) -> np.ndarray:
     """stage.preview on the tile: the hillshade read with a one-cell halo."""
-    from . import stage as vs
-
     terrain = inputs["terrain"]
     r0, c0, rows, cols = t.window(1)
     raw = np.asarray(terrain.read(r0, c0, rows, cols, channel=_height(terrain)), F)
     h = np.where(np.isfinite(raw), raw, F(shared["lowest"])).astype(F)
     img = hillshade(Grid(h, shared["dx"], ("height",)))[t.inner(1)].astype(np.float32)
     water = f[..., tiled.FIELDS.index("water")] > 0
-    return vs.preview_colours(img, splat, water, shared["drawn"], shared["grow"], (t.row0, t.col0))
+    return results.preview_colours(img, splat, water, shared["drawn"], shared["grow"], (t.row0, t.col0))
 
 
 def _forest(out, sets, parts, params, dom) -> dict:

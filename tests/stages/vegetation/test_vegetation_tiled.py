@@ -89,7 +89,7 @@ def test_tiled_fields_are_the_whole_runs(world, tmp_path, tile_cells):
     seed = 20261123
     grid = inputs["terrain"]
     ctx = SimpleNamespace(seed=seed, input_artifacts={"moisture": "hydrology.moisture"}, progress=lambda *a: None)
-    land = vs._land(ctx, inputs, vs._terrain(grid), params, be, vs._PhaseClock())
+    land = vs._land(ctx, inputs, vs._terrain(grid), params, be, vs.PhaseClock())
     splat = vs._splat(land, params, seed, be)
     grow = params.plant_species() + [params.grass_species()]
     suit = vs._suitability(land, params, grow, be)
@@ -132,7 +132,7 @@ def test_tiled_growth_maps_are_the_whole_runs(tmp_path, dx, tile_cells):
     grid = inputs["terrain"]
     shape = grid.data.shape[:2]
     ctx = SimpleNamespace(seed=seed, input_artifacts={"moisture": "hydrology.moisture"}, progress=lambda *a: None)
-    land = vs._land(ctx, inputs, vs._terrain(grid), params, be, vs._PhaseClock())
+    land = vs._land(ctx, inputs, vs._terrain(grid), params, be, vs.PhaseClock())
     splat = vs._splat(land, params, seed, be)
     plants, gname = params.plant_species(), params.grass_species()
     suit = vs._suitability(land, params, plants + [gname], be)
@@ -236,9 +236,9 @@ def test_tiled_instances_are_the_whole_runs(tmp_path):
     grid = inputs["terrain"]
     shape = grid.data.shape[:2]
     ctx = SimpleNamespace(seed=seed, input_artifacts={"moisture": "hydrology.moisture"}, progress=lambda *a: None)
-    land = vs._land(ctx, inputs, vs._terrain(grid), params, be, vs._PhaseClock())
+    land = vs._land(ctx, inputs, vs._terrain(grid), params, be, vs.PhaseClock())
     splat = vs._splat(land, params, seed, be)
-    growth = vs._grow(ctx, land, params, seed, be, vs._PhaseClock())
+    growth = vs._grow(ctx, land, params, seed, be, vs.PhaseClock())
     grass_layer = vs._grass(land, growth, splat, params, seed, be)
     want_sets, want_dropped, want_tints = vs._instances(land, growth, grass_layer, params, seed)
 
