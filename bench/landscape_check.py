@@ -5,6 +5,7 @@ PNG within half a 16-bit step of the float heights over the one stated
 range, every weightmap texel summing to 255.
 
     python -m bench.landscape_check build/worlds/open_world
+    python -m bench.landscape_check build/artifacts/landscape/<key>
 
 Prints one line per check and exits 1 when one fails. For worlds too large
 to bake in the tests (configs/open_world.toml); tests/stages/landscape
@@ -22,6 +23,9 @@ from stages.landscape import files, tiling
 
 
 def landscape_folder(world: Path) -> Path:
+    """The landscape artifact's folder of a published world (or that folder itself)."""
+    if (world / "landscape.json").is_file():
+        return world
     manifest = json.loads((world / "manifest.json").read_text())
     for step in manifest["steps"]:
         if step["stage"] == "landscape":

@@ -104,7 +104,7 @@ def sweep(grid, configs, reference, seed: int) -> None:
                            preference_table(base, names))
     print(f"=== simulation sweep: {rows}x{cols} cells of {dx:g} m; attributes and suitability {time.perf_counter() - t0:.2f} s ===")
     dom = pl.Domain(rows, cols, dx, (0.0, 0.0))
-    W = pl.WINDOW_CELLS
+    W = pl.density_window(dom)
 
     def window_counts(n_t):
         nr, nc = rows // W, cols // W

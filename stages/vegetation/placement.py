@@ -456,22 +456,26 @@ def instances(p: Placed, s: int, params: VegetationParams, dom: Domain, mesh, si
 
 # --------------------------------------------------------------------------- checks
 
-WINDOW_CELLS = 64  # the density check's window, in terrain cells
+WINDOW_M = 512.0  # the density check's window, in metres (64 cells of the default world's 8 m)
 WINDOW_FLOOR_PLANTS = 200.0  # windows whose target count is below this are not judged
 
 
-def density_error(x: np.ndarray, z: np.ndarray, n_t: np.ndarray, dom: Domain, window: int = WINDOW_CELLS,
+def density_error(x: np.ndarray, z: np.ndarray, n_t: np.ndarray, dom: Domain, window: int | None = None,
                   floor: float = WINDOW_FLOOR_PLANTS) -> dict:
     """Placed count against the target count over non-overlapping windows of
-    window x window terrain cells (whole windows only) whose target count is
-    at least `floor`: the largest and the mean relative error."""
+    window x window terrain cells (default WINDOW_M; whole windows only)
+    whose target count is at least `floor`: the largest and the mean
+    relative error."""
     w = density_window(dom, window)
     expect, got = density_windows(x, z, n_t, dom, w)
     return density_error_of(expect.ravel(), got.ravel(), w, floor)
 
 
-def density_window(dom: Domain, window: int = WINDOW_CELLS) -> int:
-    return min(window, dom.rows, dom.cols)
+def density_window(dom: Domain, window: int | None = None) -> int:
+    """The check's window in cells: WINDOW_M of this world's cells unless
+    given, so at 1 m as at 8 m a window holds enough plants to judge."""
+    cells = window if window is not None else max(1, int(round(WINDOW_M / dom.dx)))
+    return min(cells, dom.rows, dom.cols)
 
 
 def density_windows(x: np.ndarray, z: np.ndarray, n_t: np.ndarray, dom: Domain, w: int,

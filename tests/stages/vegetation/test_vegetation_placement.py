@@ -58,7 +58,7 @@ def test_saturation_constant(cl_env):
 def test_density_matches_target(placed):
     p, dom, n_t, done = placed
     for s, name in enumerate(NAMES):
-        err = pl.density_error(done[name].x, done[name].z, n_t[s], dom)
+        err = pl.density_error(done[name].x, done[name].z, n_t[s], dom, window=64)
         assert err["windows"] >= 6
         assert err["max_relative_error"] <= 0.05, (name, err)
         assert done[name].stats["shortfall_plants"] <= 0.002 * done[name].stats["target_plants"]
