@@ -3,12 +3,8 @@ tiled_run.py): a tiled bake writes the untiled bake's files byte for byte,
 in this process and on Dask; and pass by pass, on a small world with lakes,
 a river, no-data cells and avalanches crossing tile edges, every field,
 placement and instance equals the whole run's."""
-import hashlib
 import json
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -21,24 +17,12 @@ from pipeline.tiles import TileRunner
 from stages.vegetation import stage as vs
 from stages.vegetation import tiled
 
+from ..tiled_bakes import artifact_files, bake_keys
 from .test_vegetation_stage import small_params, world_inputs
 
 REPO = Path(__file__).resolve().parents[3]
 # the vegetation on hydrology's moisture, without erosion; 8 m cells (the simulation's own)
 SETS = ('outputs=["vegetation"]', "hydrology.depression=fill", "erosion.enabled=false")
-
-
-def bake(project: Path, build: str, *sets: str, executor: str = "local") -> dict:
-    cmd = [sys.executable, "-m", "pipeline.cli", "--build", build, "bake", "configs/default.toml", "--json",
-           "--executor", executor, *[a for s in sets for a in ("--set", s)]]
-    proc = subprocess.run(cmd, cwd=project, capture_output=True, text=True, env={**os.environ, "WORLDBAKE_REPORT": "0"})
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return {s["stage"]: s["key"] for s in json.loads(proc.stdout)[0]["steps"]}
-
-
-def files(folder: Path) -> dict[str, str]:
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*"))
-            if p.is_file() and p.name != "manifest.json"}
 
 
 @pytest.mark.parametrize("resolution, executor", [(512, "local"), (640, "dask")])
@@ -47,13 +31,13 @@ def test_tiled_vegetation_writes_the_untiled_files(tmp_path, resolution, executo
     (layer and tiles), species, stats and preview, byte for byte."""
     shutil.copytree(REPO / "configs", tmp_path / "configs")
     sets = (*SETS, f"heightmap.resolution={resolution}", f"heightmap.size_m={resolution * 8}")
-    whole = bake(tmp_path, "b_whole", *sets)
-    tiled_keys = bake(tmp_path, "b_tiled", *sets, "tiling.tile_cells=256", executor=executor)
+    whole = bake_keys(tmp_path, "b_whole", *sets)
+    tiled_keys = bake_keys(tmp_path, "b_tiled", *sets, "tiling.tile_cells=256", executor=executor)
     assert whole == tiled_keys
     key = whole["vegetation"]
-    made = files(tmp_path / "b_whole" / "artifacts" / "vegetation" / key)
+    made = artifact_files(tmp_path / "b_whole", "vegetation", key)
     assert {"instances.usdc", "stats.json", "preview.png", "species.exr", "splat.exr"} <= set(made)
-    assert made == files(tmp_path / "b_tiled" / "artifacts" / "vegetation" / key)
+    assert made == artifact_files(tmp_path / "b_tiled", "vegetation", key)
     manifest = json.loads((tmp_path / "b_tiled" / "artifacts" / "vegetation" / key / "manifest.json").read_text())
     assert manifest["metrics"]["tiled_steps"].startswith("every step")
 
@@ -67,6 +51,28 @@ class Window:
     def read(self, row0, col0, rows, cols, channel=None):
         data = self.grid.channel(channel) if channel is not None else np.asarray(self.grid.data)
         return np.array(data[row0:row0 + rows, col0:col0 + cols])
+
+
+def whole_land(dx: float, params, seed: int):
+    """The test world at dx cells, and the whole run's land on it: (inputs,
+    backend, run context, stage._Land)."""
+    inputs = {k: Grid(np.asarray(g.data), dx, g.channels, g.origin_m) for k, g in world_inputs().items()}
+    be = vs.backend_modules(get_cl())
+    ctx = SimpleNamespace(seed=seed, input_artifacts={"moisture": "hydrology.moisture"}, progress=lambda *a: None)
+    return inputs, be, ctx, vs._land(ctx, inputs, vs._terrain(inputs["terrain"]), params, be, vs.PhaseClock())
+
+
+def tiled_growth(tmp_path, inputs: dict, params, seed: int, be, tile_cells: int):
+    """Passes 1 to 7 of a tiled run on the test world: (runner, inputs read
+    by window, the fields' output, the growth's output)."""
+    grid = inputs["terrain"]
+    shape, dx = grid.data.shape[:2], grid.cell_size_m
+    runner = TileRunner(tile_cells, stage=vs.STAGE, run_key="test", seed=seed, project_root=tmp_path, units=None,
+                        work=tmp_path / "work")
+    windows = {k: Window(g) for k, g in inputs.items()}
+    plants, gname = params.plant_species(), params.grass_species()
+    out = tiled.fields(runner, windows, params, shape, dx, grid.origin_m, seed, plants + [gname])
+    return runner, windows, out, tiled.growth(runner, out, windows, params, shape, dx, grid.origin_m, seed, be)
 
 
 @pytest.fixture(scope="module")
@@ -123,16 +129,11 @@ def test_tiled_growth_maps_are_the_whole_runs(tmp_path, dx, tile_cells):
     read back per tile, and the exact sums: the whole run's bits."""
     from stages.vegetation import ecosystem, grass, placement
 
-    base = world_inputs()
-    inputs = {k: Grid(np.asarray(g.data), dx, g.channels, g.origin_m) for k, g in base.items()}
     params = small_params(horizon_distance_m=60.0, clearing_share=0.2)
-    cl = get_cl()
-    be = vs.backend_modules(cl)
     seed = 7
+    inputs, be, ctx, land = whole_land(dx, params, seed)
     grid = inputs["terrain"]
     shape = grid.data.shape[:2]
-    ctx = SimpleNamespace(seed=seed, input_artifacts={"moisture": "hydrology.moisture"}, progress=lambda *a: None)
-    land = vs._land(ctx, inputs, vs._terrain(grid), params, be, vs.PhaseClock())
     splat = vs._splat(land, params, seed, be)
     plants, gname = params.plant_species(), params.grass_species()
     suit = vs._suitability(land, params, plants + [gname], be)
@@ -176,12 +177,8 @@ def test_tiled_placement_is_the_whole_runs(tmp_path, dx, tile_cells):
     seed = 11
     grid = inputs["terrain"]
     shape = grid.data.shape[:2]
-    runner = TileRunner(tile_cells, stage=vs.STAGE, run_key="test", seed=seed, project_root=tmp_path, units=None,
-                        work=tmp_path / "work")
-    windows = {k: Window(g) for k, g in inputs.items()}
-    plants, gname = params.plant_species(), params.grass_species()
-    out = tiled.fields(runner, windows, params, shape, dx, grid.origin_m, seed, plants + [gname])
-    grown = tiled.growth(runner, out, windows, params, shape, dx, grid.origin_m, seed, be)
+    runner, _, _, grown = tiled_growth(tmp_path, inputs, params, seed, be, tile_cells)
+    plants = params.plant_species()
     got = tiled.place(runner, grown, params, shape, dx, grid.origin_m, seed)
     n_t = np.moveaxis(grown["target"].read(0, 0, *shape), -1, 0)
     want = placement.place_species(params, plants, n_t, placement.Domain(*shape, dx, grid.origin_m), seed, be)
@@ -225,29 +222,18 @@ def test_tiled_instances_are_the_whole_runs(tmp_path):
     """Every species' instances made tile by tile (the terrain mesh's
     lattice read by tile, drops on cells where it may not grow and in the
     river's ribbon, tints): the whole run's bit for bit."""
-    from stages.vegetation import grass
-
-    base = world_inputs()
-    dx = 4.0
-    inputs = {k: Grid(np.asarray(g.data), dx, g.channels, g.origin_m) for k, g in base.items()}
+    dx, seed = 4.0, 3
     params = small_params(horizon_distance_m=60.0, density_block_m=8 * dx, poisson_passes=3, mesh_max_vertices=50)
-    be = vs.backend_modules(get_cl())
-    seed = 3
+    inputs, be, ctx, land = whole_land(dx, params, seed)
     grid = inputs["terrain"]
     shape = grid.data.shape[:2]
-    ctx = SimpleNamespace(seed=seed, input_artifacts={"moisture": "hydrology.moisture"}, progress=lambda *a: None)
-    land = vs._land(ctx, inputs, vs._terrain(grid), params, be, vs.PhaseClock())
     splat = vs._splat(land, params, seed, be)
     growth = vs._grow(ctx, land, params, seed, be, vs.PhaseClock())
     grass_layer = vs._grass(land, growth, splat, params, seed, be)
     want_sets, want_dropped, want_tints = vs._instances(land, growth, grass_layer, params, seed)
 
-    runner = TileRunner(32, stage=vs.STAGE, run_key="test", seed=seed, project_root=tmp_path, units=None,
-                        work=tmp_path / "work")
-    windows = {k: Window(g) for k, g in inputs.items()}
-    plants, gname = params.plant_species(), params.grass_species()
-    out = tiled.fields(runner, windows, params, shape, dx, grid.origin_m, seed, plants + [gname])
-    grown = tiled.growth(runner, out, windows, params, shape, dx, grid.origin_m, seed, be)
+    runner, windows, out, grown = tiled_growth(tmp_path, inputs, params, seed, be, 32)
+    gname = params.grass_species()
     placed = tiled.place(runner, grown, params, shape, dx, grid.origin_m, seed)
     tufts, _ = tiled.tufts(runner, grown, params, shape, dx, grid.origin_m, seed)
     half = 0.5 * float(np.nanmax(inputs["rivers"].channel("river.width")))
