@@ -22,6 +22,8 @@ F = np.float32
 
 
 SPECIES_MAPS = "species.exr"
+ATTR_CHANNELS = ("attr.slope", "attr.aspect", "attr.curvature", "attr.sky_view", "attr.sunlight", "attr.moisture")
+HA = 1e4  # m^2 per hectare
 
 
 def backend_modules(env):
@@ -79,6 +81,43 @@ def preview_colours(img: np.ndarray, splat: np.ndarray, water: np.ndarray, drawn
         row, col = row - first[0], col - first[1]
         img[row, col] = (1 - a) * img[row, col] + a * c
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+def species_maps_layers(plants: list[str], gname: str | None, suit, share, n_t, counts, dx: float, gsuit,
+                        gdens) -> tuple[list, tuple[str, ...]]:
+    """vegetation.species_maps' layers and channels: per plant species
+    suitability, relative yield, target and placed density (plants per ha;
+    counts: instances per cell), for the grass species suitability and tuft
+    density. ([], ()) when no species grows."""
+    layers = []
+    for s in range(len(plants)):
+        layers += [suit[s], share[s], n_t[s] * HA, counts[s] * HA / (dx * dx)]
+    if gname:
+        layers += [gsuit, gdens]
+    return layers, species_maps_channels(plants, gname)
+
+
+def species_maps_channels(plants: list[str], gname: str | None) -> tuple[str, ...]:
+    channels = []
+    for name in plants:
+        channels += [f"suitability.{name}", f"yield.{name}", f"density.{name}", f"placed.{name}"]
+    if gname:
+        channels += [f"suitability.{gname}", f"density.{gname}"]
+    return tuple(channels)
+
+
+def preview_cells(positions: np.ndarray, origin, dx: float, shape) -> tuple[np.ndarray, np.ndarray]:
+    """(col, row) where the preview draws instances at these world positions."""
+    return (np.clip(((positions[:, 0] - origin[0]) / dx).astype(np.int64), 0, shape[1] - 1),
+            np.clip(((positions[:, 2] - origin[1]) / dx).astype(np.int64), 0, shape[0] - 1))
+
+
+def check_steepest(params: VegetationParams, name: str, steepest_deg: float) -> None:
+    """A plant never stands where it may not grow: the steepest cell under
+    one of its instances is under its species' slope limit."""
+    limit = params.species[name].slope_deg.max
+    if steepest_deg >= limit:
+        raise StageError(f"vegetation: a {name} stands on a {steepest_deg:g} deg slope, its limit is {limit:g} deg")
 
 
 def species_report(params: VegetationParams, sets, placed, tuft_stats) -> dict[str, dict]:

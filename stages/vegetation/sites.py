@@ -97,6 +97,49 @@ def riparian_index(h: np.ndarray, water: np.ndarray, level: np.ndarray, half_wid
     return np.where(water, 1.0, out).astype(F)
 
 
+def water_mask(depth: np.ndarray | None, mask: np.ndarray | None, shape) -> np.ndarray:
+    """Where lakes (depth > 0) or rivers (mask > 0.5) are: nothing grows there.
+    depth, mask: float64 with NaN as 0, or None without the input."""
+    water = np.zeros(shape, bool)
+    if depth is not None:
+        water |= depth > 0
+    if mask is not None:
+        water |= mask > 0.5
+    return water
+
+
+def water_levels(h: np.ndarray, depth: np.ndarray | None, level: np.ndarray | None) -> np.ndarray:
+    """Per cell the level of its water for the riparian index: a lake's
+    level where it is deeper than 0, else the ground."""
+    out = h.astype(np.float64).copy()
+    if depth is not None and level is not None:
+        out = np.where((depth > 0) & np.isfinite(level), level, out)
+    return out
+
+
+def half_widths(water: np.ndarray, width: np.ndarray | None) -> np.ndarray:
+    """Half a river cell's bankfull width (width: NaN as 0), 0 elsewhere and on lakes' cells without one."""
+    if width is None:
+        return np.zeros(water.shape)
+    return np.where(water, 0.5 * np.maximum(width, 0.0), 0.0)
+
+
+def avalanche_stats(release_cells: int, path_cells: int, track_cells: int, cells: int) -> dict:
+    """avalanche_tracks' statistics from its counts (a tiled run's tiles add them up)."""
+    if not release_cells:
+        return {"release_share": 0.0, "path_share": 0.0, "track_share": 0.0}
+    return {"release_share": release_cells / cells, "path_share": path_cells / cells, "track_share": track_cells / cells}
+
+
+def site_stats(avalanche: dict, land_cells: int, riparian_cells: int, clearing_cells: int,
+               shift_min: float | None, shift_max: float | None) -> dict:
+    """The sites' statistics from counts and the altitude shift's extremes over the land (None: no land)."""
+    n = max(land_cells, 1)
+    return {"avalanche": avalanche, "riparian_share": riparian_cells / n, "clearing_share": clearing_cells / n,
+            "altitude_shift_range_m": [round(shift_min, 2) if shift_min is not None else 0.0,
+                                       round(shift_max, 2) if shift_max is not None else 0.0]}
+
+
 def riparian_halo(dx: float, params: VegetationParams, max_half_width_m: float) -> int:
     """The cells around a tile its riparian index reads: beyond
     riparian_distance_m plus the widest river's half width the index is 0
@@ -277,7 +320,7 @@ def avalanche_tracks(h, slope, blocked, params: VegetationParams, dx: float, ori
     from them) and statistics."""
     release = release_cells(h, slope, blocked, params, dx, origin, seed)
     if not release.any():
-        return np.zeros(h.shape, F), {"release_share": 0.0, "path_share": 0.0, "track_share": 0.0}
+        return np.zeros(h.shape, F), avalanche_stats(0, 0, 0, h.size)
     path = run_out(h, release, dx, params.avalanche_alpha_deg)
     half = 0.5 * params.avalanche_track_width_m
     if half > 0.0:
@@ -285,8 +328,7 @@ def avalanche_tracks(h, slope, blocked, params: VegetationParams, dx: float, ori
         track = 1.0 - smooth01((d - 0.5 * half) / half)
     else:
         track = path.astype(np.float64)
-    return track.astype(F), {"release_share": float(release.mean()), "path_share": float(path.mean()),
-                             "track_share": float((track >= 0.5).mean())}
+    return track.astype(F), avalanche_stats(int(release.sum()), int(path.sum()), int((track >= 0.5).sum()), h.size)
 
 
 def clearings(shape, params: VegetationParams, dx: float, origin, seed: int, first=(0, 0)) -> np.ndarray:
@@ -308,11 +350,9 @@ def compute(h, attributes: dict, water: np.ndarray, blocked: np.ndarray, level: 
     ava, astats = avalanche_tracks(h, attributes["slope"], blocked, p, dx, origin, seed)
     clr = clearings(h.shape, p, dx, origin, seed)
     land = ~blocked
-    n = max(int(land.sum()), 1)
-    stats = {"avalanche": astats, "riparian_share": float(((rip >= 0.5) & land).sum() / n),
-             "clearing_share": float(((clr >= 0.5) & land).sum() / n),
-             "altitude_shift_range_m": [round(float((h - alt)[land].min()), 2) if land.any() else 0.0,
-                                        round(float((h - alt)[land].max()), 2) if land.any() else 0.0]}
+    shift = (h - alt)[land]
+    stats = site_stats(astats, int(land.sum()), int(((rip >= 0.5) & land).sum()), int(((clr >= 0.5) & land).sum()),
+                       float(shift.min()) if shift.size else None, float(shift.max()) if shift.size else None)
     return Sites(alt, rip, np.where(blocked, F(0), ava).astype(F), clr, stats)
 
 

@@ -49,10 +49,10 @@ from . import ecosystem, grass, placement, tint, usd_layer
 from . import sites as sites_mod
 from .params import FILL, KAPPA, VegetationParams
 from .report_tables import forest_tables
-from .results import (SPECIES_MAPS, PhaseClock, backend_modules, preference_table, preview_colours, run_metrics,
-                      species_json, splat_sums, splat_table, stats_of, with_forest, write_usd)
+from .results import (ATTR_CHANNELS, HA, SPECIES_MAPS, PhaseClock, backend_modules, check_steepest, preference_table,
+                      preview_cells, preview_colours, run_metrics, species_json, species_maps_layers, splat_sums,
+                      splat_table, stats_of, with_forest, write_usd)
 
-ATTR_CHANNELS = ("attr.slope", "attr.aspect", "attr.curvature", "attr.sky_view", "attr.sunlight", "attr.moisture")
 SITE_CHANNELS = sites_mod.CHANNELS
 SITE_COLOURS = (("other", (120, 150, 90)), ("riparian", (60, 120, 200)), ("avalanche", (235, 235, 245)),
                 ("clearing", (230, 190, 80)))
@@ -76,17 +76,12 @@ def _optional_channel(inputs: dict, role: str, channel: str, shape) -> np.ndarra
 
 
 def preview(height: Grid, splat: np.ndarray, gdens: np.ndarray, water: np.ndarray, sets: dict, dom, names) -> np.ndarray:
-    rows, cols = gdens.shape
-    drawn = {}
-    for name, inst in sets.items():
-        drawn[name] = (np.clip(((inst.positions[:, 0] - dom.origin_m[0]) / dom.dx).astype(np.int64), 0, cols - 1),
-                       np.clip(((inst.positions[:, 2] - dom.origin_m[1]) / dom.dx).astype(np.int64), 0, rows - 1))
+    drawn = {name: preview_cells(inst.positions, dom.origin_m, dom.dx, gdens.shape) for name, inst in sets.items()}
     return preview_colours(hillshade(height).astype(np.float32), splat, water, drawn, names)
 
 
 
 
-HA = 1e4  # m^2 per hectare
 
 
 def _terrain(terrain: Grid) -> tuple[np.ndarray, np.ndarray, float, tuple[float, float]]:
@@ -117,54 +112,35 @@ def _moisture(ctx: RunContext, inputs: dict[str, Any], h: np.ndarray, dx: float,
 
 def _water(inputs: dict[str, Any], shape: tuple[int, int]) -> np.ndarray:
     """Where lakes or rivers are (nothing grows there)."""
-    lakes = _optional_channel(inputs, "lakes", "lake.depth", shape)
-    rivers = _optional_channel(inputs, "rivers", "river.mask", shape)
-    water = np.zeros(shape, bool)
-    if lakes is not None:
-        water |= lakes > 0
-    if rivers is not None:
-        water |= rivers > 0.5
-    return water
+    return sites_mod.water_mask(_optional_channel(inputs, "lakes", "lake.depth", shape),
+                                _optional_channel(inputs, "rivers", "river.mask", shape), shape)
 
 
 def _water_levels(inputs: dict[str, Any], h: np.ndarray, water: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per water cell its level (a lake's level, else the ground) and half
     its width (rivers; 0 for lakes), for the riparian index."""
-    level = h.astype(np.float64).copy()
-    half = np.zeros(h.shape)
     lakes, rivers = inputs.get("lakes"), inputs.get("rivers")
+    depth = level = width = None
     if lakes is not None and "lake.level" in lakes.channels and "lake.depth" in lakes.channels:
         depth = np.nan_to_num(lakes.channel("lake.depth").astype(np.float64), nan=0.0)
-        lv = lakes.channel("lake.level").astype(np.float64)
-        use = (depth > 0) & np.isfinite(lv)
-        level = np.where(use, lv, level)
+        level = lakes.channel("lake.level").astype(np.float64)
     if rivers is not None and "river.width" in rivers.channels:
-        w = np.nan_to_num(rivers.channel("river.width").astype(np.float64), nan=0.0)
-        half = np.where(water, 0.5 * np.maximum(w, 0.0), 0.0)
-    return level, half
+        width = np.nan_to_num(rivers.channel("river.width").astype(np.float64), nan=0.0)
+    return sites_mod.water_levels(h, depth, level), sites_mod.half_widths(water, width)
 
 
 def _species_maps(plants, gname, sets, dom, suit, share, n_t, gsuit, gdens, g) -> Grid | None:
-    """vegetation.species_maps: per plant species suitability, relative
-    yield, target and placed density (plants per ha); for the grass species
-    suitability and tuft density. None when no species grows."""
+    """vegetation.species_maps (results.species_maps_layers); None when no species grows."""
     rows, cols = dom.rows, dom.cols
-    per_species_channels, per_species = [], []
-    for s, name in enumerate(plants):
-        counts = np.zeros((rows, cols))
+    counts = []
+    for name in plants:
+        c = np.zeros((rows, cols))
         if len(sets[name]):
             tr, tc = dom.world_cell(sets[name].positions)
-            counts = np.bincount(tr * cols + tc, minlength=rows * cols).reshape(rows, cols).astype(np.float64)
-        per_species += [suit[s], share[s], n_t[s] * HA, counts * HA / (dom.dx * dom.dx)]
-        per_species_channels += [f"suitability.{name}", f"yield.{name}", f"density.{name}", f"placed.{name}"]
-    if gname:
-        per_species += [gsuit, gdens]
-        per_species_channels += [f"suitability.{gname}", f"density.{gname}"]
-    return g(np.stack(per_species, -1), tuple(per_species_channels)) if per_species else None
-
-
-
-
+            c = np.bincount(tr * cols + tc, minlength=rows * cols).reshape(rows, cols).astype(np.float64)
+        counts.append(c)
+    layers, channels = species_maps_layers(plants, gname, suit, share, n_t, counts, dom.dx, gsuit, gdens)
+    return g(np.stack(layers, -1), channels) if layers else None
 
 
 @dataclass(frozen=True)
@@ -393,9 +369,7 @@ def _forest(land: _Land, growth: _Growth, sets: dict, params: VegetationParams) 
             continue
         tr, tc = cells[name] = growth.dom.world_cell(inst.positions)
         steepest[name] = round(float(slope[tr, tc].max()), 3)
-        limit = params.species[name].slope_deg.max
-        if steepest[name] >= limit:
-            raise StageError(f"vegetation: a {name} stands on a {steepest[name]:g} deg slope, its limit is {limit:g} deg")
+        check_steepest(params, name, steepest[name])
         if params.species[name].tree:
             trees.append((tr, tc))
     land_mask = ~(land.water | land.nodata)

@@ -57,13 +57,18 @@ import numpy as np
 from scipy import ndimage
 
 from pipeline.tiles import Tile, TileContext, TileOutput
+from worldlib.ground import SPLAT_CHANNELS
+from worldlib.terrain.mesh import bilinear_taps, lattice_of, lattice_taps, mesh_from_lattice
 from worldlib.terrain.stats import exact_mean, exact_sum
 
 from . import attributes as attrs
-from . import ecosystem, grass, placement
+from . import ecosystem, grass, placement, tint
 from . import reference as ref
 from . import sites as sites_mod
 from .params import VegetationParams
+from .reference import seed004_sum, stream_key
+from .results import HA, preference_table, splat_sums, splat_table
+from .sites import CHANNELS as SITE_CHANNELS
 
 F = np.float32
 # the land pass's fields, one grid of these channels per tile
@@ -84,6 +89,14 @@ def _window(source, tile: Tile, halo: int, channel: str) -> np.ndarray:
     return np.asarray(source.read(*tile.window(halo), channel=channel))
 
 
+def heights(terrain, tile: Tile, halo: int, lowest: float) -> tuple[np.ndarray, np.ndarray]:
+    """The terrain's heights on the tile and `halo` cells around it
+    (float32), no-data cells at the world's lowest height as the whole run
+    has them (stage._terrain); and the raw heights (NaN: no data)."""
+    raw = _window(terrain, tile, halo, _channel(terrain, "height")).astype(F)
+    return np.where(np.isfinite(raw), raw, F(lowest)).astype(F), raw
+
+
 def _channel(source, wanted: str) -> str:
     return wanted if wanted in source.channels else source.channels[0]
 
@@ -99,36 +112,38 @@ def scan_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared)
                                "max_half_m": float(half.max()) if half.size else 0.0})
 
 
+def _clean(source, tile: Tile, halo: int, channel: str) -> np.ndarray:
+    """A window of an input channel as float64, NaN as 0 (stage._optional_channel's)."""
+    return np.nan_to_num(_window(source, tile, halo, channel).astype(np.float64), nan=0.0)
+
+
 def _water(inputs: dict, tile: Tile, halo: int) -> np.ndarray:
     """stage._water on a window: lakes or rivers."""
-    shape = tile.window(halo)[2:]
-    water = np.zeros(shape, bool)
     lakes, rivers = inputs.get("lakes"), inputs.get("rivers")
-    if lakes is not None:
-        water |= np.nan_to_num(_window(lakes, tile, halo, _channel(lakes, "lake.depth")).astype(np.float64)) > 0
-    if rivers is not None:
-        water |= np.nan_to_num(_window(rivers, tile, halo, _channel(rivers, "river.mask")).astype(np.float64)) > 0.5
-    return water
+    return sites_mod.water_mask(None if lakes is None else _clean(lakes, tile, halo, _channel(lakes, "lake.depth")),
+                                None if rivers is None else _clean(rivers, tile, halo, _channel(rivers, "river.mask")),
+                                tile.window(halo)[2:])
 
 
 def _half_widths(inputs: dict, tile: Tile, halo: int, water: np.ndarray) -> np.ndarray:
     rivers = inputs.get("rivers")
-    if rivers is None or "river.width" not in rivers.channels:
-        return np.zeros(water.shape)
-    w = np.nan_to_num(_window(rivers, tile, halo, "river.width").astype(np.float64), nan=0.0)
-    return np.where(water, 0.5 * np.maximum(w, 0.0), 0.0)
+    has = rivers is not None and "river.width" in rivers.channels
+    return sites_mod.half_widths(water, _clean(rivers, tile, halo, "river.width") if has else None)
 
 
 def _levels(inputs: dict, tile: Tile, halo: int, h: np.ndarray) -> np.ndarray:
     """stage._water_levels' levels on a window: a lake's level, else the ground."""
-    level = h.astype(np.float64).copy()
     lakes = inputs.get("lakes")
-    if lakes is not None and "lake.level" in lakes.channels and "lake.depth" in lakes.channels:
-        depth = np.nan_to_num(_window(lakes, tile, halo, "lake.depth").astype(np.float64), nan=0.0)
-        lv = _window(lakes, tile, halo, "lake.level").astype(np.float64)
-        use = (depth > 0) & np.isfinite(lv)
-        level = np.where(use, lv, level)
-    return level
+    if lakes is None or "lake.level" not in lakes.channels or "lake.depth" not in lakes.channels:
+        return sites_mod.water_levels(h, None, None)
+    return sites_mod.water_levels(h, _clean(lakes, tile, halo, "lake.depth"),
+                                  _window(lakes, tile, halo, "lake.level").astype(np.float64))
+
+
+def cells_in(tile: Tile, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """The indices of the cells (rows, cols) that lie in the tile."""
+    return np.flatnonzero((rows >= tile.row0) & (rows < tile.row0 + tile.rows) & (cols >= tile.col0)
+                          & (cols < tile.col0 + tile.cols))
 
 
 def land_halo(dx: float, params: VegetationParams, max_half_m: float) -> int:
@@ -140,8 +155,7 @@ def land_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared:
     tile, dx, origin = tctx.tile, shared["dx"], tuple(shared["origin"])
     halo = land_halo(dx, params, shared["max_half_m"])
     terrain = inputs["terrain"]
-    raw = _window(terrain, tile, halo, _channel(terrain, "height")).astype(F)
-    h = np.where(np.isfinite(raw), raw, F(shared["lowest"])).astype(F)
+    h, raw = heights(terrain, tile, halo, shared["lowest"])
     inner = tile.inner(halo)
     a = attrs.compute(h, dx, params, backend(tctx), window=ref.Window.of(tile, halo))
     moisture = _moisture(inputs, tile)
@@ -218,8 +232,7 @@ def avalanche_tile(tctx: TileContext, inputs: dict, params: VegetationParams, sh
     seeded, spread on. shared (this tile's): lowest, dx, state, incoming."""
     tile, dx = tctx.tile, shared["dx"]
     terrain = inputs["terrain"]
-    raw = _window(terrain, tile, 1, _channel(terrain, "height")).astype(F)
-    h = np.where(np.isfinite(raw), raw, F(shared["lowest"])).astype(F)
+    h, _ = heights(terrain, tile, 1, shared["lowest"])
     run, frame = _run_out(h, tile, 1, dx, params)
     run.line.ravel()[shared["state_index"]] = shared["state_line"]
     r0, c0, cols = frame
@@ -233,8 +246,7 @@ def path_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared:
     """Pass 4: where the tile's lines stand at or above the ground."""
     tile = tctx.tile
     terrain = inputs["terrain"]
-    raw = _window(terrain, tile, 1, _channel(terrain, "height")).astype(F)
-    h = np.where(np.isfinite(raw), raw, F(shared["lowest"])).astype(F)
+    h, _ = heights(terrain, tile, 1, shared["lowest"])
     run, _ = _run_out(h, tile, 1, shared["dx"], params)
     run.line.ravel()[shared["state_index"]] = shared["state_line"]
     return TileOutput(grids={"path": run.path()[tile.inner(1)].astype(np.uint8)})
@@ -273,8 +285,7 @@ def sites_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared
                 0.0, 1.0).astype(F)
     mf = be.moisture_filter(m, p.moisture_jitter_m / dx, shared["jitter_key"], window=ref.Window.of(tile, mhalo))
     terrain = inputs["terrain"]
-    raw = _window(terrain, tile, 0, _channel(terrain, "height")).astype(F)
-    h = np.where(np.isfinite(raw), raw, F(shared["lowest"])).astype(F)
+    h, _ = heights(terrain, tile, 0, shared["lowest"])
     splat = be.splat(h, f["slope"], f["grad"], mf, (f["water"] > 0).astype(np.uint8), shared["splat_table"])
     grow = list(shared["grow"])
     if grow:
@@ -284,8 +295,6 @@ def sites_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared
     else:
         suit = np.zeros((0,) + blocked.shape, F)
     sites_grid, _ = site.channels()
-    from .reference import seed004_sum
-    from .results import splat_sums
 
     sums = splat_sums(splat.astype(np.float64).sum(axis=-1), seed004_sum(h, f["slope"], f["grad"], mf,
                                                                         shared["splat_table"]), mf, f["moisture"])
@@ -300,8 +309,6 @@ def fields(runner, inputs: dict, params: VegetationParams, shape: tuple[int, int
     """Passes 1 to 5 on a TileRunner: the TileArrays fields, path, sites,
     splat, moisture_filtered and suitability (channels: grow), and the
     avalanche rounds run."""
-    from .reference import stream_key
-    from .results import preference_table, splat_table
 
     common = {"dx": dx, "origin": tuple(origin)}
     grid = {"cell_size_m": dx, "origin_m": tuple(origin)}
@@ -311,8 +318,9 @@ def fields(runner, inputs: dict, params: VegetationParams, shape: tuple[int, int
         raise ValueError("vegetation: the terrain has no finite height")
     common.update(lowest=min(finite), max_half_m=max(s["max_half_m"] for s in scans))
     progress(0.02, "attributes and sites by tile")
-    land, summaries = runner.map(land_tile, "land", shape, inputs, params, common, grids={"fields": FIELDS}, **grid)
-    land_summaries = summaries
+    land, land_summaries = runner.map(land_tile, "land", shape, inputs, params, common, grids={"fields": FIELDS},
+                                      **grid)
+    summaries = land_summaries  # the last round's: the avalanche lines each tile hands on
     tiles = runner.tiles(shape)
     states = {t.name: (s["state_index"], s["state_line"]) for t, s in zip(tiles, summaries)}
     rounds = 0
@@ -333,14 +341,10 @@ def fields(runner, inputs: dict, params: VegetationParams, shape: tuple[int, int
                           grids={"path": ("path",)}, **grid)
     common.update(grow=list(grow), splat_table=splat_table(params), preferences=preference_table(params, list(grow)),
                   jitter_key=stream_key(seed, "moisture-jitter"))
-    from worldlib.ground import SPLAT_CHANNELS
-
-    from .sites import CHANNELS as SITE_CHANNELS
-
-    out, site_summaries = runner.map(sites_tile, "sites", shape, {**inputs, "fields": land["fields"], "path": paths["path"]},
-                        params, common, grids={"sites": SITE_CHANNELS, "splat": SPLAT_CHANNELS,
-                                               "moisture_filtered": ("moisture",),
-                                               "suitability": tuple(f"suitability.{n}" for n in grow)}, **grid)
+    out, site_summaries = runner.map(
+        sites_tile, "sites", shape, {**inputs, "fields": land["fields"], "path": paths["path"]}, params, common,
+        grids={"sites": SITE_CHANNELS, "splat": SPLAT_CHANNELS, "moisture_filtered": ("moisture",),
+               "suitability": tuple(f"suitability.{n}" for n in grow)}, **grid)
     return {**land, **paths, **out, "avalanche_rounds": rounds, "lowest": common["lowest"],
             "max_half_m": common["max_half_m"], "release_cells": sum(s_["release_cells"] for s_ in land_summaries),
             "path_cells": sum(s_["path_cells"] for s_ in site_summaries),
@@ -407,7 +411,7 @@ def targets_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shar
     mf = np.asarray(inputs["moisture_filtered"].read(*tile.window(0)), F).reshape(cells)
     gdens, gheight = grass.grass_maps(p, gname, suit[len(plants)] if gname else None, splat, cover, mf, dx, origin,
                                       int(tctx.seed), first)
-    total = n_t.sum(axis=0) * 1e4 if plants else np.zeros(cells)
+    total = n_t.sum(axis=0) * HA if plants else np.zeros(cells)
     return TileOutput(grids={"share": np.moveaxis(share, 0, -1), "target": np.moveaxis(n_t, 0, -1),
                              "grass": np.stack([gdens, gheight], -1), "canopy": np.stack([cover, total], -1)},
                       summary={"capped_exact": excess, "target_max": nmax, "grass_density_exact": exact_sum(gdens)})
@@ -543,7 +547,7 @@ def place(runner, grown: dict, params: VegetationParams, shape: tuple[int, int],
         totals = {"candidates": 0, "placed": 0, "shortfall_plants": 0, "blocks_short": 0}
         target = 0
         for t in tiles:
-            mine = np.flatnonzero((tr >= t.row0) & (tr < t.row0 + t.rows) & (tc >= t.col0) & (tc < t.col0 + t.cols))
+            mine = cells_in(t, tr, tc)
             n_tile = np.asarray(grown["target"].read(*t.window(0)), np.float64)[..., s]
             kept_tile, stats, exact = placement.select_counts(pts[mine], cells[mine], n_tile, dom, block,
                                                               ref.stream_key(seed, "select", name), (t.row0, t.col0))
@@ -633,8 +637,6 @@ def terrain_mesh(runner, inputs: dict, shape: tuple[int, int], dx: float, origin
                  max_vertices: int):
     """worldlib.terrain.mesh.build_terrain_mesh of the filled heights, its
     lattice read tile by tile."""
-    from worldlib.terrain.mesh import bilinear_taps, lattice_of, lattice_taps, mesh_from_lattice
-
     ri, ci = lattice_of(*shape, max_vertices)
     rt, ct = lattice_taps(shape[0], ri), lattice_taps(shape[1], ci)
     hv = np.zeros((len(ri), len(ci)))
@@ -644,10 +646,8 @@ def terrain_mesh(runner, inputs: dict, shape: tuple[int, int], dx: float, origin
         cs = np.flatnonzero((ct[0] >= t.col0) & (ct[0] < t.col0 + t.cols))
         if not len(rs) or not len(cs):
             continue
-        r0, c0 = t.row0, t.col0
-        nr, nc = min(t.rows + 1, shape[0] - r0), min(t.cols + 1, shape[1] - c0)
-        raw = np.asarray(terrain.read(r0, c0, nr, nc, channel=_channel(terrain, "height")), F)
-        h = np.where(np.isfinite(raw), raw, F(lowest)).astype(F)
+        h, _ = heights(terrain, t, 1, lowest)  # a tap's second cell may be the next tile's
+        r0, c0, _, _ = t.window(1)
         hv[np.ix_(rs, cs)] = bilinear_taps(h, tuple(x[rs] for x in rt), tuple(x[cs] for x in ct), origin=(r0, c0))
     size = (shape[1] * dx, shape[0] * dx)
     return mesh_from_lattice(hv, ri, ci, dx, tuple(origin), size)
@@ -656,8 +656,6 @@ def terrain_mesh(runner, inputs: dict, shape: tuple[int, int], dx: float, origin
 def instances(runner, inputs: dict, out: dict, grown: dict, placed: dict, tuft_set, params: VegetationParams,
               shape: tuple[int, int], dx: float, origin, seed: int, lowest: float, max_half_m: float):
     """stage._instances by tile: (sets, dropped, tints)."""
-    from . import tint
-
     plants, gname = params.plant_species(), params.grass_species()
     dom = placement.Domain(shape[0], shape[1], dx, tuple(origin))
     mesh = terrain_mesh(runner, inputs, shape, dx, origin, lowest, params.mesh_max_vertices)
@@ -690,7 +688,7 @@ def _out_of_water(runner, inputs: dict, inst, dom, shape, reach: int):
     tr, tc = dom.world_cell(inst.positions)
     wet = np.zeros(len(inst), bool)
     for t in runner.tiles(shape):
-        mine = np.flatnonzero((tr >= t.row0) & (tr < t.row0 + t.rows) & (tc >= t.col0) & (tc < t.col0 + t.cols))
+        mine = cells_in(t, tr, tc)
         if not len(mine):
             continue
         water = _water(inputs, t, reach)

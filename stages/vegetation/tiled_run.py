@@ -19,7 +19,6 @@ from . import sites as sites_mod
 from .params import VegetationParams
 
 F = np.float32
-HA = 1e4
 
 
 def whole_reason(inputs: dict, params: VegetationParams, shape, dx: float, tile_cells: int) -> str | None:
@@ -90,10 +89,6 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> di
             "vegetation.stats": stats, "vegetation.preview": maps["preview"]}
 
 
-def _in_tile(t, tr: np.ndarray, tc: np.ndarray) -> np.ndarray:
-    return np.flatnonzero((tr >= t.row0) & (tr < t.row0 + t.rows) & (tc >= t.col0) & (tc < t.col0 + t.cols))
-
-
 def _maps(runner, inputs, out, grown, placed, sets, params, shape, dx, origin, grow) -> tuple[dict, list]:
     """The maps pass: attributes, canopy, species maps and preview grids,
     and per tile the counts the statistics need."""
@@ -101,11 +96,10 @@ def _maps(runner, inputs, out, grown, placed, sets, params, shape, dx, origin, g
     dom = placement.Domain(shape[0], shape[1], dx, tuple(origin))
     cells = {n: dom.world_cell(s.positions) for n, s in sets.items()}  # the placed instances' cells
     domain_cells = {n: dom.cell_of(placed[n].x, placed[n].z) for n in plants}  # the density check's
-    drawn = {n: (np.clip(((s.positions[:, 0] - origin[0]) / dx).astype(np.int64), 0, shape[1] - 1),
-                 np.clip(((s.positions[:, 2] - origin[1]) / dx).astype(np.int64), 0, shape[0] - 1))
-             for n, s in sets.items()}  # where stage.preview draws them
+    drawn = {n: results.preview_cells(s.positions, origin, dx, shape) for n, s in sets.items()}
+
     def part(t, rc):
-        idx = _in_tile(t, *rc)
+        idx = tiled.cells_in(t, *rc)
         return rc[0][idx], rc[1][idx]
 
     per_tile = {}
@@ -115,10 +109,9 @@ def _maps(runner, inputs, out, grown, placed, sets, params, shape, dx, origin, g
                             "cells": {n: part(t, cells[n]) for n in sets},
                             "drawn": {n: part(t, (row, col))[::-1] for n, (col, row) in drawn.items()},
                             "domain_cells": {n: part(t, domain_cells[n]) for n in plants}}
-    species = tuple(_species_channels(plants, gname))
-    grids = {"attributes": ("attr.slope", "attr.aspect", "attr.curvature", "attr.sky_view", "attr.sunlight",
-                            "attr.moisture"),
-             "canopy": ("canopy.cover", "canopy.density"), "preview": ("r", "g", "b")}
+    species = results.species_maps_channels(plants, gname)
+    grids = {"attributes": results.ATTR_CHANNELS, "canopy": ("canopy.cover", "canopy.density"),
+             "preview": ("r", "g", "b")}
     if species:
         grids["species_maps"] = species
     ins = {"terrain": inputs["terrain"], **{k: out[k] for k in ("fields", "splat", "sites", "suitability")},
@@ -126,15 +119,6 @@ def _maps(runner, inputs, out, grown, placed, sets, params, shape, dx, origin, g
     maps, parts = runner.map(maps_tile, "maps", shape, ins, params, per_tile=per_tile, grids=grids, cell_size_m=dx,
                              origin_m=tuple(origin))
     return maps, parts
-
-
-def _species_channels(plants: list[str], gname: str | None) -> list[str]:
-    out = []
-    for n in plants:
-        out += [f"suitability.{n}", f"yield.{n}", f"density.{n}", f"placed.{n}"]
-    if gname:
-        out += [f"suitability.{gname}", f"density.{gname}"]
-    return out
 
 
 def maps_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared: dict) -> TileOutput:
@@ -151,26 +135,23 @@ def maps_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared:
     share, n_t = np.moveaxis(read("share"), -1, 0), np.moveaxis(read("target"), -1, 0)
     grass_maps, canopy = read("grass"), read("canopy")
     grids = {"attributes": np.ascontiguousarray(attributes, F), "canopy": canopy.astype(F)}
-    species = []
-    for s, name in enumerate(plants):
-        counts = np.zeros(cells)
+    counts = []
+    for name in plants:
         tr, tc = shared["cells"][name]
-        if len(tr):
-            counts = np.bincount((tr - t.row0) * t.cols + (tc - t.col0), minlength=t.rows * t.cols).reshape(
-                cells).astype(np.float64)
-        species += [suit[s], share[s], n_t[s] * HA, counts * HA / (dx * dx)]
-    if gname:
-        species += [suit[len(plants)], grass_maps[..., 0]]
-    if species:
-        grids["species_maps"] = np.stack(species, -1).astype(F)
-    grids["preview"] = _preview(inputs, t, shared, f, read("splat"), grass_maps[..., 0])
+        counts.append(np.bincount((tr - t.row0) * t.cols + (tc - t.col0), minlength=t.rows * t.cols).reshape(
+            cells).astype(np.float64) if len(tr) else np.zeros(cells))
+    layers, _ = results.species_maps_layers(plants, gname, suit, share, n_t, counts, dx,
+                                            suit[len(plants)] if gname else None, grass_maps[..., 0])
+    if layers:
+        grids["species_maps"] = np.stack(layers, -1).astype(F)
+    h_halo, _ = tiled.heights(inputs["terrain"], t, 1, shared["lowest"])
+    h = h_halo[t.inner(1)]
+    grids["preview"] = _preview(h_halo, t, shared, f, read("splat"))
     # the statistics' counts
     slope_cls = sites_mod.slope_class(f[..., k("slope")])
     nclass = len(sites_mod.SLOPE_CLASSES_DEG) - 1
     sites = read("sites")
     rip, clr, alt = sites[..., 1], sites[..., 3], sites[..., 4]
-    raw = np.asarray(inputs["terrain"].read(*t.window(0), channel=_height(inputs["terrain"])), F)
-    h = np.where(np.isfinite(raw), raw, F(shared["lowest"])).astype(F)
     banks = land & (rip >= sites_mod.BANK_INDEX)
     shift = (h - alt)[land]
     window = placement.density_window(placement.Domain(*shared["world"], dx, (0.0, 0.0)))
@@ -199,17 +180,9 @@ def maps_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared:
     return TileOutput(grids=grids, summary=summary)
 
 
-def _height(terrain) -> str:
-    return "height" if "height" in terrain.channels else terrain.channels[0]
-
-
-def _preview(inputs, t, shared, f, splat, gdens) -> np.ndarray:
-    """stage.preview on the tile: the hillshade read with a one-cell halo."""
-    terrain = inputs["terrain"]
-    r0, c0, rows, cols = t.window(1)
-    raw = np.asarray(terrain.read(r0, c0, rows, cols, channel=_height(terrain)), F)
-    h = np.where(np.isfinite(raw), raw, F(shared["lowest"])).astype(F)
-    img = hillshade(Grid(h, shared["dx"], ("height",)))[t.inner(1)].astype(np.float32)
+def _preview(h_halo, t, shared, f, splat) -> np.ndarray:
+    """stage.preview on the tile: its hillshade from the heights with a one-cell halo."""
+    img = hillshade(Grid(h_halo, shared["dx"], ("height",)))[t.inner(1)].astype(np.float32)
     water = f[..., tiled.FIELDS.index("water")] > 0
     return results.preview_colours(img, splat, water, shared["drawn"], shared["grow"], (t.row0, t.col0))
 
@@ -228,9 +201,7 @@ def _forest(out, sets, parts, params, dom) -> dict:
         if not len(sets[name]):
             continue
         steepest[name] = round(max(p["steepest"][name] for p in parts if name in p["steepest"]), 3)
-        limit = params.species[name].slope_deg.max
-        if steepest[name] >= limit:
-            raise StageError(f"vegetation: a {name} stands on a {steepest[name]:g} deg slope, its limit is {limit:g} deg")
+        results.check_steepest(params, name, steepest[name])
     with_instances = sorted(n for n in plants if len(sets[n]))
     banks = sites_mod.banks_table(sum(p["bank_cells"] for p in parts), sum(p["rest_cells"] for p in parts),
                                   with_instances, [sum(p["on_banks"][n] for p in parts) for n in with_instances],
@@ -250,16 +221,11 @@ def _density_errors(plants, parts, w: int) -> dict:
 
 
 def _sites_stats(out, parts, shape) -> dict:
-    n = shape[0] * shape[1]
-    if out["release_cells"]:
-        avalanche = {"release_share": out["release_cells"] / n, "path_share": out["path_cells"] / n,
-                     "track_share": out["track_cells"] / n}
-    else:
-        avalanche = {"release_share": 0.0, "path_share": 0.0, "track_share": 0.0}
-    land = sum(p["land_cells"] for p in parts)
+    """sites.compute's statistics from the tiles' counts."""
     lo = [p["shift_min"] for p in parts if p["shift_min"] is not None]
     hi = [p["shift_max"] for p in parts if p["shift_max"] is not None]
-    m = max(land, 1)
-    return {"avalanche": avalanche, "riparian_share": sum(p["riparian_cells"] for p in parts) / m,
-            "clearing_share": sum(p["clearing_cells"] for p in parts) / m,
-            "altitude_shift_range_m": [round(min(lo), 2) if lo else 0.0, round(max(hi), 2) if hi else 0.0]}
+    avalanche = sites_mod.avalanche_stats(out["release_cells"], out["path_cells"], out["track_cells"],
+                                          shape[0] * shape[1])
+    return sites_mod.site_stats(avalanche, sum(p["land_cells"] for p in parts), sum(p["riparian_cells"] for p in parts),
+                                sum(p["clearing_cells"] for p in parts), min(lo) if lo else None,
+                                max(hi) if hi else None)
