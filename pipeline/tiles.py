@@ -40,7 +40,9 @@ import numpy as np
 
 from . import exr
 from .errors import StageError
+from .grid import Grid, content_digest
 
+DIGEST_BAND_ROWS = 256  # rows a grid file's content digest reads at once (GridFile.content_hash)
 SUMMARY_ARRAYS = "summary.npz"  # a tile's summary arrays in its unit (the rest is the unit's JSON result)
 
 
@@ -112,6 +114,36 @@ class GridFile:
     def read_padded(self, tile: Tile, halo: int, fill: float = np.nan, channel: str | None = None) -> np.ndarray:
         """The tile with `halo` cells on every side, `fill` beyond the world."""
         return _padded(self, tile, halo, fill, channel)
+
+    def content_hash(self, band_rows: int | None = None) -> str:
+        """The file's grid's Grid.content_hash, read band by band (DIGEST_BAND_ROWS)."""
+        band_rows = band_rows or DIGEST_BAND_ROWS
+        rows, cols = self.shape
+        shape = (rows, cols) if len(self.channels) == 1 else (rows, cols, len(self.channels))
+        bands = (self.read(r0, 0, min(band_rows, rows - r0), cols) for r0 in range(0, rows, band_rows))
+        return content_digest(self.channels, shape, np.float32, self.cell_size_m, self.origin_m, bands)
+
+
+class GridArray(GridFile):
+    """A grid in memory read by window like a GridFile: a whole run's input
+    handed to code written for windows, so a stage's whole and tiled runs
+    share one path (and give the same bytes)."""
+
+    def __init__(self, grid: Grid):
+        self.grid = grid
+        self.shape, self.channels = grid.shape, tuple(grid.channels)
+        self.cell_size_m, self.origin_m = grid.cell_size_m, tuple(grid.origin_m)
+
+    def read(self, row0: int, col0: int, rows: int, cols: int, channel: str | None = None) -> np.ndarray:
+        if not (0 <= row0 and 0 <= col0 and rows >= 1 and cols >= 1 and row0 + rows <= self.shape[0]
+                and col0 + cols <= self.shape[1]):
+            raise ValueError(f"window rows {row0}..{row0 + rows - 1}, cols {col0}..{col0 + cols - 1} is outside "
+                             f"the grid's {self.shape[0]} x {self.shape[1]} cells")
+        data = self.grid.channel(channel) if channel is not None else self.grid.data
+        return np.array(data[row0:row0 + rows, col0:col0 + cols], np.float32)
+
+    def content_hash(self, band_rows: int | None = None) -> str:
+        return self.grid.content_hash()
 
 
 class TileArrays:

@@ -79,27 +79,94 @@ def write_mipmapped_texture(path: Path | str, rgb: np.ndarray, provenance: dict[
     MIP-mapped, clamped) with box-filtered MIP levels computed here, for
     large textures: make_texture's lanczos3 resampling costs about ten times
     the write."""
-    oiio = _oiio()
-    levels = box_mip_chain(rgb)
-    out = oiio.ImageOutput.create(str(path))
-    if out is None:
-        raise OSError(f"cannot write texture {path}: {oiio.geterror()}")
-    for i, level in enumerate(levels):
-        rows, cols = level.shape[:2]
-        spec = oiio.ImageSpec(cols, rows, level.shape[2], oiio.HALF)
-        spec.tile_width = spec.tile_height = 64
-        spec.attribute("compression", compression)
-        if i == 0:
-            spec.attribute("openexr:levelmode", 1)  # MIPMAP_LEVELS
-            spec.attribute("textureformat", "Plain Texture")
-            spec.attribute("wrapmodes", "clamp,clamp")
-            spec.attribute("DateTime", "")
-            for k, v in (provenance or {}).items():
-                spec.attribute(f"worldbake:{k}", v if isinstance(v, str) else json.dumps(v, sort_keys=True))
-        ok = out.open(str(path), spec, "Create" if i == 0 else "AppendMIPLevel")
-        ok = ok and out.write_image(np.ascontiguousarray(level, np.float16))
+    rgb = np.asarray(rgb, np.float32)
+    with MipmappedWriter(path, rgb.shape[0], rgb.shape[1], rgb.shape[2], provenance, compression) as out:
+        out.write_rows(rgb)
+
+
+MIP_TILE = 64  # texels per side of a texture file's tiles
+
+
+class MipmappedWriter:
+    """write_mipmapped_texture's file written band by band of whole rows
+    (north to south, each a whole number of MIP_TILE rows but the last), so a
+    texture larger than memory allows is never whole: level 0 goes to the
+    file as it comes, level 1 (a quarter of the texels) is kept and the
+    levels below it made from it at the end. The bytes are those of
+    write_mipmapped_texture of the whole image."""
+
+    def __init__(self, path: Path | str, rows: int, cols: int, channels: int,
+                 provenance: dict[str, Any] | None = None, compression: str = "zips"):
+        oiio = _oiio()
+        self.path, self.rows, self.cols, self.channels = Path(path), int(rows), int(cols), int(channels)
+        self.compression, self.next_row = compression, 0
+        self.out = oiio.ImageOutput.create(str(path))
+        if self.out is None:
+            raise OSError(f"cannot write texture {path}: {oiio.geterror()}")
+        spec = self._spec(self.rows, self.cols)
+        spec.attribute("openexr:levelmode", 1)  # MIPMAP_LEVELS
+        spec.attribute("textureformat", "Plain Texture")
+        spec.attribute("wrapmodes", "clamp,clamp")
+        spec.attribute("DateTime", "")
+        for k, v in (provenance or {}).items():
+            spec.attribute(f"worldbake:{k}", v if isinstance(v, str) else json.dumps(v, sort_keys=True))
+        self._check(self.out.open(str(path), spec, "Create"))
+        below = (max(self.rows // 2, 1), max(self.cols // 2, 1), self.channels)
+        self.level1 = np.empty(below, np.float32) if self.rows > 1 or self.cols > 1 else None
+
+    def _spec(self, rows: int, cols: int):
+        oiio = _oiio()
+        spec = oiio.ImageSpec(cols, rows, self.channels, oiio.HALF)
+        spec.tile_width = spec.tile_height = MIP_TILE
+        spec.attribute("compression", self.compression)
+        return spec
+
+    def _check(self, ok: bool) -> None:
         if not ok:
-            err = out.geterror()
-            out.close()
-            raise OSError(f"cannot write texture {path}: {err}")
-    out.close()
+            err = self.out.geterror()
+            self._release()
+            raise OSError(f"cannot write texture {self.path}: {err}")
+
+    def write_rows(self, band: np.ndarray) -> None:
+        """The next rows of level 0 (rows x cols x channels)."""
+        band = np.asarray(band, np.float32)
+        r0, n = self.next_row, band.shape[0]
+        if band.shape[1:] != (self.cols, self.channels) or r0 + n > self.rows:
+            raise ValueError(f"{self.path}: a band of {band.shape} at row {r0} does not fit the texture's "
+                             f"{self.rows} x {self.cols} x {self.channels}")
+        if r0 + n < self.rows and n % MIP_TILE:
+            raise ValueError(f"{self.path}: a band of {n} rows; all but the last must be whole {MIP_TILE}-row tiles")
+        self._check(self.out.write_tiles(0, self.cols, r0, r0 + n, 0, 1, np.ascontiguousarray(band, np.float16)))
+        self.next_row = r0 + n
+        if self.level1 is not None:  # box_mip_chain's first step on these rows (even, so a band halves alone)
+            a = band[:n - 1] if (r0 + n == self.rows and n % 2 and self.rows > 1) else band
+            if self.cols % 2 and self.cols > 1:
+                a = a[:, :-1]
+            r = a if self.rows == 1 else 0.5 * (a[0::2] + a[1::2])
+            self.level1[r0 // 2:r0 // 2 + r.shape[0]] = r if r.shape[1] == 1 else 0.5 * (r[:, 0::2] + r[:, 1::2])
+
+    def close(self) -> None:
+        if self.next_row != self.rows:
+            self._release()
+            raise OSError(f"{self.path}: {self.next_row} of {self.rows} rows written")
+        if self.level1 is not None:
+            for level in box_mip_chain(self.level1):
+                rows, cols = level.shape[:2]
+                self._check(self.out.open(str(self.path), self._spec(rows, cols), "AppendMIPLevel")
+                            and self.out.write_image(np.ascontiguousarray(level, np.float16)))
+        self._release()
+
+    def _release(self) -> None:
+        # OpenEXR writes a tiled file's offset table when its writer is destroyed, not at close():
+        # the file is whole only once nothing holds the ImageOutput
+        self.out.close()
+        self.out = None
+
+    def __enter__(self) -> "MipmappedWriter":
+        return self
+
+    def __exit__(self, kind, value, tb) -> None:
+        if kind is None:
+            self.close()
+        elif self.out is not None:
+            self._release()

@@ -58,7 +58,7 @@ from scipy import ndimage
 
 from pipeline.tiles import Tile, TileContext, TileOutput
 from worldlib.ground import SPLAT_CHANNELS
-from worldlib.terrain.mesh import bilinear_taps, lattice_of, lattice_taps, mesh_from_lattice
+from worldlib.terrain.mesh import terrain_mesh_by_window
 from worldlib.terrain.stats import exact_mean, exact_sum
 
 from . import attributes as attrs
@@ -633,24 +633,17 @@ class AtCells:
         return out
 
 
-def terrain_mesh(runner, inputs: dict, shape: tuple[int, int], dx: float, origin, lowest: float,
+def terrain_mesh(inputs: dict, shape: tuple[int, int], dx: float, origin, lowest: float,
                  max_vertices: int):
     """worldlib.terrain.mesh.build_terrain_mesh of the filled heights, its
-    lattice read tile by tile."""
-    ri, ci = lattice_of(*shape, max_vertices)
-    rt, ct = lattice_taps(shape[0], ri), lattice_taps(shape[1], ci)
-    hv = np.zeros((len(ri), len(ci)))
+    lattice read band by band."""
     terrain = inputs["terrain"]
-    for t in runner.tiles(shape):
-        rs = np.flatnonzero((rt[0] >= t.row0) & (rt[0] < t.row0 + t.rows))
-        cs = np.flatnonzero((ct[0] >= t.col0) & (ct[0] < t.col0 + t.cols))
-        if not len(rs) or not len(cs):
-            continue
-        h, _ = heights(terrain, t, 1, lowest)  # a tap's second cell may be the next tile's
-        r0, c0, _, _ = t.window(1)
-        hv[np.ix_(rs, cs)] = bilinear_taps(h, tuple(x[rs] for x in rt), tuple(x[cs] for x in ct), origin=(r0, c0))
-    size = (shape[1] * dx, shape[0] * dx)
-    return mesh_from_lattice(hv, ri, ci, dx, tuple(origin), size)
+    channel = _channel(terrain, "height")
+
+    def filled(r0, c0, rows, cols):  # no-data cells at the world's lowest height, as heights() has them
+        raw = terrain.read(r0, c0, rows, cols, channel=channel).astype(F)
+        return np.where(np.isfinite(raw), raw, F(lowest)).astype(F)
+    return terrain_mesh_by_window(filled, shape, dx, tuple(origin), max_vertices)
 
 
 def instances(runner, inputs: dict, out: dict, grown: dict, placed: dict, tuft_set, params: VegetationParams,
@@ -658,7 +651,7 @@ def instances(runner, inputs: dict, out: dict, grown: dict, placed: dict, tuft_s
     """stage._instances by tile: (sets, dropped, tints)."""
     plants, gname = params.plant_species(), params.grass_species()
     dom = placement.Domain(shape[0], shape[1], dx, tuple(origin))
-    mesh = terrain_mesh(runner, inputs, shape, dx, origin, lowest, params.mesh_max_vertices)
+    mesh = terrain_mesh(inputs, shape, dx, origin, lowest, params.mesh_max_vertices)
     sets, dropped = {}, {}
     positive = lambda v: v > 0  # noqa: E731
     for s, name in enumerate(plants):

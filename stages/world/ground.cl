@@ -1,23 +1,23 @@
-// The ground albedo of one UDIM tile, one work item per texel: the splat
+// The ground albedo of a band of texel rows of one UDIM tile, one work item per texel: the splat
 // weights bilinear between cell centres (clamped at the edges), each ground
 // type's colour times its periodic detail table at the texel, summed. The
 // taps are separable, so the host computes them per texel column and per
 // texel row exactly as the numpy reference does (ground.tile_albedo); the
-// kernel only gathers and blends.
+// kernel only gathers and blends. The splat is a window of the world's (the taps are relative to it).
 
 #define MAX_TYPES 8
 
 __kernel void tile_albedo(__global const float *restrict splat, const int cols, const int types,
                           __global const float *restrict tables, const int period,
-                          __global const float *restrict colours, const int texels,
+                          __global const float *restrict colours, const int texels, const int rows,
                           __global const int *restrict col_taps,   // per texel column: c0, c1, detail column
                           __global const float *restrict col_frac, // per texel column: the share of c1
                           __global const int *restrict row_taps,   // per texel row: r0, r1, detail row
                           __global const float *restrict row_frac, // per texel row: the share of r1
                           __global float *restrict out)
 {
-    const int i = get_global_id(0), j = get_global_id(1);  // texel column (east), row (0 = the tile's north edge)
-    if (i >= texels || j >= texels)
+    const int i = get_global_id(0), j = get_global_id(1);  // texel column (east), row (0 = the band's north edge)
+    if (i >= texels || j >= rows)
         return;
     const int c0 = col_taps[3 * i], c1 = col_taps[3 * i + 1], di = col_taps[3 * i + 2];
     const int r0 = row_taps[3 * j], r1 = row_taps[3 * j + 1], dj = row_taps[3 * j + 2];

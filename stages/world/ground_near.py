@@ -37,19 +37,29 @@ REST_SUBSET_NAME = "Rest"  # beside it, the tile's other triangles (bound to the
 SPLAT_FILES = (("splat_a.exr", GROUND_TYPES[:3]), ("splat_b.exr", GROUND_TYPES[3:]))
 
 
-def write_detail_files(folder: Path, textures: dict, splat: np.ndarray, provenance: dict) -> list[str]:
+def write_detail_files(folder: Path, textures: dict, read_splat, shape: tuple[int, int], provenance: dict,
+                       band_rows: int = 256) -> list[str]:
     """The detail textures (ground_detail.detail_textures) and splat
-    textures; their names relative to folder."""
+    textures (read_splat(row0, col0, rows, cols): the splat weights of a
+    window, types in SPLAT_FILES' order, written band by band of rows);
+    their names relative to folder."""
     (folder / "detail").mkdir(exist_ok=True)
     names = []
     for t, (albedo, normal) in textures.items():
         images.write_png(folder / "detail" / f"{t}_albedo.png", albedo, srgb=True)
         images.write_png(folder / "detail" / f"{t}_normal.png", normal, srgb=False)
         names += [f"detail/{t}_albedo.png", f"detail/{t}_normal.png"]
-    for i, (name, _) in enumerate(SPLAT_FILES):
-        images.write_mipmapped_texture(folder / name, splat[..., 3 * i:3 * i + 3], provenance)
-        names.append(name)
-    return names
+    rows, cols = shape
+    writers = [images.MipmappedWriter(folder / name, rows, cols, len(types), provenance) for name, types in SPLAT_FILES]
+    try:
+        for r0 in range(0, rows, band_rows):
+            band = read_splat(r0, 0, min(band_rows, rows - r0), cols)
+            for i, out in enumerate(writers):
+                out.write_rows(band[..., 3 * i:3 * i + 3])
+    finally:
+        for out in writers:
+            out.close()
+    return names + [name for name, _ in SPLAT_FILES]
 
 
 def near_square(mesh, size_m: float, offset_m: tuple[float, float]) -> tuple[float, float, float, float]:
@@ -93,12 +103,15 @@ def _lattice_bilinear(mesh, values: np.ndarray, x: np.ndarray, z: np.ndarray) ->
 
 def bake_near(layer: ground_detail.DetailLayer, splat: np.ndarray, height: np.ndarray, cell_m: float,
               origin_m: tuple[float, float], mesh, square, texels: int,
-              rows_per_chunk: int = 128) -> tuple[np.ndarray, np.ndarray]:
+              rows_per_chunk: int = 128, window: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, np.ndarray]:
     """(albedo linear RGB, normal encoded 0..1), (texels, texels, 3) each,
     row 0 the square's north edge: the triplanar blend (ground_detail.blend)
     at each texel's point on the mesh, the normal tilted from the height
     grid's and written in the tangent frame of the mesh's (s east, t north),
-    as a DCC's UsdPreviewSurface reads it."""
+    as a DCC's UsdPreviewSurface reads it. splat and height may be a window
+    of the world's whose first cell is `window` (row, col), with a cell
+    around the square's for the gradient (near_window); origin_m is the
+    world's, so the taps are the whole grid's, shifted exactly."""
     from worldlib.terrain.mesh import height_on_mesh
 
     x0, x1, z0, z1 = square
@@ -111,8 +124,8 @@ def bake_near(layer: ground_detail.DetailLayer, splat: np.ndarray, height: np.nd
     for r0 in range(0, texels, rows_per_chunk):
         z = z0 + (np.arange(r0, min(r0 + rows_per_chunk, texels)) + 0.5) * tz
         X, Z = (a.ravel() for a in np.meshgrid(x, z))
-        rows = (Z - origin_m[1]) / cell_m - 0.5
-        cols = (X - origin_m[0]) / cell_m - 0.5
+        rows = (Z - origin_m[1]) / cell_m - 0.5 - window[0]  # an integer off a float: exact
+        cols = (X - origin_m[0]) / cell_m - 0.5 - window[1]
         pos = np.stack([X, height_on_mesh(mesh, X, Z), Z], -1)
         n = ground_detail.splat_bilinear(grid_n, rows, cols)
         w = ground_detail.splat_bilinear(splat, rows, cols)
@@ -252,15 +265,35 @@ def near_texels_m(square, texels: int) -> float:
     return max(square[1] - square[0], square[3] - square[2]) / max(texels, 1)
 
 
-def write_near(folder: Path, layer, splat, height, cell_m, origin_m, mesh, size_m, offset_m, max_texels,
-               texel_m) -> dict:
+def near_window(square, shape: tuple[int, int], cell_m: float, origin_m: tuple[float, float],
+                margin: int = 2) -> tuple[int, int, int, int]:
+    """(row0, col0, rows, cols) of the cells bake_near reads for the square:
+    its bilinear taps and `margin` cells around them (the gradient's
+    neighbours), within the world."""
+    x0, x1, z0, z1 = square
+
+    def span(lo_m, hi_m, o, n):
+        lo = int(np.floor((lo_m - o) / cell_m - 0.5)) - margin
+        hi = int(np.floor((hi_m - o) / cell_m - 0.5)) + 1 + margin
+        return max(lo, 0), min(hi, n - 1) + 1
+
+    r0, r1 = span(z0, z1, origin_m[1], shape[0])
+    c0, c1 = span(x0, x1, origin_m[0], shape[1])
+    return r0, c0, r1 - r0, c1 - c0
+
+
+def write_near(folder: Path, layer, read_splat, read_height, shape: tuple[int, int], cell_m, origin_m, mesh, size_m,
+               offset_m, max_texels, texel_m) -> dict:
     """Bake and write the near square's textures at texel_m, at most
-    max_texels per side; the dict author_detail takes (without roughness)."""
+    max_texels per side, from the splat and height windows around it
+    (read_*(row0, col0, rows, cols)); the dict author_detail takes (without
+    roughness)."""
     square = near_square(mesh, size_m, offset_m)
     texels = int(min(max_texels, math.ceil(max(square[1] - square[0], square[3] - square[2]) / texel_m - 1e-9)))
-    albedo, normal = bake_near(layer, splat, height, cell_m, origin_m, mesh, square, texels)
+    window = near_window(square, shape, cell_m, origin_m)
+    albedo, normal = bake_near(layer, read_splat(*window), read_height(*window), cell_m, origin_m, mesh, square, texels,
+                               window=window[:2])
     images.write_png(folder / "near_albedo.png", albedo, srgb=True)
     images.write_png(folder / "near_normal.png", normal, srgb=False)
     return {"square": [float(v) for v in square], "albedo": "near_albedo.png", "normal": "near_normal.png",
             "texel_m": near_texels_m(square, texels)}
-

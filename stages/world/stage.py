@@ -21,13 +21,13 @@ from pipeline import usdio
 from worldlib import images
 from pipeline.contract import (Artifact, Check, CheckContext, GridInfo, Input, Param, Params, ReportPicture, RunContext,
                                Stage)
-from pipeline.grid import Grid
 from pipeline.limits import leading_key
 from worldlib.ground import SPLAT_CHANNELS
 from worldlib.plant_asset import plant_asset_prim
 from worldlib.terrain import GROUND_SOURCES
 
-from worldlib.terrain.mesh import bilinear, build_terrain_mesh
+from pipeline.tiles import GridArray
+from worldlib.terrain.mesh import bilinear, lattice_coordinates, lattice_heights, terrain_mesh_by_window
 
 from .dcc_layer import write_dcc_layer
 from .impostor_layer import IMPOSTOR_INPUT, bind_impostors
@@ -92,12 +92,13 @@ ROCK = np.array([0.18, 0.17, 0.16])
 SNOW = np.array([0.80, 0.82, 0.85])
 
 
-def ground_colour(height: Grid, size: int, params: WorldParams) -> np.ndarray:
+def ground_colour(height, size: int, params: WorldParams) -> np.ndarray:
     """Ground albedo (size x size x 3) from altitude and slope, smooth blends
-    between grass, dry ground, rock and snow."""
-    h = height.channel(height.channels[0])
-    rows, cols = h.shape
-    hv = bilinear(h, np.linspace(0, rows - 1, size), np.linspace(0, cols - 1, size))
+    between grass, dry ground, rock and snow; height: the terrain grid read
+    by window (pipeline.tiles.GridFile or GridArray)."""
+    rows, cols = height.shape
+    hv = lattice_heights(heights_of(height), (rows, cols), np.linspace(0, rows - 1, size),
+                         np.linspace(0, cols - 1, size), BAND_ROWS)
     step = height.cell_size_m * (max(rows, cols) - 1) / max(size - 1, 1)
     gz, gx = np.gradient(hv, step)
     slope = np.degrees(np.arctan(np.hypot(gx, gz)))
@@ -114,7 +115,29 @@ def ground_colour(height: Grid, size: int, params: WorldParams) -> np.ndarray:
     return colour.astype(np.float32)
 
 
-def write_terrain_layer(path: Path, height: Grid, texture: str, params: WorldParams, provenance: dict,
+def heights_of(terrain):
+    """read(row0, col0, rows, cols) of the terrain's height channel."""
+    channel = terrain.channels[0]
+    return lambda r0, c0, rows, cols: terrain.read(r0, c0, rows, cols, channel=channel)
+
+
+def splat_of(splat):
+    """read(row0, col0, rows, cols) of the splat weights, (rows, cols, types)
+    in ground.SPLAT_ORDER."""
+    from . import ground
+
+    order = [list(splat.channels).index(c) for c in ground.SPLAT_ORDER]
+    return lambda r0, c0, rows, cols: np.ascontiguousarray(
+        np.asarray(splat.read(r0, c0, rows, cols), np.float32).reshape(rows, cols, -1)[..., order])
+
+
+def terrain_mesh(terrain, max_vertices: int):
+    """The terrain mesh (worldlib.terrain.mesh) of the terrain read by window."""
+    return terrain_mesh_by_window(heights_of(terrain), terrain.shape, terrain.cell_size_m, terrain.origin_m,
+                                  max_vertices, BAND_ROWS)
+
+
+def write_terrain_layer(path: Path, mesh_data, texture: str, params: WorldParams, provenance: dict,
                         udim: tuple[str, int] | None = None, normal_texture: str | None = None,
                         detail: dict | None = None) -> dict:
     """udim: (file pattern with <UDIM>, tiles per side): the albedo from UDIM
@@ -128,7 +151,6 @@ def write_terrain_layer(path: Path, height: Grid, texture: str, params: WorldPar
     terrain = UsdGeom.Xform.Define(stage, "/World/Terrain")
     Usd.ModelAPI(terrain).SetKind(Kind.Tokens.component)
 
-    mesh_data = build_terrain_mesh(height, params.mesh_max_vertices)
     nfaces = len(mesh_data.face_vertex_indices) // 3
     ext = mesh_data.extent
 
@@ -189,6 +211,10 @@ def write_terrain_layer(path: Path, height: Grid, texture: str, params: WorldPar
 
 
 GROUND_TILE_THREADS = 2  # UDIM tiles baked at once (each holds about 40 B a texel at its peak)
+# rows of a grid read at once where the world stage reads whole rows (the normal map, the splat textures, the
+# mesh's lattice): a whole number of the textures' file tiles (images.MIP_TILE); about 50 MB of float64 per
+# channel at 8192 columns
+BAND_ROWS = 256
 
 
 # what the ground textures read of the params (the unit's key; the rest shapes the layers only)
@@ -197,11 +223,13 @@ GROUND_PARAMS = ("texture_size", "ground_texel_m", "ground_tile_texels", "mesh_m
                  "ground_near_m", "ground_near_texels", "ground_near_east_m", "ground_near_south_m")
 
 
-def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, params: WorldParams, albedo_path: Path,
+def write_ground_textures(ctx: RunContext, terrain, splat_grid, mesh, params: WorldParams, albedo_path: Path,
                           folder: Path, provenance: dict) -> tuple[tuple[str, int], str]:
     """The ground from the splat weights (ground.py): albedo.exr (the whole
     world at texture_size, for overviews), UDIM albedo tiles ground.<UDIM>.exr
-    at ground_texel_m and normal.exr from the height, beside the terrain layer."""
+    at ground_texel_m and normal.exr from the height, beside the terrain
+    layer. terrain, splat_grid: grids read by window (GridFile, GridArray),
+    never whole."""
     from pipeline.errors import InputError
 
     from . import ground
@@ -210,19 +238,20 @@ def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, param
     missing = [c for c in ground.SPLAT_ORDER if c not in splat_grid.channels]
     if missing:
         raise InputError(f"world: the splat weights lack channels {missing}")
-    splat = np.stack([splat_grid.channel(c) for c in ground.SPLAT_ORDER], axis=-1).astype(np.float32)
-    rows, cols = height.shape
-    if splat.shape[:2] != (rows, cols):
-        raise InputError(f"world: the splat weights are {splat.shape[:2]}, the terrain {(rows, cols)}")
-    dx = height.cell_size_m
+    rows, cols = terrain.shape
+    if tuple(splat_grid.shape) != (rows, cols):
+        raise InputError(f"world: the splat weights are {tuple(splat_grid.shape)}, the terrain {(rows, cols)}")
+    read_splat = splat_of(splat_grid)
+    splat_shape = (rows, cols, len(ground.SPLAT_ORDER))
+    dx = terrain.cell_size_m
     size_m = max(rows, cols) * dx
     tiles, texels = ground.udim_layout(size_m, params.ground_texel_m, params.ground_tile_texels)
     texel_m = size_m / (tiles * texels)
     n = params.texture_size
-    overview = GroundAlbedo(ctx.cl, splat, ground.detail_tables(ctx.seed, size_m / n))
-    images.write_mipmapped_texture(albedo_path, overview.tile(dx, height.origin_m, 1, n, 0, 0, size_m / n), provenance)
+    overview = GroundAlbedo(ctx.cl, read_splat, splat_shape, ground.detail_tables(ctx.seed, size_m / n))
+    images.write_mipmapped_texture(albedo_path, overview.tile(dx, terrain.origin_m, 1, n, 0, 0, size_m / n), provenance)
     del overview
-    baker = GroundAlbedo(ctx.cl, splat, ground.detail_tables(ctx.seed, texel_m))
+    baker = GroundAlbedo(ctx.cl, read_splat, splat_shape, ground.detail_tables(ctx.seed, texel_m))
 
     def write_tile(udim: int, tile: np.ndarray) -> int:
         # zip level 1: the write is most of a tile's cost, and the lowest level writes fastest for little more disk
@@ -239,30 +268,42 @@ def write_ground_textures(ctx: RunContext, height: Grid, splat_grid: Grid, param
             if len(pending) >= GROUND_TILE_THREADS:
                 pending.pop(0).result()
             pending.append(pool.submit(write_tile, 1001 + u + 10 * v,
-                                       baker.tile(dx, height.origin_m, tiles, texels, u, v, texel_m)))
-            ctx.progress(0.05 + 0.7 * (i + 1) / tiles ** 2, f"ground tile {1001 + u + 10 * v}")
+                                       baker.tile(dx, terrain.origin_m, tiles, texels, u, v, texel_m)))
+            ctx.progress(0.05 + 0.6 * (i + 1) / tiles ** 2, f"ground tile {1001 + u + 10 * v}")
         for p in pending:
             p.result()
-    from worldlib.terrain.mesh import bilinear, lattice_coordinates
-
-    h = height.channel(height.channels[0]).astype(np.float64)
-    mesh = build_terrain_mesh(height, params.mesh_max_vertices)
-    nr, nc = mesh.lattice_shape
-    lattice = mesh.points[:, 1].reshape(nr, nc).astype(np.float64)
-    # the mesh surface at every cell centre (bilinear within the lattice; the mesh is piecewise linear)
-    ri = np.interp(np.arange(rows), lattice_coordinates(rows, nr), np.arange(nr))
-    ci = np.interp(np.arange(cols), lattice_coordinates(cols, nc), np.arange(nc))
-    mesh_h = bilinear(lattice, ri, ci)
-    images.write_mipmapped_texture(folder / "normal.exr", ground.normal_map(h, mesh_h, dx), provenance)
+    ctx.progress(0.66, "ground normal map")
+    write_normal_map(folder / "normal.exr", heights_of(terrain), (rows, cols), dx, mesh, provenance)
     ctx.metrics.update(ground_udim_tiles=tiles * tiles, ground_texel_m=texel_m, ground_tile_texels=texels)
     if params.ground_detail:
-        ctx.progress(0.76, "ground detail layer")
-        ctx.metrics["ground_detail"] = write_ground_detail(ctx, h, splat, height, mesh, params, folder, provenance)
+        ctx.progress(0.72, "ground detail layer")
+        ctx.metrics["ground_detail"] = write_ground_detail(ctx, terrain, read_splat, mesh, params, folder, provenance)
     return ("./ground.<UDIM>.exr", tiles), "./normal.exr"
 
 
-def write_ground_detail(ctx: RunContext, h: np.ndarray, splat: np.ndarray, height: Grid, mesh, params: WorldParams,
-                        folder: Path, provenance: dict) -> dict:
+def write_normal_map(path: Path, read_height, shape: tuple[int, int], dx: float, mesh, provenance: dict) -> None:
+    """ground.normal_map of the whole grid against the mesh surface at every
+    cell centre (bilinear within the lattice; the mesh is piecewise linear),
+    written band by band of rows (each read with a row around it for the
+    gradient): the bytes of the whole map, never whole in memory."""
+    from . import ground
+
+    rows, cols = shape
+    nr, nc = mesh.lattice_shape
+    lattice = mesh.points[:, 1].reshape(nr, nc).astype(np.float64)
+    ri = np.interp(np.arange(rows), lattice_coordinates(rows, nr), np.arange(nr))
+    ci = np.interp(np.arange(cols), lattice_coordinates(cols, nc), np.arange(nc))
+    with images.MipmappedWriter(path, rows, cols, 3, provenance) as out:
+        for r0 in range(0, rows, BAND_ROWS):
+            r1 = min(rows, r0 + BAND_ROWS)
+            a, b = max(0, r0 - 1), min(rows, r1 + 1)
+            h = np.asarray(read_height(a, 0, b - a, cols), np.float64)
+            normals = ground.normal_map(h, bilinear(lattice, ri[a:b], ci), dx)
+            out.write_rows(normals[r0 - a:r1 - a])
+
+
+def write_ground_detail(ctx: RunContext, terrain, read_splat, mesh, params: WorldParams, folder: Path,
+                        provenance: dict) -> dict:
     """The detail textures, the splat textures and the near square's bake
     (ground_near); what write_terrain_layer's `detail` takes."""
     import time
@@ -273,12 +314,14 @@ def write_ground_detail(ctx: RunContext, h: np.ndarray, splat: np.ndarray, heigh
 
     t0 = time.perf_counter()
     textures = ground_detail.detail_textures(ctx.seed, params.ground_detail_texels)
-    files = write_detail_files(folder, textures, splat, provenance)
+    files = write_detail_files(folder, textures, read_splat, terrain.shape, provenance, BAND_ROWS)
     detail = {"files": files, "near": None}
     if params.ground_near_m > 0:
         layer = ground_detail.DetailLayer.from_textures(textures)
         t1 = time.perf_counter()
-        detail["near"] = write_near(folder, layer, splat, h, height.cell_size_m, height.origin_m, mesh,
+        read_height = heights_of(terrain)
+        detail["near"] = write_near(folder, layer, read_splat, lambda *w: np.asarray(read_height(*w), np.float64),
+                                    terrain.shape, terrain.cell_size_m, terrain.origin_m, mesh,
                                     params.ground_near_m, (params.ground_near_east_m, params.ground_near_south_m),
                                     params.ground_near_texels, params.ground_texel_m / 32)
         ctx.metrics["ground_near_bake_s"] = round(time.perf_counter() - t1, 2)
@@ -312,8 +355,18 @@ def bind_plant_assets(root_path: Path, placed: dict, plants_layer: Path, ctx: Ru
 
 
 def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
-    height: Grid = inputs["terrain"]
-    rows, cols = height.shape
+    """The whole run: its grids read by window from memory, the tiled run's
+    code (run_tiled), so both write the same bytes."""
+    grids = {role: GridArray(inputs[role]) for role in ("terrain", "splat") if role in inputs}
+    return run_tiled(ctx, {**inputs, **grids}, params)
+
+
+def run_tiled(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
+    """The world from its grids read by window (a tiled bake's GridFile
+    handles): the ground textures band by band and tile by tile, the mesh's
+    lattice band by band; no grid is ever whole."""
+    terrain = inputs["terrain"]
+    rows, cols = terrain.shape
     if rows < 2 or cols < 2:
         from pipeline.errors import InputError
 
@@ -323,21 +376,22 @@ def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
     albedo_path = ctx.path("world.albedo")
     terrain_path = ctx.path("world.terrain")
     splat_grid = inputs.get("splat")
-    udim = normal_file = None
+    udim = normal_file = mesh = None
     if splat_grid is None:
-        images.write_texture(albedo_path, ground_colour(height, params.texture_size, params), ctx.provenance)
+        images.write_texture(albedo_path, ground_colour(terrain, params.texture_size, params), ctx.provenance)
     else:
         # the ground textures (most of this stage's time and bytes) are a unit (pipeline.units): a world
         # re-made for its plants, impostors or volumes links them from the run that baked them
-        unit = ctx.unit("ground", {"height": height.content_hash(), "splat": splat_grid.content_hash(), "seed": ctx.seed,
-                                   "params": {k: getattr(params, k) for k in GROUND_PARAMS}})
+        unit = ctx.unit("ground", {"height": terrain.content_hash(), "splat": splat_grid.content_hash(),
+                                   "seed": ctx.seed, "params": {k: getattr(params, k) for k in GROUND_PARAMS}})
         saved = unit.restore(terrain_path.parent)
         if saved is not None:
             udim, normal_file = (saved["udim"][0], saved["udim"][1]), saved["normal"]
             ctx.metrics.update(saved["metrics"], ground_reused=True)
         else:
             metrics_before = set(ctx.metrics)
-            udim, normal_file = write_ground_textures(ctx, height, splat_grid, params, albedo_path,
+            mesh = terrain_mesh(terrain, params.mesh_max_vertices)
+            udim, normal_file = write_ground_textures(ctx, terrain, splat_grid, mesh, params, albedo_path,
                                                       terrain_path.parent, unit.provenance)
             folder = terrain_path.parent
             files = [albedo_path.name, normal_file.removeprefix("./")] + sorted(
@@ -348,7 +402,9 @@ def run(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
             ctx.metrics["ground_reused"] = False
 
     ctx.progress(0.8, "terrain mesh")
-    ctx.metrics.update(write_terrain_layer(terrain_path, height, "./" + albedo_path.name, params, ctx.provenance,
+    if mesh is None:
+        mesh = terrain_mesh(terrain, params.mesh_max_vertices)
+    ctx.metrics.update(write_terrain_layer(terrain_path, mesh, "./" + albedo_path.name, params, ctx.provenance,
                                            udim, normal_file, ctx.metrics.get("ground_detail")))
 
     ctx.progress(0.9, "world layer")
@@ -443,6 +499,7 @@ STAGE = Stage(
     ),
     params=WorldParams,
     run=run,
+    run_tiled=run_tiled,
     check=check,
     report=(ReportPicture("view", world_picture),),
     source_dir=Path(__file__).parent,

@@ -90,6 +90,31 @@ def build_terrain_mesh(height: Grid, max_vertices_per_side: int) -> TerrainMesh:
     return mesh_from_lattice(bilinear(h, ri, ci), ri, ci, height.cell_size_m, height.origin_m, height.size_m)
 
 
+def lattice_heights(read, shape: tuple[int, int], ri: np.ndarray, ci: np.ndarray, band_rows: int = 512) -> np.ndarray:
+    """bilinear(h, ri, ci) of a rows x cols grid read by window (read(row0,
+    col0, rows, cols) -> that window of h), band by band of cell rows: the
+    same numbers as from the whole grid, which is never whole here."""
+    rt, ct = lattice_taps(shape[0], ri), lattice_taps(shape[1], ci)
+    c_lo, c_hi = int(ct[0].min()), int(ct[1].max()) + 1
+    hv = np.zeros((len(ri), len(ci)))
+    for b0 in range(0, shape[0], band_rows):
+        rs = np.flatnonzero((rt[0] >= b0) & (rt[0] < b0 + band_rows))
+        if not len(rs):
+            continue
+        r_hi = int(rt[1][rs].max()) + 1  # a tap's second cell may be the next band's
+        h = read(b0, c_lo, r_hi - b0, c_hi - c_lo)
+        hv[rs] = bilinear_taps(h, tuple(x[rs] for x in rt), ct, origin=(b0, c_lo))
+    return hv
+
+
+def terrain_mesh_by_window(read, shape: tuple[int, int], dx: float, origin_m: tuple[float, float],
+                           max_vertices_per_side: int, band_rows: int = 512) -> TerrainMesh:
+    """build_terrain_mesh of a height grid read by window (lattice_heights)."""
+    ri, ci = lattice_of(*shape, max_vertices_per_side)
+    size = (shape[1] * dx, shape[0] * dx)
+    return mesh_from_lattice(lattice_heights(read, shape, ri, ci, band_rows), ri, ci, dx, tuple(origin_m), size)
+
+
 def mesh_from_lattice(hv: np.ndarray, ri: np.ndarray, ci: np.ndarray, dx: float, origin_m: tuple[float, float],
                       size_m: tuple[float, float]) -> TerrainMesh:
     """The mesh of the lattice heights hv (float64) at lattice lines ri, ci (lattice_of)."""

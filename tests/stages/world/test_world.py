@@ -206,3 +206,16 @@ def test_mipmapped_texture_levels_are_box_means(tmp_path):
     box = rgb.reshape(4, 2, 3, 2, 3).mean(axis=(1, 3))
     np.testing.assert_allclose(levels[1], box, atol=1e-3)
     np.testing.assert_allclose(levels[2][:, 0], box[:, :2].reshape(2, 2, 2, 3).mean(axis=(1, 2)), atol=1e-3)
+
+
+def test_a_texture_written_band_by_band_is_the_whole_ones_bytes(tmp_path):
+    rng = np.random.default_rng(2)
+    rgb = rng.random((201, 77, 3)).astype(np.float32)  # odd rows and columns: the MIP levels drop them
+    images.write_mipmapped_texture(tmp_path / "whole.exr", rgb, {"stage": "world"})
+    with images.MipmappedWriter(tmp_path / "bands.exr", 201, 77, 3, {"stage": "world"}) as out:
+        for r0 in range(0, 201, 64):
+            out.write_rows(rgb[r0:r0 + 64])
+    assert (tmp_path / "bands.exr").read_bytes() == (tmp_path / "whole.exr").read_bytes()
+    with pytest.raises(ValueError, match="whole 64-row tiles"):
+        with images.MipmappedWriter(tmp_path / "bad.exr", 201, 77, 3) as out:
+            out.write_rows(rgb[:10])
