@@ -351,8 +351,10 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
         except BaseException:
             shutil.rmtree(tile_work, ignore_errors=True)
             raise
+        dropped_tiles = tiled and not config.keep_tiles  # the tile units go once the run is in place
         if tiled:
-            ctx.metrics["tiling"] = {"tile_cells": config.tile_cells, "passes": ctx.tiles.passes}
+            ctx.metrics["tiling"] = {"tile_cells": config.tile_cells, "passes": ctx.tiles.passes,
+                                     "tile_units_kept": not dropped_tiles}
         t_run = time.perf_counter() - t0
         missing = [a.name for a in stage.outputs if a.name not in outputs and not a.optional]
         extra = [n for n in outputs if n not in {a.name for a in stage.outputs}]
@@ -374,7 +376,8 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
             "inputs": {role: {"artifact": a, "stage": s, "key": k, "content": ps.key_material["inputs"][role][1]}
                        for role, (a, s, k) in ps.inputs.items()},
             "outputs": out_meta, "files": files, "file_stats": file_stats,
-            "units": dict(sorted(ctx.units.used.items())),
+            "units": dict(sorted((name, key) for name, key in ctx.units.used.items()
+                                 if not dropped_tiles or name not in ctx.tiles.tile_units)),
             "exr_channels": {f: exr.channel_names(work / f) for f in files if f.lower().endswith(".exr")},
             "timings": {"run_s": round(t_run, 4), "write_s": round(time.perf_counter() - t1, 4)},
             "metrics": _finite_metrics(ctx.metrics),
@@ -382,6 +385,8 @@ def run_step(store: Store, ps: KeyedStep, config: WorldConfig, graph: Graph,
         }
         write_json(work / MANIFEST, manifest)  # last: its presence means the folder is whole
     shutil.rmtree(tile_work, ignore_errors=True)  # the tiles' arrays live on in their units
+    if dropped_tiles:
+        ctx.tiles.drop_units()
     return manifest
 
 

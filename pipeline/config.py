@@ -40,7 +40,8 @@ TOP_LEVEL_KEYS = {
     "variants": "tables of overrides baked side by side",
     "description": "free text",
     "shared": "values of params several stages share (e.g. mesh_max_vertices), set once for all of them",
-    "tiling": "how the world's cells are split into tiles for the work: tile_cells (0: one tile)",
+    "tiling": "how the world's cells are split into tiles for the work: tile_cells (0: one tile), keep_tiles (keep "
+              "the tile units once the run is written)",
 }
 
 TILE_CELLS_MULTIPLE = 256  # a world tile is whole grid file tiles (pipeline.exr.TILE)
@@ -117,6 +118,9 @@ class WorldConfig:
     file_hashes: dict[str, str]  # "stage.param" -> sha256 of the file a ProjectPath names
     # [tiling] tile_cells: cells per side of a world tile (0: one tile); how the work is split, so in no key
     tile_cells: int = 0
+    # [tiling] keep_tiles: keep a tiled run's tile units in the store once its artifacts are written (they only
+    # resume a run stopped part way, and a 16384^2 hydrology's take tens of GB); how the work is done, in no key
+    keep_tiles: bool = False
     origin: dict[str, str] = dataclasses.field(default_factory=dict, compare=False)  # key -> the file (or --set) it came from
     overrides: dict[str, Any] = dataclasses.field(default_factory=dict)  # --set KEY=VALUE, in order (the world's history)
 
@@ -357,6 +361,7 @@ def load_config(path: Path | str, stages: dict[str, Stage], *, project_root: Pat
         raise InputError(f"{origin.get('outputs', shown)}: outputs: must be a non-empty list of stage or artifact names, got {outputs!r}")
 
     tile_cells = _tile_cells(tree.get("tiling", {}), origin, shown)
+    keep_tiles = _keep_tiles(tree.get("tiling", {}), origin, shown)
 
     shared = tree.get("shared", {})
     shareable = {p for s in stages.values() for p in s.shared_params}
@@ -397,7 +402,16 @@ def load_config(path: Path | str, stages: dict[str, Stage], *, project_root: Pat
             load_config(path, stages, project_root=root, variant=other, sets=sets)
     return WorldConfig(path=path, project_root=root, name=name, variant=variant, seed=seed,
                        outputs=tuple(outputs), params=params, file_hashes=file_hashes, tile_cells=tile_cells,
-                       origin=dict(origin), overrides=overrides)
+                       keep_tiles=keep_tiles, origin=dict(origin), overrides=overrides)
+
+
+def _keep_tiles(tiling: dict, origin: dict[str, str], shown: str) -> bool:
+    """[tiling] keep_tiles: true or false (default)."""
+    value = tiling.get("keep_tiles", False)
+    if not isinstance(value, bool):
+        raise InputError(f"{origin.get('tiling.keep_tiles', shown)}: tiling.keep_tiles: must be true or false, "
+                         f"got {value!r}")
+    return value
 
 
 def _tile_cells(tiling: Any, origin: dict[str, str], shown: str) -> int:
@@ -405,8 +419,9 @@ def _tile_cells(tiling: Any, origin: dict[str, str], shown: str) -> int:
     if not isinstance(tiling, dict):
         raise InputError(f"{origin.get('tiling', shown)}: tiling: must be a table, e.g. [tiling] tile_cells = 1024")
     for key in tiling:
-        if key != "tile_cells":
-            raise InputError(f"{origin.get('tiling.' + key, shown)}: tiling.{key}: unknown key (allowed: tile_cells)")
+        if key not in ("tile_cells", "keep_tiles"):
+            raise InputError(f"{origin.get('tiling.' + key, shown)}: tiling.{key}: unknown key (allowed: tile_cells, "
+                             f"keep_tiles)")
     value = tiling.get("tile_cells", 0)
     if (not isinstance(value, int) or isinstance(value, bool) or value < 0 or value % TILE_CELLS_MULTIPLE
             or value > 1 << 20):

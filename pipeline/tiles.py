@@ -314,6 +314,14 @@ class TileRunner:
         self.stage, self.run_key, self.seed, self.project_root = stage, run_key, seed, Path(project_root)
         self.units, self.work, self.progress = units, Path(work), progress
         self.passes: list[dict[str, Any]] = []  # per pass: tiles, reused, seconds (the run's metrics)
+        self.tile_units: dict[str, Path | None] = {}  # the kept passes' tile units: name -> folder
+
+    def drop_units(self) -> None:
+        """Remove the run's tile units from the store: once its artifacts are
+        written they would only resume a run that is already whole."""
+        for folder in self.tile_units.values():
+            if folder is not None:
+                shutil.rmtree(folder, ignore_errors=True)
 
     def tiles(self, shape: tuple[int, int]) -> list[Tile]:
         return tiles_of(shape, self.tile_cells)
@@ -358,7 +366,8 @@ class TileRunner:
         results = self._dask(jobs) if _in_dask_worker() else self._local(jobs, pass_name)
         for job in jobs:  # the unit keys the run used (its manifest keeps them from gc)
             if self.units is not None and keep:
-                _tile_unit(self.units, job)
+                unit = _tile_unit(self.units, job)
+                self.tile_units[unit.name] = unit.folder
         self.passes.append({"pass": pass_name, "tiles": len(tiles), "kept": keep,
                             "reused": sum(1 for _, _, s in results if s == 0.0),
                             "tile_seconds": round(sum(s for _, _, s in results), 3),

@@ -85,7 +85,9 @@ def test_a_tiled_heightmap_is_the_untiled_one_byte_for_byte(project, resolution,
     assert stage_files(project / "b_whole", "heightmap") == stage_files(project / "b_tiled", "heightmap")
     m = manifest(project / "b_tiled", "heightmap")
     n = (-(-resolution // tile_cells)) ** 2
-    assert m["metrics"]["tiling"]["passes"][0]["tiles"] == n and len(m["units"]) == n
+    assert m["metrics"]["tiling"]["passes"][0]["tiles"] == n
+    # the tile units resume a stopped run; once the run is in place they are gone (tiling.keep_tiles keeps them)
+    assert m["units"] == {} and not list((project / "b_tiled" / "units").glob("heightmap/*"))
     assert "tiling" not in manifest(project / "b_whole", "heightmap")["metrics"]
     for name in ("height_min_m", "height_max_m"):
         assert m["metrics"][name] == manifest(project / "b_whole", "heightmap")["metrics"][name]
@@ -103,13 +105,15 @@ def test_a_tiled_bake_on_dask_is_the_local_one(project):
 def test_a_stopped_tiled_bake_resumes_from_its_tiles(project):
     """The run's tiles are units: with the run itself gone (a bake killed
     before its rename), the next bake reuses every tile and writes the same files."""
-    bake(project, "b", "heightmap.resolution=512", "tiling.tile_cells=256")
+    # keep_tiles: the units outlive the run, so removing the run leaves what a kill before its rename leaves
+    bake(project, "b", "heightmap.resolution=512", "tiling.tile_cells=256", "tiling.keep_tiles=true")
     before = stage_files(project / "b", "heightmap")
     shutil.rmtree(project / "b" / "artifacts" / "heightmap")
-    bake(project, "b", "heightmap.resolution=512", "tiling.tile_cells=256")
+    bake(project, "b", "heightmap.resolution=512", "tiling.tile_cells=256", "tiling.keep_tiles=true")
     assert stage_files(project / "b", "heightmap") == before
-    (p,) = manifest(project / "b", "heightmap")["metrics"]["tiling"]["passes"]
-    assert p["reused"] == p["tiles"] == 4
+    m = manifest(project / "b", "heightmap")
+    (p,) = m["metrics"]["tiling"]["passes"]
+    assert p["reused"] == p["tiles"] == len(m["units"]) == 4
 
 
 # 2 m cells in 3 x 3 tiles of 256 (the last row and column part tiles): geological time and the storm on
@@ -136,10 +140,10 @@ def test_a_tiled_erosion_is_the_untiled_one_byte_for_byte(project, executor):
 def test_a_stopped_tiled_erosion_resumes_from_its_last_talus_round(project):
     """The talus rule's rounds before the last are not kept; a bake that
     finds the last round's tiles in the store starts there."""
-    bake(project, "b", *ERODED, "tiling.tile_cells=256")
+    bake(project, "b", *ERODED, "tiling.tile_cells=256", "tiling.keep_tiles=true")
     before = stage_files(project / "b", "erosion")
     shutil.rmtree(project / "b" / "artifacts" / "erosion")
-    bake(project, "b", *ERODED, "tiling.tile_cells=256")
+    bake(project, "b", *ERODED, "tiling.tile_cells=256", "tiling.keep_tiles=true")
     assert stage_files(project / "b", "erosion") == before
     passes = manifest(project / "b", "erosion")["metrics"]["tiling"]["passes"]
     assert [p["pass"] for p in passes] == ["prepare", "heights", "thermal128", "storm_input", "maps"]
@@ -178,6 +182,9 @@ def test_a_bad_tiling_is_refused_before_any_stage_runs(project, value, why):
 def test_an_unknown_tiling_key_is_named(project):
     proc = bake(project, "b", "tiling.tile_size=256", check=False)
     assert proc.returncode == 2 and "tiling.tile_size: unknown key" in proc.stderr
+    proc = bake(project, "b", "tiling.keep_tiles=1", check=False)
+    assert proc.returncode == 2 and "tiling.keep_tiles: must be true or false, got 1" in proc.stderr
+    assert not (project / "b").exists() or not list((project / "b").glob("artifacts/*"))
 
 
 def test_a_tiled_run_is_checked_for_the_memory_of_a_tile(project):
