@@ -32,6 +32,7 @@ from worldlib.terrain.mesh import bilinear, lattice_coordinates, lattice_heights
 from .dcc_layer import write_dcc_layer
 from .impostor_layer import IMPOSTOR_INPUT, bind_impostors
 from .report_view import world_picture
+from .terrain_tiles import water_points, write_terrain_tiles
 from .volume_layer import SECTOR_VOLUMES
 
 # Upstream USD layers composed into the world, strongest first; absent when
@@ -139,12 +140,14 @@ def terrain_mesh(terrain, max_vertices: int):
 
 def write_terrain_layer(path: Path, mesh_data, texture: str, params: WorldParams, provenance: dict,
                         udim: tuple[str, int] | None = None, normal_texture: str | None = None,
-                        detail: dict | None = None) -> dict:
+                        detail: dict | None = None, water: np.ndarray | None = None) -> dict:
     """udim: (file pattern with <UDIM>, tiles per side): the albedo from UDIM
     tiles read through primvar st_udim = st * tiles; normal_texture: a
     tangent-space normal map (encoded 0..1) over the whole terrain; detail:
-    the ground's detail layer (ground_near.author_detail_graph). The mesh
-    is written in tiles with LODs, each a payload (terrain_tiles.py)."""
+    the ground's detail layer (ground_near.author_detail_graph); water:
+    points on the water surface (terrain_tiles.water_points), which the
+    coarse LODs are carved under. The mesh is written in tiles with LODs,
+    each a payload (terrain_tiles.py)."""
     from pxr import Gf, Kind, Sdf, Usd, UsdGeom, UsdShade
 
     stage, world = usdio.create_stage(path, provenance)
@@ -198,10 +201,9 @@ def write_terrain_layer(path: Path, mesh_data, texture: str, params: WorldParams
         if detail.get("near") is not None:
             near = dict(detail["near"], roughness=params.roughness)
             near_material = author_near_material(stage, near)
-    from .terrain_tiles import write_terrain_tiles
-
     tiles = write_terrain_tiles(stage, path.parent, mesh_data, params.terrain_tile_quads, material,
-                                None if udim is None else udim[1], detail is not None, near, near_material, provenance)
+                                None if udim is None else udim[1], detail is not None, near, near_material, provenance,
+                                water)
 
     world.GetPrim()  # /World stays the defaultPrim of this layer too
     stage.GetRootLayer().Save()
@@ -404,8 +406,9 @@ def run_tiled(ctx: RunContext, inputs: dict, params: WorldParams) -> dict:
     ctx.progress(0.8, "terrain mesh")
     if mesh is None:
         mesh = terrain_mesh(terrain, params.mesh_max_vertices)
+    water = water_points(inputs["water"]) if "water" in inputs else None
     ctx.metrics.update(write_terrain_layer(terrain_path, mesh, "./" + albedo_path.name, params, ctx.provenance,
-                                           udim, normal_file, ctx.metrics.get("ground_detail")))
+                                           udim, normal_file, ctx.metrics.get("ground_detail"), water))
 
     ctx.progress(0.9, "world layer")
     root_path = ctx.path("world.root")

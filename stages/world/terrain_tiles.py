@@ -11,6 +11,13 @@ beside terrain.usdc. The world selects `full`; a DCC opens the world with
 the tiles unloaded (Usd.Stage.LoadNone) and loads those it wants, at the
 LOD it selects (dcc_layer.py selects coarser ones for far tiles).
 
+Where the water (the hydrology's rivers and lakes) crosses a tile, its
+coarse LODs are carved: the vertices of the triangles under a water point
+whose surface would rise above the water are lowered until it is
+WATER_CARVE_DEPTH_M under it (a coarse LOD spans a narrow valley above its
+river, and a DCC that draws far tiles coarse would bury the rivers); the
+lod_error_m the selection reads counts that lowering.
+
 Each LOD mesh holds the geometry: points, triangles, vertex normals and
 primvars st (over the whole world: the one ground texture still maps),
 st_udim, st_detail and st_near when the ground has them, and the near
@@ -26,12 +33,43 @@ from pathlib import Path
 
 import numpy as np
 
-from worldlib.terrain.mesh import LOD_STRIDES, TerrainMesh, TileMesh, lod_error_m, terrain_tile, tile_edges
+from worldlib.terrain.mesh import (LOD_STRIDES, TerrainMesh, TileMesh, carve_lod, lod_error_m, terrain_tile,
+                                   tile_edges)
 
 GROUND = "/World/Terrain/Ground"
 TILES_DIR = "terrain"  # beside terrain.usdc: one layer per tile
 TILE_KEY = "worldbake:tile"  # the tile prim's customData
 DEFAULT_LOD = "full"
+WATER = "/World/Water"  # the hydrology's water layer: river ribbons and lakes
+# a coarse LOD's ground is lowered to this far under the water surface where it would rise above it (the
+# full LOD's ground under a river is its bed, a bed depth down)
+WATER_CARVE_DEPTH_M = 0.3
+
+
+def water_points(water_layer: Path) -> np.ndarray:
+    """(n, 3) float64: the centre of every face and every vertex of the
+    water's meshes (river ribbons, lakes) in world coordinates: points on
+    the water surface, inside it and on its banks."""
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(water_layer))
+    root = stage.GetPrimAtPath(WATER)
+    out = []
+    for prim in Usd.PrimRange(root) if root else []:
+        if not prim.IsA(UsdGeom.Mesh):
+            continue
+        mesh = UsdGeom.Mesh(prim)
+        pts = np.asarray(mesh.GetPointsAttr().Get() or [], np.float64)
+        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], np.int64)
+        idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], np.int64)
+        if not len(pts) or not len(counts):
+            continue
+        xf = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default()), np.float64)
+        pts = pts @ xf[:3, :3] + xf[3, :3]  # USD matrices act on row vectors
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        tri = counts >= 3  # each face's first three corners: their centre lies inside a convex face
+        out += [pts, pts[idx[starts[tri, None] + np.arange(3)[None]]].mean(axis=1)]
+    return np.concatenate(out) if out else np.zeros((0, 3))
 
 
 def tile_name(col: int, row: int) -> str:
@@ -106,10 +144,14 @@ def write_tile_layer(path: Path, lods: dict[str, TileMesh], udim_tiles: int | No
 
 
 def write_terrain_tiles(stage, folder: Path, mesh: TerrainMesh, tile_quads: int, material, udim_tiles: int | None,
-                        detail: bool, near: dict | None, near_material, provenance: dict) -> dict:
+                        detail: bool, near: dict | None, near_material, provenance: dict,
+                        water: np.ndarray | None = None) -> dict:
     """GROUND in `stage` (the terrain layer, at folder) and the tile layers
     under folder/TILES_DIR; returns metrics (tiles, vertices and triangles
-    per LOD, largest LOD error)."""
+    per LOD, largest LOD error, vertices lowered). water: points on the
+    water surface (water_points): the coarse LODs are carved under them
+    (worldlib.terrain.mesh.carve_lod), so a DCC that draws far tiles coarse
+    still shows the rivers."""
     from pxr import Sdf, UsdGeom, UsdShade, Vt
 
     UsdGeom.Xform.Define(stage, GROUND)
@@ -119,10 +161,16 @@ def write_terrain_tiles(stage, folder: Path, mesh: TerrainMesh, tile_quads: int,
     rows, cols = tile_edges(nr, tile_quads), tile_edges(nc, tile_quads)
     counts = {lod: [0, 0] for lod in LOD_STRIDES}
     worst = {lod: 0.0 for lod in LOD_STRIDES}
+    carved = {lod: 0 for lod in LOD_STRIDES}
+    water = np.zeros((0, 3)) if water is None else np.asarray(water, np.float64)
     for j in range(len(rows) - 1):
         for i in range(len(cols) - 1):
             span_r, span_c = (int(rows[j]), int(rows[j + 1])), (int(cols[i]), int(cols[i + 1]))
-            lods = {lod: terrain_tile(mesh, span_r, span_c, s) for lod, s in LOD_STRIDES.items()}
+            lods = {}
+            for lod, s in LOD_STRIDES.items():
+                lods[lod], lowered = carve_lod(mesh, terrain_tile(mesh, span_r, span_c, s), span_r, span_c, s, water,
+                                               WATER_CARVE_DEPTH_M)
+                carved[lod] += lowered
             errors = {lod: round(lod_error_m(mesh, t), 3) for lod, t in lods.items()}
             for lod, t in lods.items():
                 counts[lod][0] += len(t.points)
@@ -133,7 +181,8 @@ def write_terrain_tiles(stage, folder: Path, mesh: TerrainMesh, tile_quads: int,
             geom = UsdGeom.Mesh.Define(stage, prim_path)
             geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
             geom.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
-            ext = lods[DEFAULT_LOD].extent  # every LOD's vertices are some of the full LOD's
+            ext = np.stack([np.min([t.extent[0] for t in lods.values()], 0),  # a carved LOD reaches lower
+                            np.max([t.extent[1] for t in lods.values()], 0)])
             geom.CreateExtentAttr(_extent(ext))
             prim = geom.GetPrim()
             UsdShade.MaterialBindingAPI.Apply(prim).Bind(material)
@@ -158,8 +207,8 @@ def write_terrain_tiles(stage, folder: Path, mesh: TerrainMesh, tile_quads: int,
                 for name, bound in ((NEAR_SUBSET_NAME, near_material), (REST_SUBSET_NAME, material)):
                     UsdShade.MaterialBindingAPI.Apply(stage.OverridePrim(f"{prim_path}/{name}")).Bind(bound)
     return {"terrain_tiles": [len(rows) - 1, len(cols) - 1], "terrain_tile_quads": int(tile_quads),
-            "terrain_lods": {lod: {"vertices": v, "triangles": t, "max_error_m": worst[lod]}
-                             for lod, (v, t) in counts.items()}}
+            "terrain_lods": {lod: {"vertices": v, "triangles": t, "max_error_m": worst[lod],
+                                   "lowered_under_water": carved[lod]} for lod, (v, t) in counts.items()}}
 
 
 def tile_prims(stage) -> list:

@@ -169,7 +169,7 @@ LOD_STRIDES = {"full": 1, "half": 2, "quarter": 4}
 @dataclass(frozen=True)
 class TileMesh:
     """A part of a TerrainMesh: its vertices (the lattice's own values,
-    bitwise) and triangles indexing them."""
+    bitwise, but where carve_lod lowered them) and triangles indexing them."""
     points: np.ndarray  # (n, 3) float32
     normals: np.ndarray  # (n, 3) float32
     st: np.ndarray  # (n, 2) float32
@@ -267,6 +267,49 @@ def terrain_tile(mesh: TerrainMesh, rows: tuple[int, int], cols: tuple[int, int]
     return TileMesh(mesh.points[ids], mesh.normals[ids], mesh.st[ids], faces.reshape(-1).astype(np.int32), ids)
 
 
+def carve_lod(mesh: TerrainMesh, tile: TileMesh, rows: tuple[int, int], cols: tuple[int, int], stride: int,
+              water: np.ndarray, depth_m: float) -> tuple[TileMesh, int]:
+    """The tile's LOD at a stride (terrain_tile) with the vertices of its
+    inner quads lowered where its surface would rise above points on the
+    water surface (x, y, z) less depth_m: a coarse LOD spans a narrow valley
+    above its river and would bury it. Each point's triangle's three
+    vertices go down by the largest rise of the points it holds, so the
+    surface at every point ends depth_m under the water. The border ring
+    (its vertices shared with the neighbours) stays as it is. Returns the
+    tile and how many vertices it lowered."""
+    if stride <= 1 or not len(water):
+        return tile, 0
+    nr, nc = mesh.lattice_shape
+    lattice = mesh.points.reshape(nr, nc, 3)
+    xs, zs = lattice[0, :, 0].astype(np.float64), lattice[:, 0, 2].astype(np.float64)
+    ci = (water[:, 0] - xs[0]) / (xs[-1] - xs[0]) * (nc - 1)  # the lattice is evenly spaced
+    ri = (water[:, 2] - zs[0]) / (zs[-1] - zs[0]) * (nr - 1)
+    rr = np.asarray(_lod_lines(rows[1] - rows[0], stride)) + rows[0]
+    cc = np.asarray(_lod_lines(cols[1] - cols[0], stride)) + cols[0]
+    qi = np.searchsorted(rr, ri, side="right") - 1
+    qj = np.searchsorted(cc, ci, side="right") - 1
+    inner = (qi >= 1) & (qi <= len(rr) - 3) & (qj >= 1) & (qj <= len(cc) - 3)  # tile_lod_triangles' plain quads
+    if not inner.any():
+        return tile, 0
+    qi, qj, ri, ci, y = qi[inner], qj[inner], ri[inner], ci[inner], water[inner, 1]
+    a, b, c, d = rr[qi], rr[qi + 1], cc[qj], cc[qj + 1]
+    u, v = (ci - c) / (d - c), (ri - a) / (b - a)
+    upper = u + v <= 1.0  # triangle (a c, b c, a d); otherwise (a d, b c, b d): the lattice's diagonal
+    corners = np.stack([np.where(upper, a * nc + c, a * nc + d), b * nc + c, np.where(upper, a * nc + d, b * nc + d)], 1)
+    weights = np.stack([np.where(upper, 1.0 - u - v, 1.0 - v), np.where(upper, v, 1.0 - u),
+                        np.where(upper, u, u + v - 1.0)], 1)
+    at = np.searchsorted(tile.lattice_ids, corners)  # the tile's vertices (lattice_ids is sorted)
+    points = tile.points.astype(np.float64)
+    rise = (weights * points[at, 1]).sum(1) - (y - depth_m)
+    drop = np.zeros(len(points))
+    np.maximum.at(drop, at.ravel(), np.repeat(np.maximum(rise, 0.0), 3))
+    if not (drop > 0).any():
+        return tile, 0
+    points[:, 1] -= drop
+    return (TileMesh(points.astype(np.float32), tile.normals, tile.st, tile.face_vertex_indices, tile.lattice_ids),
+            int((drop > 0).sum()))
+
+
 def lod_error_m(mesh: TerrainMesh, tile: TileMesh) -> float:
     """Largest vertical distance between the full lattice's vertices inside
     the tile and the tile's surface (0 for the full LOD): each triangle
@@ -276,7 +319,7 @@ def lod_error_m(mesh: TerrainMesh, tile: TileMesh) -> float:
     heights = mesh.points[:, 1].astype(np.float64)
     r, c = np.divmod(tile.lattice_ids, nc)
     tri = tile.face_vertex_indices.reshape(-1, 3)
-    tr, tc, ty = r[tri].astype(np.float64), c[tri].astype(np.float64), heights[tile.lattice_ids][tri]
+    tr, tc, ty = r[tri].astype(np.float64), c[tri].astype(np.float64), tile.points[:, 1].astype(np.float64)[tri]
     r0, c0 = r[tri].min(1), c[tri].min(1)
     span = int(max((r[tri].max(1) - r0).max(), (c[tri].max(1) - c0).max())) + 1
     dr, dc = (a.reshape(-1) for a in np.mgrid[0:span, 0:span])

@@ -113,3 +113,44 @@ def test_a_plane_has_no_lod_error():
     m = build_terrain_mesh(Grid((100 + 3.0 * r - 2.0 * c).astype(np.float32), 10.0), 1000)
     for stride in (2, 4, 8):
         assert lod_error_m(m, terrain_tile(m, (0, 29), (0, 29), stride)) < 1e-3
+
+
+def _surface_at(tile, x, z):
+    """The tile mesh's height at (x, z), by brute force over its triangles (seen from above)."""
+    p = tile.points.astype(np.float64)
+    out = np.full(len(x), np.nan)
+    for a, b, c in tile.face_vertex_indices.reshape(-1, 3):
+        (ax, ay, az), (bx, by, bz), (cx, cy, cz) = p[a], p[b], p[c]
+        det = (bx - ax) * (cz - az) - (cx - ax) * (bz - az)
+        u = ((x - ax) * (cz - az) - (cx - ax) * (z - az)) / det
+        v = ((bx - ax) * (z - az) - (x - ax) * (bz - az)) / det
+        inside = (u >= -1e-9) & (v >= -1e-9) & (u + v <= 1 + 1e-9)
+        out[inside] = (ay + u * (by - ay) + v * (cy - ay))[inside]
+    return out
+
+
+def test_a_carved_coarse_lod_keeps_the_river_in_sight_and_its_border():
+    """A V valley along the rows, its floor between the quarter LOD's
+    lattice lines: the coarse surface spans the valley above the river;
+    carved, it lies WATER depth under the water at every river point of the
+    inner quads, and the border ring is the lattice's own, bit for bit."""
+    from worldlib.terrain.mesh import carve_lod
+
+    c = np.arange(41, dtype=np.float64)
+    h = np.tile(10.0 * np.abs(c - 18.0), (41, 1)).astype(np.float32)  # the floor on column 18 (x = 18.5 m)
+    mesh = build_terrain_mesh(Grid(h, 1.0), 41)
+    river = np.stack([np.full(25, 18.5), np.full(25, 0.4), np.linspace(8.5, 31.5, 25)], -1)  # x, y 0.4 m deep, z
+    tile = terrain_tile(mesh, (0, 40), (0, 40), 4)
+    before = _surface_at(tile, river[:, 0], river[:, 2])
+    assert (before > 15.0).all()  # the quarter LOD buries the river under 20 m of valley
+    carved, lowered = carve_lod(mesh, tile, (0, 40), (0, 40), 4, river, 0.3)
+    after = _surface_at(carved, river[:, 0], river[:, 2])
+    assert np.all(after <= river[:, 1] - 0.3 + 1e-4) and lowered > 0
+    moved = carved.points[:, 1] != tile.points[:, 1]
+    r, col = np.divmod(tile.lattice_ids, 41)
+    border = (r == 0) | (r == 40) | (col == 0) | (col == 40)
+    assert not moved[border].any() and np.array_equal(carved.points[border], tile.points[border])
+    assert set(col[moved]) <= {16, 20}  # only the lines either side of the river
+    assert carve_lod(mesh, terrain_tile(mesh, (0, 40), (0, 40), 1), (0, 40), (0, 40), 1, river, 0.3)[1] == 0
+    # the error the DCC selection reads is the carved surface's: the lowered lattice lines sit 19.9 m under the lattice
+    assert lod_error_m(mesh, carved) >= 19.9
