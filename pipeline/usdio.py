@@ -55,6 +55,25 @@ def set_provenance(layer, provenance: dict[str, Any]) -> None:
     layer.customLayerData = data
 
 
+def mesh_in_world(prim):
+    """A UsdGeom.Mesh prim's (points in world space float64, face vertex
+    counts, face vertex indices); None for another prim or a mesh without
+    points or faces."""
+    import numpy as np
+    from pxr import Usd, UsdGeom
+
+    if not prim.IsA(UsdGeom.Mesh):
+        return None
+    mesh = UsdGeom.Mesh(prim)
+    pts = np.asarray(mesh.GetPointsAttr().Get() or [], np.float64)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], np.int64)
+    idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], np.int64)
+    if not len(pts) or not len(counts):
+        return None
+    xf = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default()), np.float64)
+    return pts @ xf[:3, :3] + xf[3, :3], counts, idx  # USD matrices act on row vectors
+
+
 def relative_asset_path(target: Path | str, layer_path: Path | str) -> str:
     """A path to `target` relative to the folder of the layer that will author
     it, with forward slashes and a leading ./ as USD expects for relative

@@ -45,6 +45,7 @@ def _ground_scenes(world_usda: Path) -> list:
 
     from worldlib.render import Scene
 
+    from pipeline.usdio import mesh_in_world
     from worldlib.render.usd_asset import mute_dcc_selection
 
     stage = Usd.Stage.Open(str(world_usda))
@@ -55,16 +56,10 @@ def _ground_scenes(world_usda: Path) -> list:
         if prim.IsA(UsdGeom.PointInstancer):
             it.PruneChildren()
             continue
-        if not prim.IsA(UsdGeom.Mesh):
+        arrays = mesh_in_world(prim)  # None: not a mesh, or an empty one
+        if arrays is None:
             continue
-        mesh = UsdGeom.Mesh(prim)
-        pts = np.asarray(mesh.GetPointsAttr().Get() or [], np.float64)
-        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], np.int64)
-        idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], np.int64)
-        if not len(pts) or not len(counts):
-            continue
-        xf = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default()), np.float64)
-        pts = pts @ xf[:3, :3] + xf[3, :3]  # USD matrices act on row vectors
+        pts, counts, idx = arrays
         tris = _triangulate(counts, idx)
         water = "water" in str(prim.GetPath()).lower()
         tint = np.tile([0.05, 0.12, 0.25] if water else [0.3, 0.3, 0.28], (len(tris), 1))

@@ -50,22 +50,17 @@ def water_points(water_layer: Path) -> np.ndarray:
     """(n, 3) float64: the centre of every face and every vertex of the
     water's meshes (river ribbons, lakes) in world coordinates: points on
     the water surface, inside it and on its banks."""
-    from pxr import Usd, UsdGeom
+    from pxr import Usd
+
+    from pipeline.usdio import mesh_in_world
 
     stage = Usd.Stage.Open(str(water_layer))
     root = stage.GetPrimAtPath(WATER)
     out = []
-    for prim in Usd.PrimRange(root) if root else []:
-        if not prim.IsA(UsdGeom.Mesh):
+    for arrays in (mesh_in_world(prim) for prim in (Usd.PrimRange(root) if root else [])):
+        if arrays is None:
             continue
-        mesh = UsdGeom.Mesh(prim)
-        pts = np.asarray(mesh.GetPointsAttr().Get() or [], np.float64)
-        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], np.int64)
-        idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], np.int64)
-        if not len(pts) or not len(counts):
-            continue
-        xf = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default()), np.float64)
-        pts = pts @ xf[:3, :3] + xf[3, :3]  # USD matrices act on row vectors
+        pts, counts, idx = arrays
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
         tri = counts >= 3  # each face's first three corners: their centre lies inside a convex face
         out += [pts, pts[idx[starts[tri, None] + np.arange(3)[None]]].mean(axis=1)]
