@@ -163,11 +163,13 @@ def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, 
     for rnd in range(1, MAX_EPS_ROUNDS + 1):
         progress(0.02, f"routing surface: round {rnd}, {len(active)} tiles")
         ins = {"terrain": terrain, **({"routing": routing} if routing is not None else {})}
-        # the rounds are not kept as units: dozens of world-sized arrays, each cheaper to remake than to store
+        # the rounds are not kept as units: dozens of world-sized arrays, each cheaper to remake than to store;
+        # a round reads only the one before, which goes once this one is made (21 rounds at 16384^2: 23 GB)
         routing_now, parts = runner.map(eps_round, f"routing{rnd}", shape, ins, params,
                                         per_tile={t.name: t.name in active for t in tiles},
                                         grids={"routing": ("routing",)}, keep=False, **geo)
-        routing = routing_now["routing"]
+        before, routing = routing, routing_now["routing"]
+        runner.discard(before)
         changed = {(t.row, t.col) for t, s in zip(tiles, parts) if s["changed"]}
         if not changed:
             break
@@ -580,6 +582,8 @@ def hack(runner, terrain, core: dict, params) -> tuple[dict, dict]:
                           grids={"path_a": ("a",), "path_b": ("b",)}, keep=False, **geo)
     _, parts = runner.map(hack_tile, "hack", shape, {"code": core["code"], "counts": core["counts"], **paths}, params,
                           dx, keep=False, **geo)
+    for arrays in paths.values():  # two world-sized arrays no later pass reads
+        runner.discard(arrays)
     out = {k: np.concatenate([p[k] for p in parts]) for k in ("cells", "area", "L", "best", "outlet")}
     order = np.argsort(out["cells"], kind="stable")
     out = {k: v[order] for k, v in out.items()}
