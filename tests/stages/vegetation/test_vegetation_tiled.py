@@ -13,7 +13,7 @@ import pytest
 
 from pipeline.grid import Grid
 from pipeline.opencl import get_cl
-from pipeline.tiles import TileRunner
+from pipeline.tiles import GridArray, TileRunner
 from stages.vegetation import stage as vs
 from stages.vegetation import tiled
 
@@ -42,17 +42,6 @@ def test_tiled_vegetation_writes_the_untiled_files(tmp_path, resolution, executo
     assert manifest["metrics"]["tiled_steps"].startswith("every step")
 
 
-class Window:
-    """A Grid read by window, as the engine's GridFile."""
-
-    def __init__(self, grid: Grid):
-        self.grid, self.channels = grid, tuple(grid.channels)
-
-    def read(self, row0, col0, rows, cols, channel=None):
-        data = self.grid.channel(channel) if channel is not None else np.asarray(self.grid.data)
-        return np.array(data[row0:row0 + rows, col0:col0 + cols])
-
-
 def whole_land(dx: float, params, seed: int):
     """The test world at dx cells, and the whole run's land on it: (inputs,
     backend, run context, stage._Land)."""
@@ -69,7 +58,7 @@ def tiled_growth(tmp_path, inputs: dict, params, seed: int, be, tile_cells: int)
     shape, dx = grid.data.shape[:2], grid.cell_size_m
     runner = TileRunner(tile_cells, stage=vs.STAGE, run_key="test", seed=seed, project_root=tmp_path, units=None,
                         work=tmp_path / "work")
-    windows = {k: Window(g) for k, g in inputs.items()}
+    windows = {k: GridArray(g) for k, g in inputs.items()}
     plants, gname = params.plant_species(), params.grass_species()
     out = tiled.fields(runner, windows, params, shape, dx, grid.origin_m, seed, plants + [gname])
     return runner, windows, out, tiled.growth(runner, out, windows, params, shape, dx, grid.origin_m, seed, be)
@@ -103,7 +92,7 @@ def test_tiled_fields_are_the_whole_runs(world, tmp_path, tile_cells):
 
     runner = TileRunner(tile_cells, stage=vs.STAGE, run_key="test", seed=seed, project_root=tmp_path, units=None,
                         work=tmp_path / "work")
-    out = tiled.fields(runner, {k: Window(g) for k, g in inputs.items()}, params, grid.data.shape[:2],
+    out = tiled.fields(runner, {k: GridArray(g) for k, g in inputs.items()}, params, grid.data.shape[:2],
                        grid.cell_size_m, grid.origin_m, seed, grow)
     assert out["avalanche_rounds"] >= 1  # lines crossed tile edges
     shape = grid.data.shape[:2]
@@ -145,7 +134,7 @@ def test_tiled_growth_maps_are_the_whole_runs(tmp_path, dx, tile_cells):
 
     runner = TileRunner(tile_cells, stage=vs.STAGE, run_key="test", seed=seed, project_root=tmp_path, units=None,
                         work=tmp_path / "work")
-    windows = {k: Window(g) for k, g in inputs.items()}
+    windows = {k: GridArray(g) for k, g in inputs.items()}
     out = tiled.fields(runner, windows, params, shape, dx, grid.origin_m, seed, plants + [gname])
     got = tiled.growth(runner, out, windows, params, shape, dx, grid.origin_m, seed, be)
     assert tiled.sim_factor(shape, dx, params, tile_cells) == (1 if dx == 8.0 else 4)
@@ -206,7 +195,7 @@ def test_tiled_tufts_are_the_whole_runs(tmp_path):
     shape = grid.data.shape[:2]
     runner = TileRunner(48, stage=vs.STAGE, run_key="test", seed=5, project_root=tmp_path, units=None,
                         work=tmp_path / "work")
-    windows = {k: Window(g) for k, g in inputs.items()}
+    windows = {k: GridArray(g) for k, g in inputs.items()}
     plants, gname = params.plant_species(), params.grass_species()
     out = tiled.fields(runner, windows, params, shape, 4.0, grid.origin_m, 5, plants + [gname])
     grown = tiled.growth(runner, out, windows, params, shape, 4.0, grid.origin_m, 5, be)
