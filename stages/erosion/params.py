@@ -118,7 +118,7 @@ class ErosionParams(Params):
         "the cell size); the threshold used is max(channel_area_m2, this x dx). 0 turns it off", ge=0.0, le=1e9)
     critical_slope_deg: float = Param(
         0.0, units="deg", description="threshold landsliding during geological time: after each step no slope "
-        "may exceed this angle (heights cut to the lower envelope of cones of this slope, 32-direction distances; "
+        "may exceed this angle (heights cut to the lower envelope of round cones of this slope; "
         "the material joins the rivers' sediment). Mean hillslope gradients of threshold landscapes level off "
         "near 30 .. 35 degrees at 30 m (Montgomery and Brandon 2002); 0 turns it off", ge=0.0, le=89.0)
     strata_thickness_m: float = Param(

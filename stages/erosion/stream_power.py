@@ -799,7 +799,10 @@ def _landslide(solver: _Solver, h: np.ndarray, rock_uplift_m: float) -> tuple[np
     strata = solver.options.strata
     if strata is not None:
         sc = np.where(strata.hard(h, rock_uplift_m), strata.critical_slope, sc)
-    cut = hillslope.landslide(h, solver.dx, sc)
+    try:
+        cut = hillslope.landslide(h, solver.dx, sc, solver.env)
+    except RuntimeError as e:
+        raise StageError(f"erosion: {e}") from e
     slid = (h - cut) * solver.cell_area
     return cut, slid
 

@@ -1,0 +1,39 @@
+// Rounding the landslide's cones (hillslope.py round_cones; its numpy
+// reference is round_cones_reference): one Jacobi sweep of the Godunov
+// upwind update of |grad u| = Sc, u <= its input, on the axis stencil and on
+// the diagonal one (spacing sqrt 2), the lower of the two. Ping-pong buffers:
+// every cell reads only the previous sweep, so the result does not depend on
+// the order the device runs the cells in. No contraction into fma: the
+// numbers are numpy's.
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#pragma OPENCL FP_CONTRACT OFF
+
+static double eikonal_arm(double a, double b, double s)
+{
+    if (isinf(a) && isinf(b)) return INFINITY;  // no neighbour on either side of this stencil
+    double d = fabs(a - b);
+    if (d >= s) return fmin(a, b) + s;
+    return 0.5 * (a + b + sqrt(2.0 * s * s - d * d));
+}
+
+static double at(__global const double* u, int r, int c, int rows, int cols)
+{
+    return (r < 0 || c < 0 || r >= rows || c >= cols) ? INFINITY : u[r * cols + c];
+}
+
+__kernel void round_cones(__global const double* u, __global double* out, __global const double* rise,
+                          int rows, int cols, double tol, __global int* changed)
+{
+    int c = get_global_id(0), r = get_global_id(1);
+    if (r >= rows || c >= cols) return;
+    int i = r * cols + c;
+    double s = rise[i];  // Sc dx of this cell
+    double axis = eikonal_arm(fmin(at(u, r, c - 1, rows, cols), at(u, r, c + 1, rows, cols)),
+                              fmin(at(u, r - 1, c, rows, cols), at(u, r + 1, c, rows, cols)), s);
+    double diag = eikonal_arm(fmin(at(u, r - 1, c - 1, rows, cols), at(u, r + 1, c + 1, rows, cols)),
+                              fmin(at(u, r - 1, c + 1, rows, cols), at(u, r + 1, c - 1, rows, cols)),
+                              s * 1.4142135623730951);
+    double v = fmin(u[i], fmin(axis, diag));
+    out[i] = v;
+    if (u[i] - v > tol) changed[0] = 1;  // every writer stores the same 1: no atomics needed
+}
