@@ -216,17 +216,17 @@ def cone_envelope(h: np.ndarray, dx: float, critical_slope) -> np.ndarray:
 # carried to the fine cells). The envelope of round cones is the largest u <= h with |grad u| <= Sc, the
 # viscosity solution of the eikonal equation with h as obstacle: Jacobi sweeps of the Godunov upwind update
 # (axis and diagonal stencils, the lower), started from the polygon envelope (an upper bound within 1.3 %),
-# lower it until no cell moves more than CONE_TOLERANCE_M. A round cone then lies within 0.7 % of Sc r and its
-# slope points within 3 degrees of the radius (the polygon's: 1.3 % and 8 degrees). The sweeps run in batches;
-# only a batch's last is checked. A cell's own limit bounds it above its lowest neighbours (the envelope's
-# step limit is the mean of the step's two cells').
-ROUND_BATCH = 8
+# lower it toward that. A sweep carries the round cone one cell further from its foot, so converging takes as
+# many sweeps as the longest hillslope has cells (100 to 200 per geological step on the default world); but
+# the creases round where they are, within a few sweeps, and what more sweeps add is the far field's last
+# 1.3 % of height, smooth. ROUND_SWEEPS it is: on a 1 km world at 1 m cells under an 8 m geology the grid
+# anisotropy is 1.35 with none, 1.04 after 24, 0.98 converged (64). Within ROUND_SWEEPS cells of its foot a
+# round cone lies within 0.7 % of Sc r and its slope points within 3 degrees of the radius (the polygon's:
+# 1.3 % and 8 degrees). A cell's own limit bounds it above its lowest neighbours (the envelope's step limit is
+# the mean of the step's two cells'). Rounding only after the last step is not enough: the creases of the
+# earlier steps' facets stay in the valleys the rivers cut (anisotropy 1.45 instead of 0.98).
+ROUND_SWEEPS = 32
 SQRT2 = 1.4142135623730951
-
-
-def _round_max_sweeps(shape: tuple[int, ...]) -> int:
-    """The sweeps after which the rounding counts as not converging: a sweep carries a change one cell further."""
-    return 4 * (shape[0] + shape[1]) + ROUND_BATCH
 
 
 def _eikonal_arm(a: np.ndarray, b: np.ndarray, s: np.ndarray) -> np.ndarray:
@@ -238,24 +238,20 @@ def _eikonal_arm(a: np.ndarray, b: np.ndarray, s: np.ndarray) -> np.ndarray:
     return np.where(np.isinf(a) & np.isinf(b), np.inf, out)
 
 
-def round_cones_reference(z: np.ndarray, rise: np.ndarray) -> np.ndarray:
+def round_cones_reference(z: np.ndarray, rise: np.ndarray, sweeps: int = ROUND_SWEEPS) -> np.ndarray:
     """round_cones in numpy: z the cone envelope, rise Sc dx per cell."""
     u = np.array(z, np.float64)
     s = np.asarray(rise, np.float64)
     s2 = s * SQRT2
-    for sweep in range(_round_max_sweeps(u.shape)):
+    for _ in range(sweeps):
         p = np.pad(u, 1, constant_values=np.inf)
         axis = _eikonal_arm(np.minimum(p[1:-1, :-2], p[1:-1, 2:]), np.minimum(p[:-2, 1:-1], p[2:, 1:-1]), s)
         diag = _eikonal_arm(np.minimum(p[:-2, :-2], p[2:, 2:]), np.minimum(p[:-2, 2:], p[2:, :-2]), s2)
-        new = np.minimum(u, np.minimum(axis, diag))
-        moved = (sweep + 1) % ROUND_BATCH == 0 and bool(((u - new) > CONE_TOLERANCE_M).any())
-        u = new
-        if (sweep + 1) % ROUND_BATCH == 0 and not moved:
-            return u
-    raise RuntimeError(f"landslide: rounding the cones did not converge in {_round_max_sweeps(u.shape)} sweeps")
+        u = np.minimum(u, np.minimum(axis, diag))
+    return u
 
 
-def round_cones(env, z: np.ndarray, rise: np.ndarray) -> np.ndarray:
+def round_cones(env, z: np.ndarray, rise: np.ndarray, sweeps: int = ROUND_SWEEPS) -> np.ndarray:
     """The cone envelope z's cones rounded on the OpenCL device env (hillslope.cl), rise Sc dx per cell."""
     import pyopencl as cl
 
@@ -263,30 +259,19 @@ def round_cones(env, z: np.ndarray, rise: np.ndarray) -> np.ndarray:
 
     if "cl_khr_fp64" not in env.device.extensions:
         raise RuntimeError(f"landslide: rounding the cones needs double precision, which {env.device.name} lacks")
-    prg = load_program(env, KERNELS)
-    kernel = cl.Kernel(prg, "round_cones")
+    kernel = cl.Kernel(load_program(env, KERNELS), "round_cones")
     rows, cols = z.shape
     mf, q = cl.mem_flags, env.queue
     bufs = [cl.Buffer(env.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(z, np.float64)),
             cl.Buffer(env.ctx, mf.READ_WRITE, z.size * 8)]
     d_rise = cl.Buffer(env.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(rise, np.float64))
-    flag = np.zeros(1, np.int32)
-    d_flag = cl.Buffer(env.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=flag)
-    for sweep in range(_round_max_sweeps(z.shape)):
-        last = (sweep + 1) % ROUND_BATCH == 0
-        if last:
-            cl.enqueue_copy(q, d_flag, np.zeros(1, np.int32))
-        kernel.set_args(bufs[0], bufs[1], d_rise, np.int32(rows), np.int32(cols),
-                        np.float64(CONE_TOLERANCE_M if last else np.inf), d_flag)
+    for _ in range(sweeps):
+        kernel.set_args(bufs[0], bufs[1], d_rise, np.int32(rows), np.int32(cols))
         cl.enqueue_nd_range_kernel(q, kernel, (cols, rows), None)
         bufs.reverse()
-        if last:
-            cl.enqueue_copy(q, flag, d_flag)
-            if not flag[0]:
-                out = np.empty(z.shape, np.float64)
-                cl.enqueue_copy(q, out, bufs[0])
-                return out
-    raise RuntimeError(f"landslide: rounding the cones did not converge in {_round_max_sweeps(z.shape)} sweeps")
+    out = np.empty(z.shape, np.float64)
+    cl.enqueue_copy(q, out, bufs[0])
+    return out
 
 
 def cone_distance(vr: int, vc: int) -> float:

@@ -801,7 +801,7 @@ def _landslide(solver: _Solver, h: np.ndarray, rock_uplift_m: float) -> tuple[np
         sc = np.where(strata.hard(h, rock_uplift_m), strata.critical_slope, sc)
     try:
         cut = hillslope.landslide(h, solver.dx, sc, solver.env)
-    except RuntimeError as e:
+    except RuntimeError as e:  # a device without double precision
         raise StageError(f"erosion: {e}") from e
     slid = (h - cut) * solver.cell_area
     return cut, slid

@@ -34,12 +34,13 @@ def test_landslide_cone_is_round_and_never_steeper_than_the_limit(cl_env):
     ratio = facets[ring] / (sc * rad[ring])
     assert ratio.min() >= 1.0 - 1e-12 and ratio.max() <= 1.014  # 32 directions: within 1.3 % of a round cone
     z = hillslope.landslide(h, 1.0, sc, cl_env)
-    ratio = z[ring] / (sc * rad[ring])
+    near = ring & (rad < hillslope.ROUND_SWEEPS - 2)  # the sweeps round the cone this far from its foot
+    ratio = z[near] / (sc * rad[near])
     assert ratio.min() >= 1.0 - 1e-12 and ratio.max() <= 1.007  # rounded: within 0.7 % (measured 0.66 %)
 
     def direction_error_deg(f):  # of the slope against the radius: the polygon's faces show as a fan of facets
         gy, gx = np.gradient(f)
-        err = (np.degrees(np.arctan2(gy, gx) - np.arctan2(r, c))[ring] + 180.0) % 360.0 - 180.0
+        err = (np.degrees(np.arctan2(gy, gx) - np.arctan2(r, c))[near] + 180.0) % 360.0 - 180.0
         return np.abs(err).max()
 
     assert direction_error_deg(facets) > 7.0 and direction_error_deg(z) < 3.0  # measured 8.0 and 2.8
@@ -59,13 +60,6 @@ def test_rounding_the_cones_on_the_device_equals_numpy(cl_env, shape):
         assert np.array_equal(hillslope.round_cones(cl_env, z, rise), want)
         assert (want <= z).all()
     assert (z - want).max() > 0.1  # the rounding bites
-
-
-def test_rounding_that_does_not_converge_is_an_error(monkeypatch):
-    h = np.random.default_rng(1).random((30, 30)) * 100.0
-    monkeypatch.setattr(hillslope, "_round_max_sweeps", lambda shape: hillslope.ROUND_BATCH)
-    with pytest.raises(RuntimeError, match="did not converge"):
-        hillslope.landslide(h, 1.0, 0.3)
 
 
 def test_landslide_extremes():
