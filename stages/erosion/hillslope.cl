@@ -16,22 +16,16 @@ static double eikonal_arm(double a, double b, double s)
     return 0.5 * (a + b + sqrt(2.0 * s * s - d * d));
 }
 
-static double at(__global const double* u, int r, int c, int rows, int cols)
-{
-    return (r < 0 || c < 0 || r >= rows || c >= cols) ? INFINITY : u[r * cols + c];
-}
-
+// u and out are padded: (rows + 2) x (cols + 2), the border +inf (no neighbour there), so no cell needs a bounds check
 __kernel void round_cones(__global const double* u, __global double* out, __global const double* rise,
                           int rows, int cols)
 {
     int c = get_global_id(0), r = get_global_id(1);
     if (r >= rows || c >= cols) return;
-    int i = r * cols + c;
-    double s = rise[i];  // Sc dx of this cell
-    double axis = eikonal_arm(fmin(at(u, r, c - 1, rows, cols), at(u, r, c + 1, rows, cols)),
-                              fmin(at(u, r - 1, c, rows, cols), at(u, r + 1, c, rows, cols)), s);
-    double diag = eikonal_arm(fmin(at(u, r - 1, c - 1, rows, cols), at(u, r + 1, c + 1, rows, cols)),
-                              fmin(at(u, r - 1, c + 1, rows, cols), at(u, r + 1, c - 1, rows, cols)),
+    int w = cols + 2, i = (r + 1) * w + c + 1;
+    double s = rise[r * cols + c];  // Sc dx of this cell
+    double axis = eikonal_arm(fmin(u[i - 1], u[i + 1]), fmin(u[i - w], u[i + w]), s);
+    double diag = eikonal_arm(fmin(u[i - w - 1], u[i + w + 1]), fmin(u[i - w + 1], u[i + w - 1]),
                               s * 1.4142135623730951);
     out[i] = fmin(u[i], fmin(axis, diag));
 }

@@ -262,16 +262,15 @@ def round_cones(env, z: np.ndarray, rise: np.ndarray, sweeps: int = ROUND_SWEEPS
     kernel = cl.Kernel(load_program(env, KERNELS), "round_cones")
     rows, cols = z.shape
     mf, q = cl.mem_flags, env.queue
-    bufs = [cl.Buffer(env.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(z, np.float64)),
-            cl.Buffer(env.ctx, mf.READ_WRITE, z.size * 8)]
+    padded = np.pad(np.asarray(z, np.float64), 1, constant_values=np.inf)  # both buffers keep the +inf border
+    bufs = [cl.Buffer(env.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=padded) for _ in range(2)]
     d_rise = cl.Buffer(env.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(rise, np.float64))
     for _ in range(sweeps):
         kernel.set_args(bufs[0], bufs[1], d_rise, np.int32(rows), np.int32(cols))
         cl.enqueue_nd_range_kernel(q, kernel, (cols, rows), None)
         bufs.reverse()
-    out = np.empty(z.shape, np.float64)
-    cl.enqueue_copy(q, out, bufs[0])
-    return out
+    cl.enqueue_copy(q, padded, bufs[0])
+    return padded[1:-1, 1:-1].copy()
 
 
 def cone_distance(vr: int, vc: int) -> float:
