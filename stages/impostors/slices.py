@@ -163,7 +163,8 @@ ORIENTATIONS = (0.0, 120.0, 240.0)  # azimuths of the vertical slicings (seed 00
 HORIZONTAL_FROM_DEG, HORIZONTAL_TO_DEG = 30.0, 60.0
 
 
-def tree_slices(prepared: Prepared, slabs: int, tile_px: int, samples: int, orientations=ORIENTATIONS) -> Sheet:
+def tree_slices(prepared: Prepared, slabs: int, tile_px: int, samples: int, orientations=ORIENTATIONS,
+                name: str = "slices") -> Sheet:
     """Each slab's two quads lie at the mean depth of what its two renders
     see (the midpoint of the front and the back render's mean along d),
     not at the slab's middle: a viewer off the slicing's axis sees a
@@ -172,7 +173,7 @@ def tree_slices(prepared: Prepared, slabs: int, tile_px: int, samples: int, orie
     (held-out IoU as drawn, 36 views, 3 slabs: conifer 0.72 -> 0.78,
     broadleaf 0.75 -> 0.78)."""
     scene = prepared.scene
-    sheet = _sheet("slices", 2 * len(orientations) + 2, slabs, tile_px)
+    sheet = _sheet(name, 2 * len(orientations) + 2, slabs, tile_px)
     p = scene.positions.astype(np.float64)
     directions = [octahedral.view_direction(theta, 0.0) for theta in orientations] + [np.array([0.0, 1.0, 0.0])]
     for k, d in enumerate(directions):

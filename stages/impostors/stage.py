@@ -13,8 +13,14 @@ Per species, in the artifact's textures/:
   <species>_slices.exr/.png  slice billboards (slices.py): seed 002's 3
                              vertical orientations and a horizontal one (the
                              views from above) x front/back x N slabs for trees
-                             and shrubs; for grass seed 001's 4 vertical plates
-                             (<species>_tuft) and the top slice (<species>_tuft_top)
+                             and shrubs, the sheet the Impostor prim draws
+                             (drawn_slice_slabs); for grass seed 001's 4
+                             vertical plates (<species>_tuft) and the top
+                             slice (<species>_tuft_top)
+  <species>_blend_slices.exr/.png  trees and shrubs, when slice_slabs differs
+                             from drawn_slice_slabs: the sheet of slice_slabs
+                             slabs for an engine's shader that blends the two
+                             slicings nearest the view (seed 002)
   <species>_card_{x,y,z}{pos,neg}.png  the six axis views of USD's cards draw mode
 impostors.usda (usd_layer.py): overs on the plants layer's /Plants/<species>
   that the world composes over the prototypes: the `lod` variant set gains
@@ -34,10 +40,11 @@ the measured error then sets the switch distances.
 Steps (_bake_species per species, then run): read the asset's LOD0 into a render scene
 (worldlib.render.usd_asset, the reader every USD picture shares); bake the atlas;
 measure it from held-out views (measure.py: heldout.py's views, sampler.py); bake the slices and
-measure them the same way, blended as seed 002's shader does and all at once
-as a USD viewer draws the Impostor prim (the slices' switch distance holds
-for the worse of the two); render the cards; derive the switch distances;
-write the textures (textures.py); write the layer.
+measure them the same way, blended as seed 002's shader does (the blend
+sheet) and all at once as a USD viewer draws the Impostor prim (its sheet;
+the slices' switch distance holds for the worse of the two); render the
+cards; derive the switch distances; write the textures (textures.py); write
+the layer.
 """
 from __future__ import annotations
 
@@ -96,8 +103,16 @@ class ImpostorsParams(Params):
                             "frame's mean beyond", ge=0, le=4096)
     depth_steps: int = Param(2, units="steps", description="parallax steps of the depth-aware blend (0: plane only)",
                              ge=0, le=16)
-    slice_slabs: int = Param(3, units="slabs", description="slabs per orientation of the tree slice billboards (seed 002: "
-                             "1, 3 or 5)", ge=1, le=16)
+    slice_slabs: int = Param(3, units="slabs", description="slabs per orientation of the tree slice billboards an "
+                             "engine blends by view, the two slicings nearest it (seed 002: 1, 3 or 5; the sheet "
+                             "blend_slices when it differs from drawn_slice_slabs)", ge=1, le=16)
+    drawn_slice_slabs: int = Param(8, units="slabs", description="slabs per orientation of the tree slice billboards "
+                                   "the Impostor prim carries, which a USD viewer or DCC draws all at once (no "
+                                   "blend by view): the nearest quad of any slicing shows, so each slab's content "
+                                   "must lie near its quad seen from any side, which thin slabs keep; each slab is "
+                                   "two quads 1 mm apart, so a ray across the crown crosses up to 6 x this many "
+                                   "quads of one plant, 2 per slab of each vertical slicing (a DCC's transparent "
+                                   "bounces must allow them)", ge=1, le=16)
     slice_px: int = Param(128, units="texels", description="largest side of a tree slice tile: a tile has half the side "
                           "of the plant's atlas frames (slices are the LOD beyond the atlas), at most this",
                           ge=8, le=2048)
@@ -175,12 +190,18 @@ class _Plant:
 
 @dataclass(frozen=True)
 class _Slices:
-    """The slice billboards: their sheets, and per slicing row (None: the
-    grass tuft's quads together) the billboards as a render scene."""
+    """The slice billboards: the sheets the Impostor prim draws, the sheets
+    an engine blends by view and per slicing row of those (None: the grass
+    tuft's quads together) the billboards as a render scene."""
 
-    sheets: list
+    drawn: list
+    blend: list
     billboards: dict
     tile_px: int  # the largest side of a tree's slice tile
+
+    def written(self) -> list:
+        """Every distinct sheet, for the textures."""
+        return self.drawn + [s for s in self.blend if all(s is not d for d in self.drawn)]
 
 
 @dataclass(frozen=True)
@@ -228,9 +249,9 @@ def _bake_species(ctx: RunContext, name: str, plants_layer: Path, params: Impost
         cards = usd_layer.card_views(plant.prepared, ps.lo, ps.hi, card_px, params.samples)
     error_m, switch_m = _switch_distances(plant, at, sliced.tile_px, references.size, errors, params)
     info = _info(plant, params, at, cutout, references, errors, slice_px=sliced.tile_px, card_px=card_px)
-    written = textures.write(tex_dir, name, unit.provenance, info, at, sliced.sheets, cards)
+    written = textures.write(tex_dir, name, unit.provenance, info, at, sliced.written(), cards)
     timings["total_s"] = time.perf_counter() - t0
-    baked = {"name": name, "info": info, "files": written.atlas, "sheets": sliced.sheets, "sheet_files": written.sheets,
+    baked = {"name": name, "info": info, "files": written.atlas, "sheets": sliced.drawn, "sheet_files": written.sheets,
              "card_files": written.cards, "lo": ps.lo, "hi": ps.hi, "grass": plant.grass, "switch_m": switch_m,
              "error_m": error_m, "timings": dict(timings), "triangles": int(ps.scene.n_triangles), "reused": False}
     unit.save(tex_dir, written.all(), _to_saved(baked))
@@ -261,10 +282,15 @@ def _slices(ctx: RunContext, plant: _Plant, at: atlas.Atlas, params: ImpostorsPa
     slice_px = min(params.slice_px, max(at.frame_px // 2, 8))  # used beyond the atlas: at most half its texels
     if plant.grass:  # seed 001: the tuft's five quads are drawn together
         sheets = [*slices.grass_slices(plant.prepared, params.grass_slice_px, params.samples)]
-        return _Slices(sheets, {None: Prepared(ctx.cl, slices.sheet_scene(sheets))}, slice_px)
-    # seed 002 / Jakulin: the two slicings nearest the view, blended
-    sheets = [slices.tree_slices(plant.prepared, params.slice_slabs, slice_px, params.samples)]
-    return _Slices(sheets, {r: Prepared(ctx.cl, slices.sheet_scene(sheets, rows=(r,))) for r in range(sheets[0].rows)},
+        return _Slices(sheets, sheets, {None: Prepared(ctx.cl, slices.sheet_scene(sheets))}, slice_px)
+    # what a USD viewer draws: every slicing at once, and thick slabs put their content off their quads from
+    # oblique views (any view sees two of the three vertical slicings 30 deg or more from face-on)
+    drawn = [slices.tree_slices(plant.prepared, params.drawn_slice_slabs, slice_px, params.samples)]
+    # seed 002 / Jakulin: the two slicings nearest the view, blended (each seen within 30 deg of face-on), from a
+    # sheet of its own when the slab counts differ
+    blend = drawn if params.slice_slabs == params.drawn_slice_slabs else \
+        [slices.tree_slices(plant.prepared, params.slice_slabs, slice_px, params.samples, name="blend_slices")]
+    return _Slices(drawn, blend, {r: Prepared(ctx.cl, slices.sheet_scene(blend, rows=(r,))) for r in range(blend[0].rows)},
                    slice_px)
 
 
@@ -279,7 +305,7 @@ def _slice_errors(ctx: RunContext, plant: _Plant, sliced: _Slices, references: m
         return slice_errors, slice_errors
     # What a USD viewer draws of the Impostor prim: every quad at once, alpha-tested at 0.5 (the
     # material's opacityThreshold), the nearest wins (so each slab pair shows its viewer's side); no blend.
-    drawn = Prepared(ctx.cl, slices.sheet_scene(sliced.sheets))
+    drawn = Prepared(ctx.cl, slices.sheet_scene(sliced.drawn))
     drawn_errors = heldout.summarize(references.measure(measure.drawn_view(drawn, plant.ps, view_settings)),
                                      plant.height_m)
     return slice_errors, drawn_errors
@@ -334,11 +360,14 @@ def _info(plant: _Plant, params: ImpostorsParams, at: atlas.Atlas, cutout: np.nd
         "error": errors.atlas, "slices_error": errors.slices, "slices_drawn_error": errors.drawn,
         "slices": {"kind": "grass tuft (seed 001)" if grass else "3 vertical orientations (seed 002) and 1 horizontal x front/back x slabs",
                    "slabs": None if grass else params.slice_slabs,
+                   "drawn_slabs": None if grass else params.drawn_slice_slabs,
+                   "sheets": "the Impostor prim draws `slices`; an engine that blends the two slicings nearest the "
+                   "view reads `blend_slices` (`slices` when the slab counts are equal), rows and columns alike",
                    "error_measured_as": "the five quads together" if grass else
                    "Jakulin's blend of the two vertical slicings nearest the view's azimuth (w = 1 - |delta| / 60 "
                    "deg), handing over to the horizontal slicing from 30 to 60 deg of elevation (smoothstep)",
-                   "drawn_error_measured_as": "every quad at once, alpha-tested at 0.5, nearest first: what a USD "
-                   "viewer draws of the Impostor prim"},
+                   "drawn_error_measured_as": "every quad of the Impostor prim's sheet at once, alpha-tested at 0.5, "
+                   "nearest first: what a USD viewer draws of the Impostor prim"},
     }
 
 

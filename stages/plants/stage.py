@@ -162,8 +162,13 @@ def _measure_looks(env, spec, res: PlantResult) -> dict:
            "foliage_to_wood": l0["foliage_area_m2"] / l0["wood_area_m2"] if l0["wood_area_m2"] > 0 else None,
            "leaf_area_index": measure.leaf_area_index(res.lods[0], cov, cpc), "crown_opacity": l0["crown_opacity"],
            "crown_opacity_lod_max_drop": max(l0["crown_opacity"] - e["crown_opacity"] for e in levels),
-           "card_coverage": cov, "levels": levels,
-           "translucency_gain": round(measure.translucency_gain(env, res.lods[0], spec, rgba, slices_rgba=slices), 4)}
+           "card_coverage": cov, "levels": levels}
+    gains = measure.translucency_gains(env, res.lods[0], spec, rgba, slices_rgba=slices)
+    # what the foliage's colour carries for DCCs (a compromise between views, see translucency_gains), and the two
+    # views it is made of
+    out["translucency_gain"] = round(gains["dcc"], 4)
+    out["translucency_gain_side"] = round(gains["side"], 4)
+    out["translucency_gain_front_lit"] = round(gains["front_lit"], 4)
     for name in ("foliage_area_m2", "wood_area_m2", "foliage_to_wood", "leaf_area_index", "crown_opacity",
                  "crown_opacity_lod_max_drop"):
         if out[name] is not None and not np.isfinite(out[name]):

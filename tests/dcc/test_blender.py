@@ -197,13 +197,14 @@ def cl_env_module():
 
 # Known misses of issue 30, kept as strict expected failures so a fix shows (XPASS fails the run) and the
 # figures stay in front of whoever works on them.
-SLICES_SILHOUETTE = pytest.mark.xfail(strict=True, reason="the three slabs' silhouette from the held-out camera: "
-                                      "IoU 0.745 (conifer), 0.820 (broadleaf) in Cycles, under 0.85")
-BROADLEAF_GAIN = pytest.mark.xfail(strict=True, reason="the broadleaf's translucency gain (1.20, baked into its albedo "
-                                   "for DCCs, a mean over side views) brightens a front-lit view: +19.7 % in Cycles")
+# The conifer's slices are bound by their texels here, not by their slabs: this bake's 16-texel tiles (32 px frames)
+# drawn 128 px tall; a 16 px picture of the conifer from this very camera, magnified so, scores IoU 0.78 against its
+# 128 px mesh (32 px: 0.82, 64 px: 0.87; the broadleaf's solid crown 0.87 at 16 px).
+CONIFER_TEXELS = pytest.mark.xfail(strict=True, reason="the conifer's needles at 16-texel slice tiles drawn 128 px "
+                                   "tall: IoU 0.751 in Cycles (a 16 px picture of it from this camera scores 0.78)")
 
 
-@pytest.mark.parametrize("species", [pytest.param(s, marks=SLICES_SILHOUETTE) for s in TREES])
+@pytest.mark.parametrize("species", [pytest.param(s, marks=CONIFER_TEXELS) if s == "conifer" else s for s in TREES])
 def test_impostor_and_lod0_agree_in_cycles(plant_renders, species):
     r = plant_renders[species]
     lod0, imp = r["LOD0"], r["impostor"]
@@ -214,7 +215,7 @@ def test_impostor_and_lod0_agree_in_cycles(plant_renders, species):
     assert abs(li - l0) <= 0.15 * l0, f"{species}: mean luminance impostor {li:.4f}, LOD0 {l0:.4f} in Cycles"
 
 
-@pytest.mark.parametrize("species", [pytest.param(s, marks=BROADLEAF_GAIN) if s == "broadleaf" else s for s in TREES])
+@pytest.mark.parametrize("species", TREES)
 def test_lod0_in_cycles_as_in_our_renderer(plant_renders, species):
     r = plant_renders[species]
     cy, ours = r["LOD0"], r["ours"]
