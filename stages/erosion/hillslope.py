@@ -163,17 +163,20 @@ def _cone_chunk(z: np.ndarray, lines: np.ndarray, rise) -> None:
     z[lines[valid]] = np.minimum(fwd, bwd)[valid]
 
 
-def landslide(h: np.ndarray, dx: float, critical_slope, env=None) -> np.ndarray:
+def landslide(h: np.ndarray, dx: float, critical_slope, env=None, round_sweeps: int = 0) -> np.ndarray:
     """Heights with no slope steeper than critical_slope (m/m, a number or
     one per cell), float64, h' <= h (the difference is the landslide's
-    material): the 32-direction cone envelope, its cones then rounded on the
-    OpenCL device env (None: by the numpy reference), then the envelope once
-    more: the rounding's discretisation leaves a few of the longest steps,
-    (2, 3) and its kin, up to 0.4 % over the limit, and those alone are cut."""
+    material): the 32-direction cone envelope; with round_sweeps, its cones
+    then rounded by that many sweeps on the OpenCL device env (None: by the
+    numpy reference), and the envelope once more (the rounding's
+    discretisation leaves a few of the longest steps, (2, 3) and its kin, up
+    to 0.4 % over the limit, and those alone are cut)."""
     z = cone_envelope(h, dx, critical_slope)
+    if round_sweeps <= 0:
+        return z
     rise = np.broadcast_to(np.asarray(critical_slope, np.float64) * dx, z.shape)
-    return cone_envelope(round_cones(env, z, rise) if env is not None else round_cones_reference(z, rise), dx,
-                         critical_slope)
+    rounded = round_cones(env, z, rise, round_sweeps) if env is not None else round_cones_reference(z, rise, round_sweeps)
+    return cone_envelope(rounded, dx, critical_slope)
 
 
 def cone_envelope(h: np.ndarray, dx: float, critical_slope) -> np.ndarray:
@@ -210,22 +213,20 @@ def cone_envelope(h: np.ndarray, dx: float, critical_slope) -> np.ndarray:
     return z
 
 
-# The cones' rounding. The polygon metric's cones are pyramids of 32 planar faces; a landscape at its threshold
-# slope is made of them, and on a hillshade every cone shows as a fan of facets whose creases run along the
-# lattice directions (the 2-to-16-cell grid anisotropy of a 1 m world under an 8 m geology: 1.35, the facets
-# carried to the fine cells). The envelope of round cones is the largest u <= h with |grad u| <= Sc, the
-# viscosity solution of the eikonal equation with h as obstacle: Jacobi sweeps of the Godunov upwind update
-# (axis and diagonal stencils, the lower), started from the polygon envelope (an upper bound within 1.3 %),
-# lower it toward that. A sweep carries the round cone one cell further from its foot, so converging takes as
-# many sweeps as the longest hillslope has cells (100 to 200 per geological step on the default world); but
-# the creases round where they are, within a few sweeps, and what more sweeps add is the far field's last
-# 1.3 % of height, smooth. ROUND_SWEEPS it is: on a 1 km world at 1 m cells under an 8 m geology the grid
-# anisotropy is 1.35 with none, 1.04 after 24, 0.98 converged (64). Within ROUND_SWEEPS cells of its foot a
-# round cone lies within 0.7 % of Sc r and its slope points within 3 degrees of the radius (the polygon's:
-# 1.3 % and 8 degrees). A cell's own limit bounds it above its lowest neighbours (the envelope's step limit is
-# the mean of the step's two cells'). Rounding only after the last step is not enough: the creases of the
-# earlier steps' facets stay in the valleys the rivers cut (anisotropy 1.45 instead of 0.98).
-ROUND_SWEEPS = 32
+# The cones' rounding (erosion.landslide_round_sweeps; off by default). The polygon metric's cones are pyramids
+# of 32 planar faces; a landscape at its threshold slope is made of them, and on a close hillshade a big cone
+# shows as a fan of facets whose creases run along the lattice directions. The envelope of round cones is the
+# largest u <= h with |grad u| <= Sc, the viscosity solution of the eikonal equation with h as obstacle: Jacobi
+# sweeps of the Godunov upwind update (axis and diagonal stencils, the lower), started from the polygon
+# envelope (an upper bound within 1.3 %), lower it toward that, a cell further from each foot per sweep
+# (converging takes as many sweeps as the longest hillslope has cells: 100 to 200 per geological step on the
+# default world). Within the sweeps' reach a round cone lies within 0.8 % of Sc r and its slope points within
+# 3 degrees of the radius (the polygon's: 1.3 % and 9 degrees; bench.landslide). What it does to the grid
+# anisotropy of the 2-to-16-cell band is mixed, which is why it is off: the default world (8 m cells) goes from
+# 0.92 to 1.17 after 32 sweeps (the edge of the rounded zone), 0.99 after 128, 1.06 converged; a 1 km world at
+# 1 m under an 8 m geology from 1.35 to 1.05 after 32 (0.98 converged); the open world at 1 m from 1.63 to
+# 1.54 after 32, while its 8 m block means go from 1.05 to 1.14. A cell's own limit bounds it above its lowest
+# neighbours (the envelope's step limit is the mean of the step's two cells').
 SQRT2 = 1.4142135623730951
 
 
@@ -238,7 +239,7 @@ def _eikonal_arm(a: np.ndarray, b: np.ndarray, s: np.ndarray) -> np.ndarray:
     return np.where(np.isinf(a) & np.isinf(b), np.inf, out)
 
 
-def round_cones_reference(z: np.ndarray, rise: np.ndarray, sweeps: int = ROUND_SWEEPS) -> np.ndarray:
+def round_cones_reference(z: np.ndarray, rise: np.ndarray, sweeps: int) -> np.ndarray:
     """round_cones in numpy: z the cone envelope, rise Sc dx per cell."""
     u = np.array(z, np.float64)
     s = np.asarray(rise, np.float64)
@@ -251,7 +252,7 @@ def round_cones_reference(z: np.ndarray, rise: np.ndarray, sweeps: int = ROUND_S
     return u
 
 
-def round_cones(env, z: np.ndarray, rise: np.ndarray, sweeps: int = ROUND_SWEEPS) -> np.ndarray:
+def round_cones(env, z: np.ndarray, rise: np.ndarray, sweeps: int) -> np.ndarray:
     """The cone envelope z's cones rounded on the OpenCL device env (hillslope.cl), rise Sc dx per cell."""
     import pyopencl as cl
 

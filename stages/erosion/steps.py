@@ -119,7 +119,7 @@ def solve_geology(cl, h: np.ndarray, dx: float, params: ErosionParams, progress)
                            mfd_isotropic=params.geological_mfd_isotropic,
                            critical_slope=math.tan(math.radians(params.critical_slope_deg)),
                            deposition_g=params.deposition_g, strata=strata_for(params),
-                           incision_width_m=params.incision_width_m)
+                           incision_width_m=params.incision_width_m, round_sweeps=params.landslide_round_sweeps)
     if res.budget_relative_error > 1e-9:
         raise StageError(f"erosion: stream power lost {res.budget_relative_error:.2e} of the eroded volume "
                          f"on its way to base level")

@@ -541,7 +541,8 @@ def run(env, height: np.ndarray, dx: float, years: float, dt_years: float, k: fl
         diffusivity_m2_per_year: float = 0.0, breach: bool = False, mfd_exponent: float = 1.1,
         mfd_step_fn: Callable | None = None, flat_routing: str = "epsilon",
         fill_lakes: bool = False, mfd_isotropic: bool = True, critical_slope: float = 0.0,
-        deposition_g: float = 0.0, strata: Strata | None = None, incision_width_m: float = 0.0) -> StreamPowerResult:
+        deposition_g: float = 0.0, strata: Strata | None = None, incision_width_m: float = 0.0,
+        round_sweeps: int = 0) -> StreamPowerResult:
     """Erode `height` (m, finite) for `years` on the OpenCL device `env`
     (pipeline.opencl.CL); k in m^(1-2m)/year, uplift in m/year. step_fn
     replaces the device solve (tests pass reference_step).
@@ -557,7 +558,8 @@ def run(env, height: np.ndarray, dx: float, years: float, dt_years: float, k: fl
     sediment settles at (G / A) Qs (Yuan et al. 2019; deposit_solve), the
     landslides' material included in Qs; strata: bands of hard rock (Strata);
     incision_width_m (mfd only, 0 off): incise by the flow per metre of
-    contour, K (w A / dx)^m S (incision_k).
+    contour, K (w A / dx)^m S (incision_k); round_sweeps: the landslides'
+    cones rounded by that many sweeps (hillslope.landslide).
 
     Steps: check and breach the start (_start); per step, uplift, then the
     mfd step (_mfd_step) or the single-receiver one (_tree_step); the
@@ -569,7 +571,7 @@ def run(env, height: np.ndarray, dx: float, years: float, dt_years: float, k: fl
         raise StageError(f"erosion: deposition (G = {deposition_g:g}) needs mfd routing, got {routing}")
     k = incision_k(k, m, dx, incision_width_m) if routing == "mfd" else k
     options = _Options(routing, channel_area_m2, diffusivity_m2_per_year, mfd_exponent, flat_routing, fill_lakes,
-                       mfd_isotropic, critical_slope, deposition_g, strata, uplift_m_per_year)
+                       mfd_isotropic, critical_slope, deposition_g, strata, uplift_m_per_year, round_sweeps)
     solver = _Solver(env, kind, dx, _Law(k, m, n_exp, dt), options,
                      _solve_function(env, h.shape, n_exp, options, step_fn, mfd_step_fn))
     height_start = h.copy()
@@ -662,6 +664,7 @@ class _Options:
     deposition_g: float = 0.0
     strata: Strata | None = None
     uplift_m_per_year: float = 0.0
+    round_sweeps: int = 0  # the landslides' cones rounded by this many sweeps (0: the 32-direction envelope)
 
 
 @dataclass(frozen=True)
@@ -800,7 +803,7 @@ def _landslide(solver: _Solver, h: np.ndarray, rock_uplift_m: float) -> tuple[np
     if strata is not None:
         sc = np.where(strata.hard(h, rock_uplift_m), strata.critical_slope, sc)
     try:
-        cut = hillslope.landslide(h, solver.dx, sc, solver.env)
+        cut = hillslope.landslide(h, solver.dx, sc, solver.env, solver.options.round_sweeps)
     except RuntimeError as e:  # a device without double precision
         raise StageError(f"erosion: {e}") from e
     slid = (h - cut) * solver.cell_area
