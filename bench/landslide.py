@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import time
 
 import numpy as np
 
@@ -43,17 +42,8 @@ def cone_errors(env, sweeps: int) -> tuple[float, float]:
     return ratio - 1.0, float(np.abs(err).max())
 
 
-def best(fn, repeat: int) -> float:
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return min(times)
-
-
 def main(argv=None) -> None:
-    from bench.hydrology import dem
+    from bench.hydrology import best_of, dem
     from pipeline.opencl import get_cl
     from stages.erosion import hillslope
 
@@ -68,16 +58,16 @@ def main(argv=None) -> None:
     h = dem(args.size).astype(np.float64) * 3.0
     z = hillslope.cone_envelope(h, dx, SC)
     rise = np.full(z.shape, SC * dx)
-    t_env = best(lambda: hillslope.cone_envelope(h, dx, SC), args.repeat)
+    t_env = best_of(lambda: hillslope.cone_envelope(h, dx, SC), args.repeat)
     print(f"{args.size}^2 cells of {dx:g} m on {env.device.name}: the 32-direction envelope {t_env:.3f} s")
     print(f"{'sweeps':>6} {'round s':>8} {'ms/sweep':>8} {'cone height err':>15} {'slope dir err':>13}")
     for s in args.sweeps:
-        t = best(lambda: hillslope.round_cones(env, z, rise, s), args.repeat)
+        t = best_of(lambda: hillslope.round_cones(env, z, rise, s), args.repeat)
         height, angle = cone_errors(env, s)
         print(f"{s:6d} {t:8.3f} {1e3 * t / max(s, 1):8.2f} {100 * height:14.2f}% {angle:12.1f} deg")
     s = args.reference_sweeps
-    t_dev = best(lambda: hillslope.round_cones(env, z, rise, s), args.repeat)
-    t_ref = best(lambda: hillslope.round_cones_reference(z, rise, s), 1)
+    t_dev = best_of(lambda: hillslope.round_cones(env, z, rise, s), args.repeat)
+    t_ref = best_of(lambda: hillslope.round_cones_reference(z, rise, s), 1)
     same = np.array_equal(hillslope.round_cones(env, z, rise, s), hillslope.round_cones_reference(z, rise, s))
     print(f"{s} sweeps: device {t_dev:.3f} s, numpy reference {t_ref:.3f} s ({t_ref / t_dev:.1f}x), "
           f"bitwise equal: {same}")
