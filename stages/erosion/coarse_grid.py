@@ -24,9 +24,10 @@ non-negative and keeps each block's), so the budgets of the coarse run hold
 on the fine grid.
 
 A prolongation is computed once on the coarse grid (Prolongation: a coarse
-field to interpolate, and for water and sediment a per-block scale and offset) and evaluated on any
-window of fine cells (Prolongation.window) with the same operations for a
-cell whatever the window: a tiled bake's tiles get the whole map's bits.
+field to interpolate, and for water and sediment a per-block scale and
+offset) and evaluated on any window of fine cells (Prolongation.window) with
+the same operations for a cell whatever the window: a tiled bake's tiles get
+the whole map's bits.
 
 With f = 1 (cells already >= the coarse cell size, or it is 0) nothing here runs."""
 from __future__ import annotations
@@ -109,8 +110,9 @@ def block_mean_of_smooth(c: np.ndarray, f: int) -> np.ndarray:
 
 def _smooth_1d(c: np.ndarray, f: int, axis: int, start: int, count: int, n: int, c_start: int) -> np.ndarray:
     """Cell-centred cubic B-spline along one axis (C2: a hillshade shows no
-    kinks at the coarse cells), the map mirrored past its edges: fine cells [start, start + count) of a map of n coarse cells, from c
-    holding coarse cells [c_start, ...) on that axis."""
+    kinks at the coarse cells), the map mirrored past its edges: fine cells
+    [start, start + count) of a map of n coarse cells, from c holding coarse
+    cells [c_start, ...) on that axis."""
     x = (np.arange(start, start + count) + 0.5) / f - 0.5
     i = np.floor(x).astype(np.int64)
     shape = [1, 1]
@@ -198,7 +200,8 @@ class Prolongation:
         r_lo, r_hi, c_lo, c_hi = min(r_lo, b_lo), max(r_hi, b_hi), min(c_lo, d_lo), max(c_hi, d_hi)
         cut = lambda a: None if a is None else np.ascontiguousarray(  # noqa: E731
             a[r_lo - self.origin[0]:r_hi - self.origin[0], c_lo - self.origin[1]:c_hi - self.origin[1]])
-        return Prolongation(f, cut(self.field), cut(self.scale), cut(self.offset), self.shape, (r_lo, c_lo), self.smooth)
+        return Prolongation(f, cut(self.field), cut(self.scale), cut(self.offset), self.shape, (r_lo, c_lo),
+                            self.smooth)
 
     def window(self, row0: int, col0: int, rows: int, cols: int) -> np.ndarray:
         """The fine cells [row0, +rows) x [col0, +cols), float64."""

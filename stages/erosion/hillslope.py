@@ -175,14 +175,17 @@ def landslide(h: np.ndarray, dx: float, critical_slope, env=None, round_sweeps: 
     if round_sweeps <= 0:
         return z
     rise = np.broadcast_to(np.asarray(critical_slope, np.float64) * dx, z.shape)
-    rounded = round_cones(env, z, rise, round_sweeps) if env is not None else round_cones_reference(z, rise, round_sweeps)
-    return cone_envelope(rounded, dx, critical_slope)
+    if env is not None:
+        z = round_cones(env, z, rise, round_sweeps)
+    else:
+        z = round_cones_reference(z, rise, round_sweeps)
+    return cone_envelope(z, dx, critical_slope)
 
 
 def cone_envelope(h: np.ndarray, dx: float, critical_slope) -> np.ndarray:
-    """Heights with no step along the 32 directions steeper than critical_slope (m/m): the lower
-    envelope h'(x) = min_y h(y) + Sc d(x, y), d the 32-direction path length
-    (float64; h' <= h). Sweeps of
+    """Heights with no step along the 32 directions steeper than
+    critical_slope (m/m): the lower envelope h'(x) = min_y h(y) + Sc d(x, y),
+    d the 32-direction path length (float64; h' <= h). Sweeps of
     one-dimensional cone envelopes along each line family (only the lines
     holding a step steeper than the limit), repeated until no step is: each
     sweep is exact along its lines and the repeats compose the paths.

@@ -802,10 +802,7 @@ def _landslide(solver: _Solver, h: np.ndarray, rock_uplift_m: float) -> tuple[np
     strata = solver.options.strata
     if strata is not None:
         sc = np.where(strata.hard(h, rock_uplift_m), strata.critical_slope, sc)
-    try:
-        cut = hillslope.landslide(h, solver.dx, sc, solver.env, solver.options.round_sweeps)
-    except RuntimeError as e:  # a device without double precision
-        raise StageError(f"erosion: {e}") from e
+    cut = hillslope.landslide(h, solver.dx, sc, solver.env, solver.options.round_sweeps)
     slid = (h - cut) * solver.cell_area
     return cut, slid
 

@@ -245,8 +245,12 @@ def front_lit_camera(points: np.ndarray, sun: np.ndarray) -> Camera:
 
 def translucency_gains(env, parts: dict[str, Part], spec, card_rgba: np.ndarray | None,
                        slices_rgba: np.ndarray | None = None, azimuths: int = 4, size: int = 96) -> dict:
-    """The foliage's transmitted light as a gain on its colour, by view
-    (translucency_gain's measure): "side" over the side views, "front_lit"
+    """The foliage's transmitted light as a gain on its colour, by view: the
+    factor by which it brightens the foliage in the renderer's display light
+    (Image.shaded passes a share T of the sun through surfaces facing away
+    from it), over the foliage pixels with ambient occlusion, the luminance
+    of the shaded picture over that picture without the transmitted term.
+    "side" over the side views, "front_lit"
     from the sun's side (front_lit_camera), and "dcc", their geometric mean,
     the one gain a DCC's opaque UsdPreviewSurface carries
     (materials.bake_translucency).
@@ -282,14 +286,3 @@ def translucency_gains(env, parts: dict[str, Part], spec, card_rgba: np.ndarray 
 
     side, front = ratio(side_cameras(pts, azimuths)), ratio([front_lit_camera(pts, sun)])
     return {"side": side, "front_lit": front, "dcc": math.sqrt(side * front)}
-
-
-def translucency_gain(env, parts: dict[str, Part], spec, card_rgba: np.ndarray | None,
-                      slices_rgba: np.ndarray | None = None, azimuths: int = 4, size: int = 96) -> float:
-    """The factor by which the foliage's transmitted light brightens it in
-    the renderer's display light (Image.shaded passes a share T of the sun
-    through surfaces facing away from it): over the foliage pixels of side
-    views with ambient occlusion, the luminance of the shaded picture over
-    that picture without the transmitted term; 1 without foliage. A DCC's
-    colour carries translucency_gains' "dcc" gain, not this."""
-    return translucency_gains(env, parts, spec, card_rgba, slices_rgba, azimuths, size)["side"]

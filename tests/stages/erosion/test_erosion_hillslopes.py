@@ -211,14 +211,15 @@ def test_deposition_stays_bounded_at_any_g(cl_env, g, iterations):
     assert sed.out_m3 == pytest.approx(sed.exported_m3, rel=1e-10)
 
 
-def test_hillslope_run_keeps_its_budget_bounds_slopes_and_is_deterministic(cl_env):
+@pytest.mark.parametrize("round_sweeps", [0, 16])
+def test_hillslope_run_keeps_its_budget_bounds_slopes_and_is_deterministic(cl_env, round_sweeps):
     from stages.heightmap.stage import HeightmapParams, heights
 
     h, _ = heights(cl_env, HeightmapParams(resolution=72, size_m=1152.0, wavelength_m=576.0), 9)
     h = h.astype(np.float64)
     sc = math.tan(math.radians(33.0))
     kw = dict(routing="mfd", diffusivity_m2_per_year=1e-2, flat_routing="distance", fill_lakes=True,
-              channel_area_m2=2e3, critical_slope=sc, deposition_g=1.0)
+              channel_area_m2=2e3, critical_slope=sc, deposition_g=1.0, round_sweeps=round_sweeps)
     res = sp.run(cl_env, h, 16.0, 2e6, 4e5, 4e-5, 0.45, 1.0, 1e-4, **kw)
     st = res.stats
     assert st["stream_power_volume_budget_relative_error"] <= 1e-9
@@ -229,6 +230,9 @@ def test_hillslope_run_keeps_its_budget_bounds_slopes_and_is_deterministic(cl_en
         assert not hillslope._too_steep(res.height, dr, dc, sc * 16.0 * math.hypot(dr, dc) + 1e-6).any()
     again = sp.run(cl_env, h, 16.0, 2e6, 4e5, 4e-5, 0.45, 1.0, 1e-4, **kw)
     np.testing.assert_array_equal(res.height, again.height)
+    if round_sweeps:  # the key reaches the landslides: the rounded cones stand lower
+        facets = sp.run(cl_env, h, 16.0, 2e6, 4e5, 4e-5, 0.45, 1.0, 1e-4, **{**kw, "round_sweeps": 0})
+        assert (facets.height - res.height).max() > 0.01
     # one huge step is as stable
     big = sp.run(cl_env, h, 16.0, 1e8, 1e8, 4e-5, 0.45, 1.0, 1e-4, **kw)
     assert np.isfinite(big.height).all() and big.stats["stream_power_volume_budget_relative_error"] <= 1e-9

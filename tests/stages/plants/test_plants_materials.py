@@ -78,11 +78,11 @@ def test_translucency_gain_of_a_lone_leaf_is_the_display_lights(cl_env):
     sky = inspect.signature(Image.shaded).parameters["sky"].default
     cos = abs(float(sun[0]))
     want = (g * cos + t * g * cos + 2 * sky) / (g * cos + 2 * sky)
-    got = measure.translucency_gain(cl_env, {"Leaves": _quad_part(1.0)}, spec, None)
+    got = measure.translucency_gains(cl_env, {"Leaves": _quad_part(1.0)}, spec, None)["side"]
     assert got == pytest.approx(want, rel=2e-3)
-    assert measure.translucency_gain(cl_env, {"Leaves": _quad_part(-1.0)}, spec, None) == pytest.approx(want, rel=2e-3)
+    assert measure.translucency_gains(cl_env, {"Leaves": _quad_part(-1.0)}, spec, None)["side"] == pytest.approx(want, rel=2e-3)
     # no foliage: no gain
-    assert measure.translucency_gain(cl_env, {"Wood": _quad_part(1.0)}, spec, None) == 1.0
+    assert measure.translucency_gains(cl_env, {"Wood": _quad_part(1.0)}, spec, None) == {"side": 1.0, "front_lit": 1.0, "dcc": 1.0}
 
 
 def test_foliage_materials_carry_the_gain_and_a_separate_cut_out(small_run):
