@@ -203,6 +203,9 @@ class TileOutput:
 
     grids: dict[str, np.ndarray] = field(default_factory=dict)
     summary: dict[str, Any] = field(default_factory=dict)
+    # arrays of any shape that stay in files: the summary holds their paths, for a later pass's tasks to read
+    # what they need of them (state too big to gather in the stage's process)
+    files: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def _in_dask_worker() -> bool:
@@ -281,11 +284,14 @@ def _run_tile(job: _TileJob) -> tuple[dict[str, str], dict[str, Any], float]:
                              f"{arr.shape}, the tile is {job.tile.rows} x {job.tile.cols}")
         np.save(work / f"{name}.npy", np.ascontiguousarray(arr), allow_pickle=False)
         files.append(f"{name}.npy")
+    for name, arr in out.files.items():
+        np.save(work / f"{name}.npy", np.ascontiguousarray(arr), allow_pickle=False)
+        files.append(f"{name}.npy")
     arrays, values = _split_summary(out.summary)
     if arrays:
         np.savez(work / SUMMARY_ARRAYS, **arrays)
         files.append(SUMMARY_ARRAYS)
-    result = {"grids": sorted(out.grids), "summary": values}
+    result = {"grids": sorted(out.grids), "summary": values, "files": sorted(out.files)}
     seconds = time.perf_counter() - t0
     if job.keep:
         unit.save(work, files, result, {"seconds": round(seconds, 4)})
@@ -297,6 +303,7 @@ def _run_tile(job: _TileJob) -> tuple[dict[str, str], dict[str, Any], float]:
 def _files_and_summary(folder: Path, result: dict) -> tuple[dict[str, str], dict[str, Any], float]:
     files = {name: str(folder / f"{name}.npy") for name in result["grids"]}
     summary = dict(result["summary"])
+    summary.update({name: str(folder / f"{name}.npy") for name in result.get("files", ())})
     if (folder / SUMMARY_ARRAYS).is_file():
         with np.load(folder / SUMMARY_ARRAYS, allow_pickle=False) as z:
             summary.update({k: z[k] for k in z.files})
@@ -332,8 +339,12 @@ class TileRunner:
         the work folder. Files in the store (kept units) stay."""
         if arrays is None:
             return
+        self.discard_files(arrays.files.values())
+
+    def discard_files(self, paths) -> None:
+        """discard for the paths of TileOutput.files."""
         work = self.work.resolve()
-        for path in arrays.files.values():
+        for path in paths:
             if Path(path).resolve().is_relative_to(work):
                 Path(path).unlink(missing_ok=True)
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from pipeline import exr
-from pipeline.tiles import GridFile, TileArrays, tiles_of
+from pipeline.tiles import GridFile, TileArrays, TileOutput, TileRunner, tiles_of
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -72,6 +72,29 @@ def test_tile_arrays_read_windows_across_tiles(tmp_path):
     for window in ((0, 0, 600, 520), (250, 250, 10, 10), (255, 1, 300, 519), (599, 519, 1, 1)):
         r0, c0, rows, cols = window
         assert np.array_equal(arrays.read(*window), whole[r0:r0 + rows, c0:c0 + cols])
+
+
+def _state_of_tile(tctx, inputs, params, shared):
+    t = tctx.tile
+    return TileOutput(summary={"n": t.rows * t.cols}, files={"state": np.full((3, t.col0 + 1), t.row0, np.int32)})
+
+
+def test_a_tiles_file_arrays_stay_in_files_until_discarded(tmp_path):
+    """TileOutput.files: any shape, kept in a file whose path the summary
+    holds (not the array: state too big to gather in one process);
+    discard_files deletes what the run's work folder holds of them."""
+    from types import SimpleNamespace
+
+    runner = TileRunner(128, stage=SimpleNamespace(name="toy", uses_opencl=False), run_key="k", seed=0,
+                        project_root=tmp_path, units=None, work=tmp_path / "work")
+    _, parts = runner.map(_state_of_tile, "state", (300, 200), {}, None, keep=False)
+    tiles = runner.tiles((300, 200))
+    assert len(parts) == len(tiles) == 6
+    for t, part in zip(tiles, parts):
+        assert isinstance(part["state"], str) and part["n"] == t.rows * t.cols
+        assert np.array_equal(np.load(part["state"]), np.full((3, t.col0 + 1), t.row0, np.int32))
+    runner.discard_files(p["state"] for p in parts)
+    assert not any(Path(p["state"]).exists() for p in parts)
 
 
 @pytest.mark.parametrize("resolution, tile_cells", [(512, 256), (640, 256)])
