@@ -167,8 +167,8 @@ class Sim:
 class Poisson:
     """reference.Poisson on the device."""
 
-    def __init__(self, env, nx, nz, c, wdom, ddom, rad, dx, margin, obs_start, obs, onx, onz, oc, local=None,
-                 window=None, pts=None):
+    def __init__(self, env, nx, nz, c, wdom, ddom, rad, dx, margin, obs_start, obs, onx, onz, oc, ox0=0, oz0=0,
+                 onwx=None, onwz=None, local=None, window=None, pts=None):
         self.b = b = Buffers(env)
         self.nx, self.nz = nx, nz
         self.local = local
@@ -182,7 +182,9 @@ class Poisson:
         self.obs_start = b.arr(np.ascontiguousarray(obs_start, np.int32))
         self.obs = b.arr(np.ascontiguousarray(obs, F).reshape(-1, 4))
         self.fixed = (F(c), F(wdom), F(ddom))
-        self.tail = (F(dx), F(margin), self.obs_start, self.obs, np.int32(onx), np.int32(onz), F(oc))
+        i32 = np.int32
+        self.tail = (F(dx), F(margin), self.obs_start, self.obs, i32(onx), i32(onz), F(oc), i32(ox0), i32(oz0),
+                     i32(onx if onwx is None else onwx), i32(onz if onwz is None else onwz))
 
     def phase(self, px, pz, pss, key):
         P = ref.PN + 1

@@ -583,7 +583,8 @@ __kernel void poisson_phase(__global float4 *pts, const int nx, const int nz, co
                             __global const float *rad, const int rows, const int cols, const int trow0,
                             const int tcol0, const int wrows, const int wcols, const float dx, const float margin,
                             __global const int *obs_start, __global const float4 *obs, const int onx,
-                            const int onz, const float oc)
+                            const int onz, const float oc, const int ox0, const int oz0, const int onwx,
+                            const int onwz)
 {
     const int gx = get_global_id(0), gz = get_global_id(1);
     const int x = xfirst + gx * PP, z = zfirst + gz * PP;  /* world cells */
@@ -632,15 +633,17 @@ __kernel void poisson_phase(__global float4 *pts, const int nx, const int nz, co
     /* obstacles: the plants of the species placed before */
     if (onx > 0) {
         const int ox = min((int)(fx / oc), onx - 1), oz = min((int)(fz / oc), onz - 1);
+        /* obs_start covers the onwx x onwz cells from (ox0, oz0): the whole grid, or the part of it a
+         * tile's darts reach (cells beyond it hold no obstacle this window's darts could meet) */
         for (int dz = -1; dz <= 1; ++dz) {
             const int zz = oz + dz;
-            if (zz < 0 || zz >= onz)
+            if (zz < 0 || zz >= onz || zz < oz0 || zz >= oz0 + onwz)
                 continue;
             for (int ddx = -1; ddx <= 1; ++ddx) {
                 const int xx = ox + ddx;
-                if (xx < 0 || xx >= onx)
+                if (xx < 0 || xx >= onx || xx < ox0 || xx >= ox0 + onwx)
                     continue;
-                const int cell = zz * onx + xx;
+                const int cell = (zz - oz0) * onwx + (xx - ox0);
                 for (int k = obs_start[cell]; k < obs_start[cell + 1]; ++k) {
                     const float4 q = obs[k];
                     const float ex = fx - q.x, ez = fz - q.y;

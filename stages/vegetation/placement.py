@@ -30,6 +30,7 @@ import math
 import time
 import zlib
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -156,11 +157,33 @@ class Placed:
     stats: dict
 
 
-def _obstacles(prev: list[tuple[Placed, float]], coll: float, dom: Domain, c: float):
-    """CSR grid of the plants placed before: (start, float4 pts (x, z,
-    clearance, 0), nx, nz, cell size)."""
+class Obstacles(NamedTuple):
+    """The plants placed before, as a CSR grid of cells of oc metres over
+    the domain (onx x onz cells), or over the window of it that one tile's
+    darts can reach: onwx x onwz cells from cell (ox0, oz0). start has one
+    entry per window cell and one more; pts are float4 (x, z, clearance, 0)."""
+
+    start: np.ndarray
+    pts: np.ndarray
+    onx: int
+    onz: int
+    oc: float
+    ox0: int = 0
+    oz0: int = 0
+    onwx: int = 0
+    onwz: int = 0
+
+
+NO_OBSTACLES = Obstacles(np.zeros(2, np.int32), np.zeros((1, 4), F), 0, 0, 1.0)
+
+
+def _obstacles(prev: list[tuple[Placed, float]], coll: float, dom: Domain, c: float,
+               window_m: tuple[float, float, float, float] | None = None) -> Obstacles:
+    """The Obstacles of the plants placed before, over the domain or, given
+    window_m = (x0, x1, z0, z1) metres (where darts may fall), over the cells
+    a dart there looks at: a tile's task gets its share, not the world's."""
     if not prev or not sum(len(p.x) for p, _ in prev):
-        return np.zeros(2, np.int32), np.zeros((1, 4), F), 0, 0, 1.0
+        return NO_OBSTACLES
     xs = np.concatenate([p.x for p, _ in prev])
     zs = np.concatenate([p.z for p, _ in prev])
     cl = np.concatenate([np.full(len(p.x), cq + coll, F) for p, cq in prev])
@@ -168,13 +191,23 @@ def _obstacles(prev: list[tuple[Placed, float]], coll: float, dom: Domain, c: fl
     onx, onz = int(dom.width // oc) + 1, int(dom.depth // oc) + 1
     ox = np.minimum((xs / F(oc)).astype(np.int64), onx - 1)
     oz = np.minimum((zs / F(oc)).astype(np.int64), onz - 1)
-    cell = oz * onx + ox
+    ox0, oz0, onwx, onwz = 0, 0, onx, onz
+    if window_m is not None:
+        # a dart looks one cell around its own; two more cover its float32 cell against this float64 one
+        x0, x1, z0, z1 = window_m
+        ox0, oz0 = max(int(x0 // oc) - 3, 0), max(int(z0 // oc) - 3, 0)
+        onwx, onwz = min(int(x1 // oc) + 4, onx) - ox0, min(int(z1 // oc) + 4, onz) - oz0
+        inside = (ox >= ox0) & (ox < ox0 + onwx) & (oz >= oz0) & (oz < oz0 + onwz)
+        xs, zs, cl, ox, oz = xs[inside], zs[inside], cl[inside], ox[inside], oz[inside]
+    cell = (oz - oz0) * onwx + (ox - ox0)
     order = np.argsort(cell, kind="stable")
-    start = np.zeros(onx * onz + 1, np.int64)
+    start = np.zeros(onwx * onwz + 1, np.int64)
     np.add.at(start, cell + 1, 1)
     start = np.cumsum(start)
-    pts = np.stack([xs[order], zs[order], cl[order], np.zeros(len(xs), F)], -1).astype(F)
-    return start.astype(np.int32), pts, onx, onz, oc
+    pts = np.stack([xs[order], zs[order], cl[order], np.zeros(len(xs), F)], -1).astype(F).reshape(-1, 4)
+    if not len(pts):
+        pts = np.zeros((1, 4), F)
+    return Obstacles(start.astype(np.int32), pts, onx, onz, oc, ox0, oz0, onwx, onwz)
 
 
 POISSON_ROUND_HALO = ref.PN * (ref.PN + 1) ** 2  # Poisson cells a window needs around a tile for one pass
@@ -198,10 +231,8 @@ def poisson_sample(rad: np.ndarray, r_lo: float, dom: Domain, passes: int, key: 
     radius field on the terrain grid (0: nothing grows there)."""
     c = r_lo / math.sqrt(2.0)
     nx, nz = int(dom.width // c) + 1, int(dom.depth // c) + 1
-    if obstacles is None:
-        obstacles = (np.zeros(2, np.int32), np.zeros((1, 4), F), 0, 0, 1.0)
-    start, obs, onx, onz, oc = obstacles
-    sampler = backend.Poisson(nx, nz, c, dom.width, dom.depth, rad, dom.dx, MARGIN_M, start, obs, onx, onz, oc, local=local)
+    sampler = backend.Poisson(nx, nz, c, dom.width, dom.depth, rad, dom.dx, MARGIN_M,
+                              *(NO_OBSTACLES if obstacles is None else obstacles), local=local)
     t0 = time.perf_counter()
     P = ref.PN + 1
     for k in range(passes):

@@ -495,8 +495,8 @@ class Poisson:
     window (PointWindow; default the world's nx x nz), starting from `pts`
     (default: free)."""
 
-    def __init__(self, nx, nz, c, wdom, ddom, rad, dx, margin, obs_start, obs, onx, onz, oc, local=None,
-                 window=None, pts=None):
+    def __init__(self, nx, nz, c, wdom, ddom, rad, dx, margin, obs_start, obs, onx, onz, oc, ox0=0, oz0=0,
+                 onwx=None, onwz=None, local=None, window=None, pts=None):
         self.nx, self.nz, self.c = nx, nz, F(c)
         self.wdom, self.ddom = F(wdom), F(ddom)
         self.rad = np.asarray(rad, F)
@@ -504,6 +504,9 @@ class Poisson:
         self.dx, self.margin = F(dx), F(margin)
         self.obs_start, self.obs = np.asarray(obs_start, np.int64), np.asarray(obs, F)
         self.onx, self.onz, self.oc = onx, onz, F(oc)
+        # obs_start covers onwx x onwz cells from (ox0, oz0): the grid, or the part a tile's darts reach
+        self.ox0, self.oz0 = ox0, oz0
+        self.onwx, self.onwz = onx if onwx is None else onwx, onz if onwz is None else onwz
         shape = (self.win.wnz, self.win.wnx, 4)
         self.pts = np.zeros(shape, F) if pts is None else np.array(pts, F).reshape(shape)
 
@@ -534,8 +537,9 @@ class Poisson:
             for dz in (-1, 0, 1):
                 for ddx in (-1, 0, 1):
                     zz, xx = oz + dz, ox + ddx
-                    inside = ok & (zz >= 0) & (zz < self.onz) & (xx >= 0) & (xx < self.onx)
-                    cell = np.where(inside, zz * self.onx + xx, 0)
+                    inside = ok & (zz >= 0) & (zz < self.onz) & (xx >= 0) & (xx < self.onx) & (zz >= self.oz0) \
+                        & (zz < self.oz0 + self.onwz) & (xx >= self.ox0) & (xx < self.ox0 + self.onwx)
+                    cell = np.where(inside, (zz - self.oz0) * self.onwx + (xx - self.ox0), 0)
                     lo, hi = self.obs_start[cell], self.obs_start[cell + 1]
                     for k in range(int((hi - lo).max()) if inside.any() else 0):
                         has = inside & (lo + k < hi)

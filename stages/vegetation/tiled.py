@@ -467,15 +467,34 @@ def poisson_span(tile: Tile, c: float, dx: float, n_points: tuple[int, int]) -> 
             edge(tile.row0, rows, nz), edge(tile.row0 + tile.rows, rows, nz))
 
 
+def _overlapping(spans: dict, x0: int, x1: int, z0: int, z1: int) -> list[str]:
+    """The tiles whose Poisson spans (x0, x1, z0, z1) meet the cells [x0, x1) x [z0, z1)."""
+    return [name for name, (a0, a1, b0, b1) in spans.items() if a0 < x1 and x0 < a1 and b0 < z1 and z0 < b1]
+
+
+def _gather(parts: list[tuple[str, tuple]], x0: int, x1: int, z0: int, z1: int) -> np.ndarray:
+    """The Poisson cells [x0, x1) x [z0, z1), (z, x, 4), from the files of the
+    tiles' spans that meet them (parts: (path, span)); free where none does."""
+    out = np.zeros((z1 - z0, x1 - x0, 4), F)
+    for path, (a0, a1, b0, b1) in parts:
+        part = np.load(path, mmap_mode="r")
+        ax0, ax1, bz0, bz1 = max(a0, x0), min(a1, x1), max(b0, z0), min(b1, z1)
+        if ax0 < ax1 and bz0 < bz1:
+            out[bz0 - z0:bz1 - z0, ax0 - x0:ax1 - x0] = part[bz0 - b0:bz1 - b0, ax0 - a0:ax1 - a0]
+    return out
+
+
 def poisson_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared: dict) -> TileOutput:
     """Pass 8, one round: one Poisson pass on the tile's share of the grid.
     shared (this tile's): species (target channel), r_lo, c, n_points,
-    domain (rows, cols, dx, origin), pass, key, obstacles, window (wx0, wz0)
-    and its points (the last round's), span (poisson_span)."""
+    domain (rows, cols, dx, origin), pass, key, obstacles (the part its
+    darts reach), window (wx0, wx1, wz0, wz1), span (poisson_span) and the
+    last round's points as files: (path, span) of the tiles whose spans meet
+    the window. Its span's points stay in a file (TileOutput.files)."""
     dom = placement.Domain(*shared["domain"])
     nx, nz = shared["n_points"]
-    state = shared["points"]
-    wx0, wz0 = shared["window"]
+    wx0, wx1, wz0, wz1 = shared["window"]
+    state = _gather(shared["previous"], wx0, wx1, wz0, wz1)
     win, (rs, cs) = placement.point_window(wx0, wz0, state.shape[1], state.shape[0], shared["c"], dom)
     n = np.asarray(inputs["target"].read(rs.start, cs.start, rs.stop - rs.start, cs.stop - cs.start),
                    np.float64)[..., shared["species"]]
@@ -488,13 +507,17 @@ def poisson_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shar
             sampler.phase(px, pz, shared["pass"], shared["key"])
     pts = sampler.read().reshape(state.shape)
     x0, x1, z0, z1 = shared["span"]
-    return TileOutput(summary={"points": np.ascontiguousarray(pts[z0 - wz0:z1 - wz0, x0 - wx0:x1 - wx0])})
+    return TileOutput(files={"points": pts[z0 - wz0:z1 - wz0, x0 - wx0:x1 - wx0]})
 
 
 def place(runner, grown: dict, params: VegetationParams, shape: tuple[int, int], dx: float, origin, seed: int,
           progress=lambda f, m: None) -> dict:
     """Pass 8 for every plant species in placement order: placement.Placed
-    per species, the whole run's (placement.place_species) bit for bit."""
+    per species, the whole run's (placement.place_species) bit for bit.
+    The Poisson grid of a species stays in the tiles' files, round after
+    round; each task reads its window of the last round and gets the
+    obstacles its darts reach, and each tile's plants are selected from the
+    points around it: no process holds the species' whole grid."""
     import time
 
     plants = params.plant_species()
@@ -518,47 +541,61 @@ def place(runner, grown: dict, params: VegetationParams, shape: tuple[int, int],
         r_lo = placement.lowest_radius(e, nmax)
         c = r_lo / math.sqrt(2.0)
         nx, nz = int(dom.width // c) + 1, int(dom.depth // c) + 1
-        obstacles = placement._obstacles(prev, e.collision_radius_m, dom, c)
-        points = np.zeros((nz, nx, 4), F)
         key, halo = ref.stream_key(seed, "poisson", name), placement.POISSON_ROUND_HALO
         spans = {t.name: poisson_span(t, c, dx, (nx, nz)) for t in tiles}
+        windows, obstacles = {}, {}
+        for t in tiles:
+            x0, x1, z0, z1 = spans[t.name]
+            windows[t.name] = (max(x0 - halo, 0), min(x1 + halo, nx), max(z0 - halo, 0), min(z1 + halo, nz))
+            wx0, wx1, wz0, wz1 = windows[t.name]
+            obstacles[t.name] = placement._obstacles(prev, e.collision_radius_m, dom, c,
+                                                     window_m=(wx0 * c, wx1 * c, wz0 * c, wz1 * c))
+        files: dict[str, str] = {}
         for pss in range(params.poisson_passes):
             progress(k / len(plants), f"{name}: Poisson pass {pss + 1} of {params.poisson_passes}")
             per_tile = {}
             for t in tiles:
-                x0, x1, z0, z1 = spans[t.name]
-                wx0, wz0, wx1, wz1 = max(x0 - halo, 0), max(z0 - halo, 0), min(x1 + halo, nx), min(z1 + halo, nz)
+                wx0, wx1, wz0, wz1 = windows[t.name]
                 per_tile[t.name] = {"species": s, "r_lo": r_lo, "c": c, "n_points": (nx, nz), "pass": pss,
                                     "domain": (dom.rows, dom.cols, dx, tuple(origin)), "key": key,
-                                    "obstacles": obstacles, "window": (wx0, wz0), "span": spans[t.name],
-                                    "points": points[wz0:wz1, wx0:wx1].copy()}
+                                    "obstacles": obstacles[t.name], "window": windows[t.name],
+                                    "span": spans[t.name],
+                                    "previous": [(files[o], spans[o]) for o in _overlapping(spans, *windows[t.name])
+                                                 if o in files]}
             _, parts = runner.map(poisson_tile, f"poisson-{name}-{pss}", shape, {"target": grown["target"]}, params,
                                   keep=False, per_tile=per_tile, **grid_kw)
-            after = points.copy()
-            for t, part in zip(tiles, parts):
-                x0, x1, z0, z1 = spans[t.name]
-                after[z0:z1, x0:x1] = part["points"]
-            points = after
-        flat = points.reshape(-1, 4)
-        cells = np.nonzero(flat[:, 2] > 0)[0].astype(np.int64)
-        pts = flat[cells]
-        kept = np.zeros(len(pts), bool)
-        tr, tc = dom.cell_of(pts[:, 0], pts[:, 1])
+            runner.discard_files(files.values())  # the round before: the tasks have read it
+            files = {t.name: part["points"] for t, part in zip(tiles, parts)}
+        kept_parts, back = [], int(math.ceil(0.5 * dx / c)) + 1
         totals = {"candidates": 0, "placed": 0, "shortfall_plants": 0, "blocks_short": 0}
         target = 0
         for t in tiles:
+            # the tile's plants: darts of its own span and of the cells before it whose darts round into its
+            # first terrain cells (Domain.cell_of: half a cell back), in the whole grid's cell order
+            x0, x1, z0, z1 = spans[t.name]
+            x0, z0 = max(x0 - back, 0), max(z0 - back, 0)
+            near = _gather([(files[o], spans[o]) for o in _overlapping(spans, x0, x1, z0, z1)], x0, x1, z0, z1)
+            zi, xi = np.nonzero(near[..., 2] > 0)
+            pts = near[zi, xi]
+            cells = (zi + z0).astype(np.int64) * nx + (xi + x0)
+            tr, tc = dom.cell_of(pts[:, 0], pts[:, 1])
             mine = cells_in(t, tr, tc)
             n_tile = np.asarray(grown["target"].read(*t.window(0)), np.float64)[..., s]
             kept_tile, stats, exact = placement.select_counts(pts[mine], cells[mine], n_tile, dom, block,
                                                               ref.stream_key(seed, "select", name), (t.row0, t.col0))
-            kept[mine] = kept_tile
+            kept_parts.append((pts[mine][kept_tile], cells[mine][kept_tile]))
             target += exact
             for key_ in totals:
                 totals[key_] += stats[key_]
+        runner.discard_files(files.values())
+        pts = np.concatenate([p for p, _ in kept_parts]) if kept_parts else np.zeros((0, 4), F)
+        cells = np.concatenate([c_ for _, c_ in kept_parts]) if kept_parts else np.zeros(0, np.int64)
+        order = np.argsort(cells, kind="stable")  # the whole grid's order, as the untiled run keeps them
+        pts, cells = pts[order], cells[order]
         stats = {"target_plants": exact_mean(target, 1), **totals, "poisson_cells": nx * nz, "poisson_cell_m": c,
                  "r_lo_m": r_lo, "seconds": time.perf_counter() - t0,
-                 "obstacles": int(len(obstacles[1])) if obstacles[2] else 0}
-        done[name] = placement.Placed(name, pts[kept, 0], pts[kept, 1], pts[kept, 2], cells[kept], stats)
+                 "obstacles": sum(len(p.x) for p, _ in prev)}
+        done[name] = placement.Placed(name, pts[:, 0], pts[:, 1], pts[:, 2], cells, stats)
         prev.append((done[name], e.collision_radius_m))
     return done
 

@@ -227,7 +227,8 @@ def test_poisson_of_tiles_in_rounds_is_the_whole_worlds(cl_env):
     """Tiles of the Poisson grid, each read with POISSON_ROUND_HALO cells of
     the last round's points around it and run through one pass (all its
     phases), keep exactly the points the whole grid gets, pass after pass,
-    with obstacles; on the device and in the reference."""
+    with obstacles (each window given only those its darts reach); on the
+    device and in the reference."""
     dom = pl.Domain(120, 150, 4.0, (0.0, 0.0))
     rng = np.random.default_rng(8)
     rad = np.where(rng.random((120, 150)) < 0.85, 4.0 + 4.0 * rng.random((120, 150)), 0.0).astype(np.float32)
@@ -251,7 +252,12 @@ def test_poisson_of_tiles_in_rounds_is_the_whole_worlds(cl_env):
                     x0, z0 = max(tx - halo, 0), max(tz - halo, 0)
                     x1, z1 = min(tx + tile + halo, nx), min(tz + tile + halo, nz)
                     win, (rs, cs) = pl.point_window(x0, z0, x1 - x0, z1 - z0, c, dom)
-                    part = backend.Poisson(nx, nz, c, dom.width, dom.depth, rad[rs, cs], dom.dx, pl.MARGIN_M, *obst,
+                    near = pl._obstacles([(prev, 1.5)], 0.5, dom, c, window_m=(x0 * c, x1 * c, z0 * c, z1 * c))
+                    assert near.onwx * near.onwz < obst.onwx * obst.onwz and 0 < near.start[-1] < obst.start[-1]
+                    reach = ((prev.x > x0 * c - obst.oc) & (prev.x < x1 * c + obst.oc) & (prev.z > z0 * c - obst.oc)
+                             & (prev.z < z1 * c + obst.oc))  # a cell around the window: what its darts test
+                    assert set(prev.x[reach]) <= set(near.pts[:near.start[-1], 0])
+                    part = backend.Poisson(nx, nz, c, dom.width, dom.depth, rad[rs, cs], dom.dx, pl.MARGIN_M, *near,
                                            window=win, pts=state[z0:z1, x0:x1])
                     for pz in range(P):
                         for px in range(P):
