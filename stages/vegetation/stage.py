@@ -454,8 +454,8 @@ MAX_HORIZON_SAMPLES = 256  # samples per direction of the horizon scan (growth 1
 
 def run_tiled(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams) -> dict[str, Any]:
     """run on a tiled world: every step per tile (tiled.py, tiled_run.py),
-    the same files; the world's simulation grid and Poisson grid in this
-    process. Runs whole (and says why) where a step cannot be tiled exactly."""
+    the same files; the world's simulation grid in this process (the Poisson
+    grids stay in the tiles' files). Runs whole (and says why) where a step cannot be tiled exactly."""
     from pipeline import exr
     from pipeline.tiles import GridFile
 
@@ -472,9 +472,10 @@ def run_tiled(ctx: RunContext, inputs: dict[str, Any], params: VegetationParams)
 
 
 # a tiled run holds a tile pass at a time: the tile's maps (as the whole run's cells) and the heights around it
-# the horizon scan reads; and in this process the world's simulation grid and one species' Poisson grid (16 B a
-# Poisson cell) with the placed plants
+# the horizon scan reads, or a tile's window of a species' Poisson grid (16 B a Poisson cell, three copies: the
+# last round's, the device's and the result); and in this process the world's simulation grid and the placed plants
 BYTES_PER_HALO_CELL = 16
+BYTES_PER_POISSON_WINDOW_CELL = 48
 
 
 def check(params: VegetationParams, ctx: CheckContext) -> Check:
@@ -506,10 +507,11 @@ def check(params: VegetationParams, ctx: CheckContext) -> Check:
         held = t * t
         how = f"a tile's {held:,} cells"
         halo = min(t + 2 * halo_cells(dx, params), max(rows, cols))
-        largest = max(species_poisson_cells(params, (cols - 1) * dx, (rows - 1) * dx).values(), default=0.0)
-        extra = BYTES_PER_HALO_CELL * halo * halo + 16 * int(largest)
-        extra_how = (f" + the horizon's heights ({halo}^2 cells x {BYTES_PER_HALO_CELL} B) + a species' Poisson "
-                     f"grid ({int(largest):,} cells x 16 B)")
+        finest = max(species_poisson_cells(params, t * dx, t * dx).values(), default=0.0)  # a tile's, a side
+        window = int(math.isqrt(int(finest)) + 2 * placement.POISSON_ROUND_HALO) ** 2 if finest else 0
+        extra = max(BYTES_PER_HALO_CELL * halo * halo, BYTES_PER_POISSON_WINDOW_CELL * window)
+        extra_how = (f" + the larger of the horizon's heights ({halo}^2 cells x {BYTES_PER_HALO_CELL} B) and a "
+                     f"tile's Poisson window ({window:,} cells x {BYTES_PER_POISSON_WINDOW_CELL} B)")
     memory = (held * (BYTES_PER_CELL + BYTES_PER_CELL_SPECIES * n)
               + sim.nx * sim.nz * (BYTES_PER_SIM_CELL + BYTES_PER_SIM_CELL_SPECIES * n) + extra)
     steps = params.years // params.step_years + 1  # the first thinning, then one a step

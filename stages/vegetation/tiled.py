@@ -33,8 +33,10 @@ for bit (tests/stages/vegetation/test_vegetation_tiled.py).
    over its terrain cells), read with placement.POISSON_ROUND_HALO cells of
    the last round's points around it and its radius field's window, runs
    the pass's phases; then each tile's whole blocks keep their counts
-   (placement.select_counts by window). The stage's process holds the
-   species' Poisson grid (16 B a Poisson cell) and the placed plants.
+   (placement.select_counts by window). The rounds stay in the tiles'
+   files, and each task gets the earlier species' plants its darts reach:
+   the stage's process holds the placed plants and a tile's points at a
+   time, never a species' whole Poisson grid.
 
 9. tufts_tile: the grass tufts of the tile's share of the tufts' grid
    (the density read by window), gathered in the grid's order.
