@@ -236,3 +236,22 @@ def test_tiled_instances_are_the_whole_runs(tmp_path):
             np.testing.assert_array_equal(getattr(inst, field), getattr(want, field), err_msg=f"{name} {field}")
         np.testing.assert_array_equal(tints[name], want_tints[name])
     assert gname in sets and len(sets[gname]) > 100
+
+
+def test_a_tiled_world_is_checked_for_a_tile_not_a_species_poisson_grid():
+    """The open world's check: a tiled run holds a tile's maps and the larger
+    of the horizon's heights and a tile's Poisson window (the rounds stay in
+    the tiles' files), not a species' whole Poisson grid (16 B a cell)."""
+    from pipeline.contract import CheckContext, GridInfo
+    from stages.vegetation.params import VegetationParams
+
+    inputs = {"terrain": GridInfo((8192, 8192), 1.0, "heightmap.resolution")}
+    ctx = lambda tile: CheckContext(seed=0, project_root=Path("."), inputs=inputs, tile_cells=tile)
+    p = VegetationParams()
+    whole_grid = max(vs.species_poisson_cells(p, 8191.0, 8191.0).values())  # 2.8 M cells: 45 MB at 16 B
+    tiled = vs.check(p, ctx(1024))
+    assert "Poisson window" in tiled.memory_how and "Poisson grid" not in tiled.memory_how
+    untiled_maps = vs.check(p, ctx(0)).memory_bytes
+    assert tiled.memory_bytes < 0.1 * untiled_maps
+    window = int(tiled.memory_how.split("Poisson window (")[1].split(" cells")[0].replace(",", ""))
+    assert window < 0.05 * whole_grid  # a tile's share with its 48-cell rim
