@@ -477,6 +477,7 @@ def publish_world(store: Store, config: WorldConfig, planned: list[KeyedStep], s
     when a planned stage publishes a root layer, world.usda composing it by a
     relative path, with the overrides in its customLayerData; then
     report.html beside them (pipeline.report)."""
+    reporting = os.environ.get("WORLDBAKE_REPORT", "1").strip() != "0"  # 0: no report (the test suite's many bakes)
     with store.publishing(config.name) as work:
         roots = [(ps, art) for ps in planned for art in ps.stage.outputs if art.publish]
         if roots:
@@ -498,8 +499,12 @@ def publish_world(store: Store, config: WorldConfig, planned: list[KeyedStep], s
                       for r in steps or ()],
         }
         write_json(work / MANIFEST, manifest)
+        if reporting:
+            from .report import carry_figures
+
+            carry_figures(store.worlds / config.name, work)
     final = store.worlds / config.name
-    if os.environ.get("WORLDBAKE_REPORT", "1").strip() != "0":  # 0: no report (the test suite's many small bakes)
+    if reporting:
         from .report import write_report  # after the rename: the layer's relative paths resolve from there
 
         world_usda = final / "world.usda"

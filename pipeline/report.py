@@ -19,6 +19,7 @@ lays them out (colour bars, scale bars, legends) and names no stage output.
 """
 from __future__ import annotations
 
+import hashlib
 import html
 import json
 import math
@@ -31,7 +32,7 @@ import numpy as np
 from .contract import (DrawnMap, MapFrame, Relief, ReportMap, ReportPicture, ReportTable, ReportWarning, Stage, Table,
                        ValueRange, _pattern_regex, _placeholder)
 from .grid import Grid
-from .store import Store
+from .store import Store, sha256_file, write_json
 
 MAP_PX = 480  # pixels on the long side of a map
 MAP_READ_CELLS = 2048  # a grid larger than this a side is read for its maps as block means (read_for_map)
@@ -579,30 +580,93 @@ def _stages_html(rows: list[dict]) -> str:
     return "".join(parts)
 
 
-def write_report(store: Store, out: Path, manifest: dict, world_usda: Path | None,
-                 stages: dict[str, Stage] | None = None) -> Path:
-    """Write report.html and its report_*.png into `out` (the world folder
-    being published: `world_usda` is the layer as it will be found). The
-    stages' declarations are the registry's unless given."""
-    world = World(store, manifest, stages)
-    if world_usda is not None and not world_usda.is_file():
-        world_usda = None
+REPORT_CACHE = "report_cache.json"  # beside report.html: what a bake of the same runs and world layer reuses
+
+
+def report_key(world: World, world_usda: Path | None) -> str:
+    """What the report's figures depend on: the runs (their keys, which
+    follow their stages' code, report callables included), the overrides
+    (warned of when they had no effect), the composed layer's bytes and the
+    engine's code (this module and what it reads grids with). This bake's
+    steps (ran or cached, seconds) are not in it: their table is remade."""
+    from .sources import normalized
+
+    h = hashlib.sha256()
+    for path in sorted(Path(__file__).parent.glob("*.py")):
+        h.update(path.name.encode() + b"\0" + normalized(path) + b"\0")
+    material = {"runs": [[stage, key] for stage, key, _ in world.runs], "uses": world.manifest.get("uses"),
+                "overrides": world.manifest.get("overrides"), "engine": h.hexdigest(),
+                "layer": sha256_file(world_usda) if world_usda is not None else None,
+                "stages": {name: len(getattr(st, "report", ())) for name, st in sorted(world.stages.items())}}
+    return hashlib.sha256(json.dumps(material, sort_keys=True).encode()).hexdigest()
+
+
+def _figures(world: World, out: Path, world_usda: Path | None) -> dict:
+    """The report's parts that read the runs' files and the layer: pictures,
+    maps, tables, warnings and the time-error plots, as HTML."""
     problems: list[str] = []
     view = pictures(world, out, world_usda, problems)
     maps = Maps(world, out)
     maps.build(world_usda)
     problems += maps.problems
     sections = tables(world, world_usda, problems)
-    warns = problems + warnings(world)
-    series = time_error_series(world)
+    return {"view": view, "maps": _maps_html(list(maps.items.values())), "sections": sections,
+            "warnings": problems + warnings(world), "plots": [svg_plot(s) for s in time_error_series(world)]}
+
+
+def _cached_figures(out: Path, key: str) -> dict | None:
+    """The figures of out's last report when it was made of the same runs
+    and layer and every picture it names is still there."""
+    try:
+        cached = json.loads((out / REPORT_CACHE).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(cached, dict) or cached.get("key") != key or not isinstance(cached.get("figures"), dict):
+        return None
+    figures = cached["figures"]
+    html_parts = str(figures.get("view", "")) + str(figures.get("maps", ""))
+    if not all((out / name).is_file() for name in re.findall(r'<img src="([^"]+)"', html_parts)):
+        return None
+    return figures
+
+
+def carry_figures(old: Path, new: Path) -> None:
+    """Copy the last report's figures (REPORT_CACHE and report_*.png) from a
+    world's folder into the one replacing it, for write_report to reuse."""
+    import shutil
+
+    if (old / REPORT_CACHE).is_file():
+        for path in [old / REPORT_CACHE, *old.glob("report_*.png")]:
+            shutil.copy2(path, new / path.name)
+
+
+def write_report(store: Store, out: Path, manifest: dict, world_usda: Path | None,
+                 stages: dict[str, Stage] | None = None) -> Path:
+    """Write report.html and its report_*.png into `out` (the world folder
+    being published: `world_usda` is the layer as it will be found). The
+    stages' declarations are the registry's unless given. The figures of
+    the last report in `out` are reused when its runs and layer are the same
+    (report_key; publish_world carries them over): a bake with every stage
+    cached remakes only the page and its table of steps."""
+    world = World(store, manifest, stages)
+    if world_usda is not None and not world_usda.is_file():
+        world_usda = None
+    key = report_key(world, world_usda)
+    figures = _cached_figures(out, key)
+    if figures is None:
+        for old in out.glob("report_*.png"):
+            old.unlink()
+        figures = _figures(world, out, world_usda)
+        write_json(out / REPORT_CACHE, {"key": key, "figures": figures})
+    view, warns = figures["view"], figures["warnings"]
     parts = [_head(manifest), "<h2>Warnings</h2>" + (
         '<div class="warn"><ul>' + "".join(f"<li>{html.escape(w)}</li>" for w in warns) + "</ul></div>"
         if warns else '<p class="ok">none</p>')]
     if view:
         parts.append("<h2>The world</h2>" + view)
-    parts += [_maps_html(list(maps.items.values())), _stages_html(stage_rows(world)), sections]
-    if series:
-        parts.append('<h2>Run time against error</h2><div class="maps">' + "".join(svg_plot(s) for s in series) + "</div>")
+    parts += [figures["maps"], _stages_html(stage_rows(world)), figures["sections"]]
+    if figures["plots"]:
+        parts.append('<h2>Run time against error</h2><div class="maps">' + "".join(figures["plots"]) + "</div>")
     parts.append("</body></html>\n")
     path = out / "report.html"
     path.write_text("".join(parts))

@@ -41,6 +41,7 @@ RUN_RECORDS = (
     f"artifacts/*/*/{MANIFEST}",      # a stage run: key, inputs, params, files (hashes, sizes, mtimes), timings, metrics
     f"worlds/*/{MANIFEST}",           # a world: the keys it uses, and this bake's steps with their seconds
     "worlds/*/report.html",           # the report: the runs' timings and metrics among the world's figures
+    "worlds/*/report_cache.json",     # the report's figures as HTML (the same timings), for a bake of the same runs
     f"units/*/*/{UNIT_RUN_RECORD}",   # a unit: the run figures (seconds) of the run that made it
 )
 

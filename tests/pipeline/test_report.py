@@ -96,6 +96,44 @@ def test_maps_are_what_the_stages_declare(tmp_path):
     assert "<h2>Warnings</h2><p class=\"ok\">none</p>" in page
 
 
+def test_a_report_of_the_same_runs_reuses_its_figures(tmp_path, monkeypatch):
+    """A bake with every run cached remakes the page (this bake's steps) from
+    the last report's figures, carried into the new world folder; another
+    run, or a changed figure file, makes them anew."""
+    from pipeline import report
+
+    store = Store(tmp_path / "build")
+    ramp = np.linspace(0.0, 1.0, 48, dtype=np.float32).reshape(6, 8)
+    for key in ("k1", "k2"):
+        _run(store, "rough", key, {"fit_error": 0.5}, {"rough.grid": {"kind": "grid", "file": "a.exr",
+                                                                       "channels": ["level"], "channel_units": {}}})
+        exr.write_grid(store.folder("rough", key) / "a.exr", Grid(ramp[..., None] * (1 if key == "k1" else 2), 5.0,
+                                                                  ("level",)))
+    stages = {"rough": _stage("rough", ReportMap("rough.grid", "level", name="level", title="Level"))}
+
+    def manifest(key, status):
+        return {"world": "w", "config": "c.toml", "seed": 1, "outputs": ["rough"], "params": {},
+                "artifacts": [{"stage": "rough", "key": key}],
+                "steps": [{"stage": "rough", "key": key, "status": status, "seconds": 1.0 if status == "ran" else 0.0}]}
+
+    made = []
+    real = report._figures
+    monkeypatch.setattr(report, "_figures", lambda *a: made.append(1) or real(*a))
+    first, second = tmp_path / "first", tmp_path / "second"
+    first.mkdir(), second.mkdir()
+    page1 = write_report(store, first, manifest("k1", "ran"), None, stages).read_text()
+    report.carry_figures(first, second)
+    page2 = write_report(store, second, manifest("k1", "cached"), None, stages).read_text()
+    assert len(made) == 1 and "<td>cached</td>" in page2 and "<td>ran</td>" in page1
+    assert page1.replace("<td>ran</td>", "") .split("<h2>")[1:3] == page2.replace("<td>cached</td>", "").split("<h2>")[1:3]
+    assert all((second / i).is_file() for i in referenced_images(second / "report.html"))
+    other = write_report(store, second, manifest("k2", "ran"), None, stages).read_text()
+    assert len(made) == 2 and "k2" in other
+    (second / "report_level.png").unlink()  # a figure gone: made anew
+    write_report(store, second, manifest("k2", "cached"), None, stages)
+    assert len(made) == 3 and (second / "report_level.png").is_file()
+
+
 def test_a_big_grid_is_read_for_its_maps_as_block_means_band_by_band(tmp_path):
     from pipeline import exr
     from pipeline.grid import Grid
