@@ -580,6 +580,7 @@ def _stages_html(rows: list[dict]) -> str:
     return "".join(parts)
 
 
+IMAGE_SRC = re.compile(r'<img src="([^"]+)"')  # the images a page names
 REPORT_CACHE = "report_cache.json"  # beside report.html: what a bake of the same runs and world layer reuses
 
 
@@ -625,7 +626,7 @@ def _cached_figures(out: Path, key: str) -> dict | None:
         return None
     figures = cached["figures"]
     html_parts = str(figures.get("view", "")) + str(figures.get("maps", ""))
-    if not all((out / name).is_file() for name in re.findall(r'<img src="([^"]+)"', html_parts)):
+    if not all((out / name).is_file() for name in IMAGE_SRC.findall(html_parts)):
         return None
     return figures
 
@@ -675,4 +676,4 @@ def write_report(store: Store, out: Path, manifest: dict, world_usda: Path | Non
 
 def referenced_images(report_html: Path) -> list[str]:
     """Every image file the page names (for tests and exports)."""
-    return re.findall(r'<img src="([^"]+)"', report_html.read_text())
+    return IMAGE_SRC.findall(report_html.read_text())
