@@ -26,7 +26,8 @@ import numpy as np
 
 from . import reference as ref
 from .reference import topological_levels
-from .tiled_accum import Perimeter, _local_receivers, _path_ends, _perimeter_graph, perimeter_cells, perimeter_position
+from .tiled_accum import (Perimeter, _local_receivers, _path_ends, exit_fronts, per_tile, perimeter_cells,
+                          perimeter_graph, perimeter_position)
 
 SQRT2 = math.sqrt(2.0)
 
@@ -120,28 +121,21 @@ def solve_entries(tiles: list[list[TilePaths]]) -> list[list[tuple[np.ndarray, n
     longest path arriving at each perimeter cell from other tiles (0, 0 where none)."""
     perims = [[Perimeter(t.origin, t.shape, t.code, t.exit, np.zeros(t.code.size, np.int64)) for t in row]
               for row in tiles]
-    offsets, counts, _, exit_node, to = _perimeter_graph(perims)
+    offsets, counts, _, exit_node, to = perimeter_graph(perims)
     flat = [t for row in tiles for t in row]
     a = np.concatenate([t.a for t in flat])
     b = np.concatenate([t.b for t in flat])
     ta_, tb_ = np.concatenate([t.to_exit_a for t in flat]), np.concatenate([t.to_exit_b for t in flat])
     da, db = steps(np.concatenate([t.code for t in flat]))
-    e = np.flatnonzero(to >= 0)
-    nxt = np.full(a.size, -1, np.int64)
-    nxt[e] = exit_node[to[e]]
-    indeg = np.bincount(nxt[e[nxt[e] >= 0]], minlength=a.size)
     v = _value(a, b)
-    front = e[indeg[e] == 0]
-    while front.size:
-        f = front[nxt[front] >= 0]
-        y, x = to[f], nxt[f]
+    for f, x in exit_fronts(to, exit_node, "tiled longest paths"):
+        y = to[f]
         ca, cb = a[f] + da[f] + ta_[y], b[f] + db[f] + tb_[y]
         cv = _value(ca, cb)
         np.maximum.at(v, x, cv)
         win = cv == v[x]
         a[x[win]], b[x[win]] = ca[win], cb[win]
-        np.subtract.at(indeg, x, 1)
-        front = np.unique(x[indeg[x] == 0])
+    e = np.flatnonzero(to >= 0)
     ia, ib = np.zeros(a.size, np.int64), np.zeros(a.size, np.int64)
     iv = np.zeros(a.size)
     ca, cb = a[e] + da[e], b[e] + db[e]
@@ -149,9 +143,8 @@ def solve_entries(tiles: list[list[TilePaths]]) -> list[list[tuple[np.ndarray, n
     np.maximum.at(iv, to[e], cv)
     win = cv == iv[to[e]]
     ia[to[e][win]], ib[to[e][win]] = ca[win], cb[win]
-    out = [(ia[o:o + c], ib[o:o + c]) for o, c in zip(offsets.tolist(), counts.tolist())]
     tx = len(tiles[0])
-    return [out[i * tx:(i + 1) * tx] for i in range(len(tiles))]
+    return [list(zip(ra, rb)) for ra, rb in zip(per_tile(ia, offsets, counts, tx), per_tile(ib, offsets, counts, tx))]
 
 
 def finish_tile(code: np.ndarray, entry_a: np.ndarray, entry_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

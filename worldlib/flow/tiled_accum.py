@@ -160,7 +160,7 @@ def _tile_of(starts: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.searchsorted(starts, x, side="right") - 1
 
 
-def _perimeter_graph(perims: list[list[Perimeter]]):
+def perimeter_graph(perims: list[list[Perimeter]]):
     """Every tile's perimeter cells as nodes of one graph: offsets of the
     tiles' node numbers, each node's local sum, its exit node (-1) and, for
     exit nodes, the node of the entry cell its code points to (-1)."""
@@ -190,33 +190,46 @@ def _perimeter_graph(perims: list[list[Perimeter]]):
     return offsets, counts, local, exit_node, to
 
 
-def solve_inflow(perims: list[list[Perimeter]]) -> list[list[np.ndarray]]:
-    """Pass 2 over the perimeter graph: per tile (the grid of tiles, row
-    major, as tiled_fill.tile_slices), the int64 inflow from other tiles at
-    each of its perimeter cells (0 where none enters). Kahn's order over
-    the exit cells, a whole front of ready exits at a time: the number of
-    rounds is the most tiles one path crosses."""
-    offsets, counts, total, exit_node, to = _perimeter_graph(perims)
+def exit_fronts(to: np.ndarray, exit_node: np.ndarray, what: str):
+    """Kahn's order over the exit nodes of perimeter_graph: yields fronts
+    (exits f, and the exit nxt each one's water reaches next) whose every
+    upstream exit came in an earlier front, so a caller that passes each
+    exit's total on to nxt before the next front sees final totals only.
+    The number of fronts is the most tiles one path crosses."""
     e = np.flatnonzero(to >= 0)
-    nxt = np.full(total.size, -1, np.int64)
+    nxt = np.full(to.size, -1, np.int64)
     nxt[e] = exit_node[to[e]]  # the exit the water of exit e reaches next (-1: its path ends there)
     has = e[nxt[e] >= 0]
-    indeg = np.bincount(nxt[has], minlength=total.size)
+    indeg = np.bincount(nxt[has], minlength=to.size)
     front = e[indeg[e] == 0]
     done = 0
     while front.size:
         done += front.size
         f = front[nxt[front] >= 0]
-        np.add.at(total, nxt[f], total[f])
+        yield f, nxt[f]
         np.subtract.at(indeg, nxt[f], 1)
         front = np.unique(nxt[f][indeg[nxt[f]] == 0])
     if done != e.size:
-        raise ValueError("tiled accumulation: the receiver graph has a cycle across tiles")
+        raise ValueError(f"{what}: the receiver graph has a cycle across tiles")
+
+
+def per_tile(values: np.ndarray, offsets: np.ndarray, counts: np.ndarray, tiles_per_row: int) -> list[list[np.ndarray]]:
+    """Per-node values of perimeter_graph cut back into the grid of tiles."""
+    out = [values[o:o + c] for o, c in zip(offsets.tolist(), counts.tolist())]
+    return [out[i:i + tiles_per_row] for i in range(0, len(out), tiles_per_row)]
+
+
+def solve_inflow(perims: list[list[Perimeter]]) -> list[list[np.ndarray]]:
+    """Pass 2 over the perimeter graph: per tile (the grid of tiles, row
+    major, as tiled_fill.tile_slices), the int64 inflow from other tiles at
+    each of its perimeter cells (0 where none enters), in exit_fronts' order."""
+    offsets, counts, total, exit_node, to = perimeter_graph(perims)
+    for f, nxt in exit_fronts(to, exit_node, "tiled accumulation"):
+        np.add.at(total, nxt, total[f])
+    e = np.flatnonzero(to >= 0)
     inflow = np.zeros(total.size, np.int64)
     np.add.at(inflow, to[e], total[e])
-    out = [inflow[o:o + c] for o, c in zip(offsets.tolist(), counts.tolist())]
-    tx = len(perims[0])
-    return [out[i * tx:(i + 1) * tx] for i in range(len(perims))]
+    return per_tile(inflow, offsets, counts, len(perims[0]))
 
 
 def finish_tile(code: np.ndarray, inflow: np.ndarray, weights: np.ndarray | None = None, env=None) -> np.ndarray:
