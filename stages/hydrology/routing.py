@@ -10,6 +10,7 @@ import numpy as np
 from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
 from worldlib.flow import device as dev
+from worldlib.flow import drainage_breach
 from worldlib.flow import reference as ref
 
 from pipeline.timing import StepTimes as Timings
@@ -56,20 +57,24 @@ def land_of(terrain: Grid) -> Land:
 @dataclass(frozen=True)
 class Surfaces:
     filled: np.ndarray  # pure Priority-Flood fill of the terrain (the lakes' levels)
-    routing: np.ndarray  # filled or breached, then epsilon-filled: every cell drains
+    routing: np.ndarray  # epsilon-filled, or breached along the epsilon-filled surface's drainage and epsilon-filled
     fill_stats: dict  # the fill kernel's passes and tiles
 
 
 def condition(env, land: Land, depression: str, timings: Timings) -> Surfaces:
     """Step 1 on the OpenCL device `env` (the stage's ctx.cl): the filled surface, and the routing surface
-    (breached or filled, then epsilon-filled)."""
+    (epsilon-filled, or breached along the epsilon-filled surface's drainage: worldlib.flow.drainage_breach)."""
     fstats: dict = {}
     with timings.lap("fill_s"):
         F = dev.fill(env, land.h, land.kind, eps=False, stats=fstats)
-    with timings.lap("breach_s"):
-        cond = dev.breach(env, land.h, land.kind) if depression == "breach" else land.h
     with timings.lap("fill_epsilon_s"):
-        R = dev.fill(env, cond, land.kind, eps=True)
+        R = dev.fill(env, land.h, land.kind, eps=True)
+    if depression == "breach":
+        # carved along the epsilon-filled surface's drainage, so a tiled world carves the same cells
+        with timings.lap("breach_s"):
+            paths = drainage_breach.carve_codes(land.h, F, R, dev.d8(env, R, land.kind, land.dx))
+            B = drainage_breach.breach(land.h, land.kind, paths)
+            R = dev.fill(env, B, land.kind, eps=True)  # the epsilon fill's steps where the carves' are finer
     return Surfaces(F, R, fstats)
 
 

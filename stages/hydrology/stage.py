@@ -1,14 +1,18 @@
 """The hydrology stage: depressions, flow, rivers, lakes and moisture.
 
 Pipeline (every step exact against reference.py, see the tests):
-1. Depression handling (routing.py, as steps 2 and 3): complete breaching (Lindsay 2016, the default;
-   one serial work-item, kernels.cl breach_serial, bit-exact against
-   reference.breach) or Priority-Flood fill (Barnes 2014) on the OpenCL
-   device in three phases (kernels.cl fill_local, fill_levels, fill_combine:
-   per-tile fill and labels, the spill levels over tile edges, the max of
-   both); then Priority-Flood+epsilon by minimax relaxation (fill_tiles)
-   (a float32-safe step: one ulp where |h| >= 1 m, 2^-23 m below) so every
-   cell has a strictly descending path to an edge: the routing surface.
+1. Depression handling (routing.py, as steps 2 and 3): Priority-Flood fill
+   (Barnes 2014) on the OpenCL device in three phases (kernels.cl
+   fill_local, fill_levels, fill_combine: per-tile fill and labels, the
+   spill levels over tile edges, the max of both); then Priority-Flood+
+   epsilon by minimax relaxation (fill_tiles) (a float32-safe step: one ulp
+   where |h| >= 1 m, 2^-23 m below) so every cell has a strictly
+   descending path to an edge. That is the routing surface of
+   depression = fill; the default, breach, carves each pit's way out
+   instead (complete breaching, worldlib.flow.drainage_breach: across a
+   depression along Lindsay's flood order from its outlet, then down the
+   epsilon-filled surface's drainage; no cell raised, the same cells on a
+   tiled world), and epsilon-fills that.
 2. D8 steepest descent on the routing surface (kernel d8, pysheds order).
 3. D8 accumulation, exact in integers, in three tiled phases (kernels
    acc_local / acc_global / acc_final): drainage area in m^2 and discharge
@@ -67,9 +71,11 @@ CHANNEL_HEAD_AREA_M2 = 1.0e5
 
 class HydrologyParams(Params):
     depression: Literal["fill", "breach"] = Param(
-        "breach", description="depression handling for flow routing: breach (complete breaching, Lindsay 2016: "
-        "water runs downhill into each pit and out along a carved path; serial) or fill (Priority-Flood, parallel: "
-        "water crosses the filled flats in straight lines); lakes always use the filled levels of the real terrain")
+        "breach", description="depression handling for flow routing: breach (complete breaching: water runs "
+        "downhill into each pit and out along a path carved one float32 step per cell, across a depression along "
+        "its lowest ground from the outlet its fill spills through, as Lindsay 2016 floods it, then down the "
+        "drainage; tiled like fill) or fill (Priority-Flood: water crosses the filled flats in straight lines); "
+        "lakes always use the filled levels of the real terrain")
     flow: Literal["d8", "mfd"] = Param(
         "d8", description="accumulation for the wetness index: d8 (single direction) or mfd (Quinn 1991 multiple "
         "flow directions); rivers always follow the D8 tree")
@@ -184,10 +190,9 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dic
 
 def run_tiled(ctx: RunContext, inputs: dict[str, Any], params: HydrologyParams) -> dict[str, Any]:
     """run on a tiled world: every step per tile or on the few cells it
-    concerns (tiled_run.py), with the same files; breaching and MFD wetness
-    are serial and run whole."""
-    why = ("breaching (depression = breach) is serial" if params.depression != "fill" else
-           "MFD wetness (flow = mfd) is serial" if params.flow != "d8" else None)
+    concerns (tiled_run.py), with the same files; MFD wetness is serial
+    and runs whole."""
+    why = "MFD wetness (flow = mfd) is serial" if params.flow != "d8" else None
     if why is None:
         return tiled_run.run(ctx, inputs, params, write_water_layer)
     ctx.metrics["tiled_steps"] = f"none: {why}; the stage ran whole"
@@ -246,7 +251,7 @@ def check(params: HydrologyParams, ctx: CheckContext) -> Check:
     if terrain is None:
         return Check()
     cells = terrain.shape[0] * terrain.shape[1]
-    if ctx.tile_cells and params.depression == "fill" and params.flow == "d8":
+    if ctx.tile_cells and params.flow == "d8":
         return _tiled_memory(params, tuple(terrain.shape), float(terrain.cell_size_m), ctx.tile_cells)
     return Check(memory_bytes=BYTES_PER_CELL * cells, memory_how=f"the terrain's {cells:,} cells x {BYTES_PER_CELL} B")
 
@@ -284,7 +289,7 @@ STAGE = Stage(
     outputs=(
         _grid("hydrology.filled", "filled.exr", ("height",), "m", "depression-filled height (Priority-Flood)"),
         _grid("hydrology.conditioned", "conditioned.exr", ("height",), "m",
-              "routing surface: filled or breached, then epsilon-filled so every cell drains (float32 steps)"),
+              "routing surface: epsilon-filled, or breached along its drainage, so every cell drains (float32 steps)"),
         _grid("hydrology.flow", "flow.exr", ("flow.x", "flow.z", "flow.d8"), "1",
               "D8 flow direction: unit vector (x east, z south) and code (0..7 = N, NE, E, SE, S, SW, W, NW as in "
               "pysheds; -1 outlet; NaN no-data)", nodata_nan=True),

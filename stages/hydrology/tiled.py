@@ -1,9 +1,10 @@
 """The stage's steps 1 to 3 on a tiled world (pipeline.tiles), each tile a
 task: the plain fill in Barnes' (2016) three passes, the epsilon-filled
 routing surface in rounds of neighbour perimeters, D8 directions from a
-one-cell halo, and D8 accumulation in Barnes' (2017) three passes
-(worldlib.flow.tiled_fill, tiled_accum). Every result is bitwise the
-untiled one (routing.condition with depression = fill, flow_directions).
+one-cell halo, breaching along them and D8 accumulation in Barnes' (2017)
+three passes (worldlib.flow.tiled_fill, drainage_breach, tiled_accum).
+Every result is bitwise the untiled one (routing.condition,
+flow_directions).
 The stage's process holds only the perimeters and the tiles' summaries.
 """
 from __future__ import annotations
@@ -15,7 +16,7 @@ import numpy as np
 
 from pipeline.errors import InputError, StageError
 from pipeline.tiles import TileOutput
-from worldlib.flow import longest_path
+from worldlib.flow import drainage_breach, longest_path
 from worldlib.flow import reference as ref
 from worldlib.flow import tiled_accum as ta
 from worldlib.flow import tiled_fill as tf
@@ -104,6 +105,67 @@ def accumulate_finish(tctx, inputs: dict[str, Any], params, inflow: np.ndarray) 
                                            "data_cells": int((kind != ref.NODATA).sum())})
 
 
+def depression_cells(tctx, inputs: dict[str, Any], params, shared) -> TileOutput:
+    """Breaching's gather: the tile's depression and rim cells (world flat
+    indices) with their flood keys (drainage_breach.flood_codes)."""
+    _, _, halo = _heights(tctx, inputs["terrain"])
+    inside, rim = drainage_breach.depression_sets(halo, inputs["filled"].read_padded(tctx.tile, 1))
+    inside, rim = inside[1:-1, 1:-1], rim[1:-1, 1:-1]
+    local = np.flatnonzero(inside | rim)
+    key = np.where(inside, halo[1:-1, 1:-1], inputs["routing"].tile_array(tctx.tile)).ravel()[local]
+    return TileOutput({}, {"cells": _global(tctx.tile, inputs["terrain"].shape[1], local), "key": key,
+                           "inside": inside.ravel()[local]})
+
+
+def flood_paths(tiles, parts: list[dict], shape) -> dict:
+    """The depressions' flood codes from the tiles' depression_cells, by
+    tile name: (tile-local flat cells, their codes)."""
+    rows, cols = shape
+    got = {k: np.concatenate([p[k] for p in parts]) for k in ("cells", "key", "inside")}
+    order = np.argsort(got["cells"], kind="stable")
+    cells = got["cells"][order]
+    codes = drainage_breach.flood_codes(cells, got["key"][order], got["inside"][order], cols, rows * cols) \
+        if cells.size else np.zeros(0, np.int8)
+    cells, codes = cells[codes >= 0], codes[codes >= 0]
+    r, c = np.divmod(cells, cols)
+    out = {}
+    for t in tiles:
+        mine = (r >= t.row0) & (r < t.row0 + t.rows) & (c >= t.col0) & (c < t.col0 + t.cols)
+        out[t.name] = ((r[mine] - t.row0) * t.cols + (c[mine] - t.col0), codes[mine])
+    return out
+
+
+def _carve_inputs(tctx, inputs: dict[str, Any], flood: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The tile's heights with a halo, kinds, and the carves' paths: the
+    drainage's codes, the floods' on the depression cells."""
+    _, kind, halo = _heights(tctx, inputs["terrain"])
+    code = np.array(inputs["code"].tile_array(tctx.tile), np.int8)
+    local, codes = flood
+    code.ravel()[local] = codes
+    return halo, kind, code
+
+
+def breach_local(tctx, inputs: dict[str, Any], params, flood: tuple) -> TileOutput:
+    """Breaching's pass 1: the tile's own carves, and how a carve arriving at each perimeter cell crosses it."""
+    c = drainage_breach.carve_tile(*_carve_inputs(tctx, inputs, flood), (tctx.tile.row0, tctx.tile.col0))
+    return TileOutput({}, {**perimeter_summary(c.perimeter), "threshold": c.threshold, "steps": c.steps})
+
+
+def carves_by_tile(tiles, parts: list[dict]) -> dict:
+    """Breaching's pass 2 from the tiles' breach_local summaries: the carves arriving at each tile's perimeter."""
+    got = [drainage_breach.CarvePerimeter(
+        ta.Perimeter((t.row0, t.col0), (t.rows, t.cols), s["code"], s["exit"], s["local_sum"]), s["threshold"],
+        s["steps"]) for t, s in zip(tiles, parts)]
+    arriving = drainage_breach.solve_carves(_grid_of(tiles, got))
+    return {t.name: a for t, a in zip(tiles, [a for row in arriving for a in row])}
+
+
+def breach_finish(tctx, inputs: dict[str, Any], params, shared: tuple) -> TileOutput:
+    """Breaching's pass 3: the tile's breached surface, the carves from other tiles carving on in it."""
+    flood, arriving = shared
+    return TileOutput({"breached": drainage_breach.finish_tile(*_carve_inputs(tctx, inputs, flood), arriving)})
+
+
 def _grid_of(tiles, values: list) -> list[list]:
     rows = max(t.row for t in tiles) + 1
     return [[v for t, v in zip(tiles, values) if t.row == i] for i in range(rows)]
@@ -159,28 +221,26 @@ def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, 
     by_name = {t.name: lv for t, lv in zip(tiles, [lv for row in levels for lv in row])}
     filled, _ = runner.map(fill_finish, "filled", shape, dict(local), params, per_tile=by_name,
                            grids={"filled": ("filled",)}, **geo)
-    routing, active = None, {t.name for t in tiles}
-    for rnd in range(1, MAX_EPS_ROUNDS + 1):
-        progress(0.02, f"routing surface: round {rnd}, {len(active)} tiles")
-        ins = {"terrain": terrain, **({"routing": routing} if routing is not None else {})}
-        # the rounds are not kept as units: dozens of world-sized arrays, each cheaper to remake than to store;
-        # a round reads only the one before, which goes once this one is made (21 rounds at 16384^2: 23 GB)
-        routing_now, parts = runner.map(eps_round, f"routing{rnd}", shape, ins, params,
-                                        per_tile={t.name: t.name in active for t in tiles},
-                                        grids={"routing": ("routing",)}, keep=False, **geo)
-        before, routing = routing, routing_now["routing"]
-        runner.discard(before)
-        changed = {(t.row, t.col) for t, s in zip(tiles, parts) if s["changed"]}
-        if not changed:
-            break
-        # a tile reads its 8 neighbours' values: it runs again when one of them (or itself) changed
-        active = {t.name for t in tiles if any((t.row + i, t.col + j) in changed for i in (-1, 0, 1) for j in (-1, 0, 1))}
-    else:
-        raise StageError(f"hydrology: the tiled routing surface found no fixed point after {MAX_EPS_ROUNDS} rounds")
-    code, parts = runner.map(directions, "directions", shape, {"routing": routing}, params, dx,
-                             grids={"code": ("code",)}, **geo)
-    if sum(s["pits"] for s in parts):
-        raise StageError("hydrology: a cell has no downslope path after depression handling (broken invariant)")
+    routing, rounds = _epsilon_fill(runner, "routing", terrain, params, progress, geo)
+    code = _directions(runner, "directions" if params.depression == "fill" else "drainage", shape, routing, params,
+                       dx, {**geo, "keep": params.depression == "fill"})
+    if params.depression == "breach":
+        progress(0.15, "breaching: the depressions' floods")
+        ins = {"terrain": terrain, "filled": filled["filled"], "routing": routing, **code}
+        _, parts = runner.map(depression_cells, "breach_depressions", shape, ins, params, keep=False, **geo)
+        paths = flood_paths(tiles, parts, shape)
+        progress(0.2, "breaching: tiles")
+        _, parts = runner.map(breach_local, "breach", shape, ins, params, per_tile=paths, keep=False, **geo)
+        arriving = carves_by_tile(tiles, parts)
+        breached, _ = runner.map(breach_finish, "breached", shape, ins, params,
+                                 per_tile={name: (paths[name], arriving[name]) for name in paths},
+                                 grids={"breached": ("routing",)}, keep=False, **geo)
+        runner.discard(routing)
+        runner.discard(code["code"])
+        routing, more = _epsilon_fill(runner, "breached_routing", breached["breached"], params, progress, geo)
+        runner.discard(breached["breached"])
+        rounds += more
+        code = _directions(runner, "directions", shape, routing, params, dx, geo)
     _, parts = runner.map(accumulate_local, "accumulation", shape, dict(code), params, **geo)
     by_name = inflow_by_tile(tiles, parts)
     counts, parts = runner.map(accumulate_finish, "counts", shape, {**code, "routing": routing}, params,
@@ -190,7 +250,40 @@ def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, 
     if outlet != data:
         raise StageError(f"hydrology: accumulation at the outlets is {outlet} cells, not {data}")
     return {"filled": filled["filled"], "routing": routing, "code": code["code"], "counts": counts["counts"],
-            "rounds": rnd, "hmin": hmin, "outlet_cells": outlet}
+            "rounds": rounds, "hmin": hmin, "outlet_cells": outlet}
+
+
+def _epsilon_fill(runner, pass_name: str, base, params, progress, geo: dict):
+    """The epsilon fill of base (the terrain, or a breached surface) in
+    rounds of neighbour perimeters: the routing surface as TileArrays, and
+    the rounds it took."""
+    tiles = runner.tiles(base.shape)
+    routing, active = None, {t.name for t in tiles}
+    for rnd in range(1, MAX_EPS_ROUNDS + 1):
+        progress(0.02, f"routing surface: round {rnd}, {len(active)} tiles")
+        ins = {"terrain": base, **({"routing": routing} if routing is not None else {})}
+        # the rounds are not kept as units: dozens of world-sized arrays, each cheaper to remake than to store;
+        # a round reads only the one before, which goes once this one is made (21 rounds at 16384^2: 23 GB)
+        routing_now, parts = runner.map(eps_round, f"{pass_name}{rnd}", base.shape, ins, params,
+                                        per_tile={t.name: t.name in active for t in tiles},
+                                        grids={"routing": ("routing",)}, keep=False, **geo)
+        before, routing = routing, routing_now["routing"]
+        runner.discard(before)
+        changed = {(t.row, t.col) for t, s in zip(tiles, parts) if s["changed"]}
+        if not changed:
+            return routing, rnd
+        # a tile reads its 8 neighbours' values: it runs again when one of them (or itself) changed
+        active = {t.name for t in tiles if any((t.row + i, t.col + j) in changed for i in (-1, 0, 1) for j in (-1, 0, 1))}
+    raise StageError(f"hydrology: the tiled routing surface found no fixed point after {MAX_EPS_ROUNDS} rounds")
+
+
+def _directions(runner, pass_name: str, shape, routing, params, dx: float, geo: dict) -> dict:
+    """The D8 codes of a routing surface, checked to leave no pit."""
+    code, parts = runner.map(directions, pass_name, shape, {"routing": routing}, params, dx,
+                             grids={"code": ("code",)}, **geo)
+    if sum(s["pits"] for s in parts):
+        raise StageError("hydrology: a cell has no downslope path after depression handling (broken invariant)")
+    return code
 
 
 # --------------------------------------------------------------------------- discharge

@@ -22,11 +22,11 @@ def project(tmp_path):
     return tmp_path
 
 
-@pytest.mark.parametrize("resolution, executor", [(512, "local"), (640, "dask")])
-def test_tiled_hydrology_writes_the_untiled_files(project, resolution, executor):
+@pytest.mark.parametrize("resolution, executor, depression", [(512, "local", "fill"), (640, "dask", "breach")])
+def test_tiled_hydrology_writes_the_untiled_files(project, resolution, executor, depression):
     """2 x 2 tiles, and 3 x 3 with part tiles on Dask: filled, routing,
     directions, accumulation and everything made from them."""
-    sets = (*FILL, f"heightmap.resolution={resolution}")
+    sets = (*FILL, f"heightmap.resolution={resolution}", f"hydrology.depression={depression}")
     whole = bake_keys(project, "b_whole", *sets)
     tiled = bake_keys(project, "b_tiled", *sets, "tiling.tile_cells=256", executor=executor)
     assert whole == tiled, (whole, tiled)
@@ -37,12 +37,15 @@ def test_tiled_hydrology_writes_the_untiled_files(project, resolution, executor)
     assert manifest["metrics"]["tiled_steps"].startswith("every step")
     assert {p["pass"] for p in manifest["metrics"]["tiling"]["passes"]} >= {
         "fill", "filled", "directions", "accumulation", "counts", "discharge", "lake_cells", "lake_exits", "network",
-        "ground", "wetness", "maps", "paths", "paths_finish", "hack", "bed_fit"}
+        "ground", "wetness", "maps", "paths", "paths_finish", "hack", "bed_fit",
+        *(("drainage", "breach", "breached") if depression == "breach" else ())}
 
 
-def test_the_tiled_flow_steps_equal_the_untiled_on_a_world_with_holes(tmp_path):
+@pytest.mark.parametrize("depression", ["fill", "breach"])
+def test_the_tiled_flow_steps_equal_the_untiled_on_a_world_with_holes(tmp_path, depression):
     """NaN and +-inf no-data across tile borders, part tiles: filled,
-    routing, directions and accumulation bitwise the untiled steps'."""
+    routing (filled, or breached), directions and accumulation bitwise the
+    untiled steps'."""
     from pipeline import exr
     from pipeline.grid import Grid
     from pipeline.opencl import get_cl
@@ -60,11 +63,11 @@ def test_the_tiled_flow_steps_equal_the_untiled_on_a_world_with_holes(tmp_path):
     exr.write_grid(tmp_path / "h.exr", Grid(h.astype(np.float32), 8.0))
     env = get_cl()
     land = land_of(exr.read_grid(tmp_path / "h.exr"))
-    surfaces = condition(env, land, "fill", StepTimes())
+    surfaces = condition(env, land, depression, StepTimes())
     flow = flow_directions(env, land, surfaces.routing, StepTimes())
     runner = TileRunner(128, stage=STAGE, run_key="k", seed=0, project_root=tmp_path, units=None,
                         work=tmp_path / "work")
-    core = tiled.flow_core(runner, GridFile(tmp_path / "h.exr"), HydrologyParams(depression="fill"))
+    core = tiled.flow_core(runner, GridFile(tmp_path / "h.exr"), HydrologyParams(depression=depression))
     whole = lambda name: core[name].read(0, 0, *land.shape)
     assert np.array_equal(whole("filled"), surfaces.filled, equal_nan=True)
     assert np.array_equal(whole("routing"), surfaces.routing, equal_nan=True)
@@ -135,7 +138,7 @@ def test_the_tiled_river_network_is_the_whole_worlds(tmp_path):
     params = HydrologyParams(depression="fill", river_threshold_m2=2e4, rain_lapse_mm_per_year_per_100m=100.0)
     env = get_cl()
     land = land_of(exr.read_grid(tmp_path / "h.exr"))
-    surfaces = condition(env, land, "fill", StepTimes())
+    surfaces = condition(env, land, params.depression, StepTimes())
     flow = flow_directions(env, land, surfaces.routing, StepTimes())
     q = discharge_m3_s(env, land, flow, rain_m_per_year(land, params, None), params, StepTimes())
     no_lakes = type("NoLakes", (), {"depth": np.zeros(land.shape), "level": np.full(land.shape, np.nan),
@@ -251,7 +254,7 @@ def test_the_tiled_wetness_and_moisture_equal_the_whole(tmp_path):
     assert water_reach_cells(8.0, 60.0) == 60
     env = get_cl()
     land = land_of(exr.read_grid(tmp_path / "h.exr"))
-    flow = flow_directions(env, land, condition(env, land, "fill", StepTimes()).routing, StepTimes())
+    flow = flow_directions(env, land, condition(env, land, params.depression, StepTimes()).routing, StepTimes())
     want = wetness_and_moisture(env, land, flow.area_m2, water, exr.read_grid(tmp_path / "m.exr"), params)
     runner = TileRunner(128, stage=STAGE, run_key="k", seed=0, project_root=tmp_path, units=None,
                         work=tmp_path / "work")
@@ -303,7 +306,7 @@ def test_the_tiled_depression_cells_are_the_whole_gather(tmp_path, tile, lapse):
     params = HydrologyParams(depression="fill", lake_runoff_depth_m=2.0, rain_lapse_mm_per_year_per_100m=lapse)
     env = get_cl()
     land = land_of(exr.read_grid(tmp_path / "h.exr"))
-    surfaces = condition(env, land, "fill", StepTimes())
+    surfaces = condition(env, land, params.depression, StepTimes())
     flow = flow_directions(env, land, surfaces.routing, StepTimes())
     rain = rain_m_per_year(land, params, None)
     import math
@@ -329,7 +332,7 @@ def test_the_tiled_depression_cells_are_the_whole_gather(tmp_path, tile, lapse):
 
 def test_a_tiled_world_is_checked_for_a_tile_and_its_sparse_sets():
     """The check names what a tiled run holds: a tile with the open water's
-    reach and the cells of the world-wide solves; breaching runs whole."""
+    reach and the cells of the world-wide solves, filled or breached; MFD runs whole."""
     from pipeline.contract import CheckContext, GridInfo
     from stages.hydrology import HydrologyParams
     from stages.hydrology.stage import BYTES_PER_CELL, check
@@ -340,4 +343,5 @@ def test_a_tiled_world_is_checked_for_a_tile_and_its_sparse_sets():
     assert check(fill, ctx(0)).memory_bytes == BYTES_PER_CELL * 16384 ** 2
     tiled = check(fill, ctx(1024))
     assert tiled.memory_bytes < 4e9 and "1664^2" in tiled.memory_how  # 1024 + 2 x 320 cells of reach
-    assert check(HydrologyParams(depression="breach"), ctx(1024)).memory_bytes == BYTES_PER_CELL * 16384 ** 2
+    assert check(HydrologyParams(depression="breach"), ctx(1024)).memory_bytes == tiled.memory_bytes
+    assert check(HydrologyParams(flow="mfd"), ctx(1024)).memory_bytes == BYTES_PER_CELL * 16384 ** 2
