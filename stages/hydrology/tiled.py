@@ -83,11 +83,16 @@ def eps_round(tctx, inputs: dict[str, Any], params, active: bool) -> TileOutput:
     return TileOutput({"routing": new}, {"changed": changed})
 
 
-def directions(tctx, inputs: dict[str, Any], params, dx: float) -> TileOutput:
-    """D8 on the routing surface from a one-cell halo (kinds from the terrain's)."""
+def directions(tctx, inputs: dict[str, Any], params, shared: tuple[float, bool]) -> TileOutput:
+    """D8 on the routing surface from a one-cell halo (kinds from the
+    terrain's); shared = (dx, whether to count the cells its epsilon fill
+    would raise: tf.eps_unsettled)."""
+    dx, settled = shared
     z = inputs["routing"].read_padded(tctx.tile, 1)
-    code = ta.tile_d8(z, tf.tile_kind(z), dx, tctx.cl)  # the routing surface is NaN where the terrain is
-    return TileOutput({"code": code}, {"pits": int((code == ref.PIT).sum())})
+    kind = tf.tile_kind(z)  # the routing surface is NaN where the terrain is
+    code = ta.tile_d8(z, kind, dx, tctx.cl)
+    return TileOutput({"code": code}, {"pits": int((code == ref.PIT).sum()),
+                                       "unsettled": tf.eps_unsettled(z, kind) if settled else 0})
 
 
 def accumulate_local(tctx, inputs: dict[str, Any], params, shared) -> TileOutput:
@@ -222,8 +227,8 @@ def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, 
     filled, _ = runner.map(fill_finish, "filled", shape, dict(local), params, per_tile=by_name,
                            grids={"filled": ("filled",)}, **geo)
     routing, rounds = _epsilon_fill(runner, "routing", terrain, params, progress, geo)
-    code = _directions(runner, "directions" if params.depression == "fill" else "drainage", shape, routing, params,
-                       dx, {**geo, "keep": params.depression == "fill"})
+    code, _ = _directions(runner, "directions" if params.depression == "fill" else "drainage", shape, routing,
+                          params, dx, {**geo, "keep": params.depression == "fill"})
     if params.depression == "breach":
         progress(0.15, "breaching: the depressions' floods")
         ins = {"terrain": terrain, "filled": filled["filled"], "routing": routing, **code}
@@ -237,10 +242,15 @@ def flow_core(runner, terrain, params, progress=lambda f, m: None) -> dict[str, 
                                  grids={"breached": ("routing",)}, keep=False, **geo)
         runner.discard(routing)
         runner.discard(code["code"])
-        routing, more = _epsilon_fill(runner, "breached_routing", breached["breached"], params, progress, geo)
-        runner.discard(breached["breached"])
-        rounds += more
-        code = _directions(runner, "directions", shape, routing, params, dx, geo)
+        routing = breached["breached"]
+        # above 1 m every carve's float step is a step of the epsilon fill: the breached surface is its own fill
+        code, unsettled = _directions(runner, "directions", shape, routing, params, dx, geo, settled=True)
+        if unsettled:
+            runner.discard(code["code"])
+            routing, more = _epsilon_fill(runner, "breached_routing", routing, params, progress, geo)
+            runner.discard(breached["breached"])
+            rounds += more
+            code, _ = _directions(runner, "directions", shape, routing, params, dx, geo)
     _, parts = runner.map(accumulate_local, "accumulation", shape, dict(code), params, **geo)
     by_name = inflow_by_tile(tiles, parts)
     counts, parts = runner.map(accumulate_finish, "counts", shape, {**code, "routing": routing}, params,
@@ -277,13 +287,17 @@ def _epsilon_fill(runner, pass_name: str, base, params, progress, geo: dict):
     raise StageError(f"hydrology: the tiled routing surface found no fixed point after {MAX_EPS_ROUNDS} rounds")
 
 
-def _directions(runner, pass_name: str, shape, routing, params, dx: float, geo: dict) -> dict:
-    """The D8 codes of a routing surface, checked to leave no pit."""
-    code, parts = runner.map(directions, pass_name, shape, {"routing": routing}, params, dx,
+def _directions(runner, pass_name: str, shape, routing, params, dx: float, geo: dict,
+                settled: bool = False) -> tuple[dict, int]:
+    """The D8 codes of a routing surface and (settled) the cells its
+    epsilon fill would raise; checked to leave no pit when it is its own
+    epsilon fill."""
+    code, parts = runner.map(directions, pass_name, shape, {"routing": routing}, params, (dx, settled),
                              grids={"code": ("code",)}, **geo)
-    if sum(s["pits"] for s in parts):
+    unsettled = sum(s["unsettled"] for s in parts)
+    if sum(s["pits"] for s in parts) and not unsettled:
         raise StageError("hydrology: a cell has no downslope path after depression handling (broken invariant)")
-    return code
+    return code, unsettled
 
 
 # --------------------------------------------------------------------------- discharge

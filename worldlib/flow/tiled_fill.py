@@ -66,6 +66,23 @@ def tile_kind(h_halo: np.ndarray) -> np.ndarray:
     return ref.cell_kinds(h_halo)[1:-1, 1:-1]
 
 
+def eps_unsettled(z_halo: np.ndarray, kind: np.ndarray) -> int:
+    """How many interior cells of a tile (z_halo: the surface with a
+    one-cell halo, NaN beyond the world; kind its cells' kinds) stand less
+    than one epsilon step (ref.step_up) above every neighbour. None: the
+    surface is its own epsilon fill (each interior cell at or above a
+    neighbour's step up, a fixed point, and the fill is the least one
+    above the surface), so the rounds of an epsilon fill can be skipped."""
+    rows, cols = kind.shape
+    z = z_halo[1:-1, 1:-1]
+    above = np.zeros((rows, cols), bool)
+    for dr, dc in zip(ref.DR, ref.DC):
+        n = z_halo[1 + dr:1 + dr + rows, 1 + dc:1 + dc + cols]
+        with np.errstate(invalid="ignore"):
+            above |= np.isfinite(n) & (z >= ref.step_up(n))
+    return int(((kind == ref.INTERIOR) & ~above).sum())
+
+
 def _pairs_where(test, *arrays) -> tuple[np.ndarray, np.ndarray]:
     """Flat indices (a, b) of the 8-adjacent cell pairs, each once, for
     which test(x_a, x_b, y_a, y_b, ...) holds on the arrays' shifted views."""

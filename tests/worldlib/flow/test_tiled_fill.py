@@ -148,3 +148,19 @@ def test_epsilon_rounds_stop_at_the_cap():
     h = ref.canonical(dict(CASES)["bowl"])
     with pytest.raises(ValueError, match="no fixed point after 1 rounds"):
         tf.tiled_fill_eps(h, 16, None, max_rounds=1)
+
+
+def test_a_surface_with_no_unsettled_cell_is_its_own_epsilon_fill():
+    """eps_unsettled counts the cells the epsilon fill would raise: none
+    exactly where the fill leaves the surface as it is (filled surfaces,
+    raw land with pits, land with sub-step slopes below 1 m)."""
+    rng = np.random.default_rng(3)
+    for trial in range(40):
+        h = (rng.random((int(rng.integers(3, 30)), int(rng.integers(3, 30)))) * (2.0 if trial % 2 else 200.0))
+        h = ref.canonical(h.astype(np.float32))
+        if trial % 3 == 0:
+            h = ref.priority_flood(h, eps=True)  # its own fill
+        kind = ref.cell_kinds(h)
+        halo = np.pad(h, 1, constant_values=np.nan)
+        unchanged = np.array_equal(ref.priority_flood(h, eps=True, kind=kind), h, equal_nan=True)
+        assert (tf.eps_unsettled(halo, kind) == 0) == unchanged, trial
