@@ -134,22 +134,21 @@ def flood_codes(cells: np.ndarray, key: np.ndarray, inside: np.ndarray, cols: in
     which the epsilon fill raised above a neighbour). int8, -1 at the rim
     cells. Serial: one heap over the gathered cells."""
     nbr = ref.sparse_neighbours(cells, cols, n_cells)
-    zl, cl = np.asarray(key, np.float64).tolist(), np.asarray(cells, np.int64).tolist()
-    heap = [(zl[i], cl[i], i) for i in np.flatnonzero(~inside).tolist()]
+    zl = np.asarray(key, np.float64).tolist()
+    heap = [(zl[i], i) for i in np.flatnonzero(~inside).tolist()]  # cells ascend: position order is flat order
     heapq.heapify(heap)
-    done = (~inside).tolist()
-    back = np.full(len(cl), -1, np.int64)
-    rows_nbr = nbr.tolist()
+    done = bytearray((~np.asarray(inside, bool)).astype(np.uint8).tobytes())
+    back = np.full(len(zl), -1, np.int64)
     while heap:
-        _, _, i = heapq.heappop(heap)
-        for j in rows_nbr[i]:
+        _, i = heapq.heappop(heap)
+        for j in nbr[i].tolist():
             if j >= 0 and not done[j]:
-                done[j] = True
+                done[j] = 1
                 back[j] = i
-                heapq.heappush(heap, (zl[j], cl[j], j))
+                heapq.heappush(heap, (zl[j], j))
     if not all(done):
         raise ValueError("breaching: a depression cell is not reached from any rim")
-    code = np.full(len(cl), -1, np.int8)
+    code = np.full(len(zl), -1, np.int8)
     d = np.flatnonzero(back >= 0)
     r, c = np.divmod(np.asarray(cells, np.int64)[d], cols)
     br, bc = np.divmod(np.asarray(cells, np.int64)[back[d]], cols)
