@@ -57,20 +57,20 @@ def land_of(terrain: Grid) -> Land:
 @dataclass(frozen=True)
 class Surfaces:
     filled: np.ndarray  # pure Priority-Flood fill of the terrain (the lakes' levels)
-    routing: np.ndarray  # epsilon-filled, or breached along the epsilon-filled surface's drainage and epsilon-filled
+    routing: np.ndarray  # epsilon-filled, or breached (drainage_breach) and epsilon-filled: every cell drains
     fill_stats: dict  # the fill kernel's passes and tiles
 
 
 def condition(env, land: Land, depression: str, timings: Timings) -> Surfaces:
     """Step 1 on the OpenCL device `env` (the stage's ctx.cl): the filled surface, and the routing surface
-    (epsilon-filled, or breached along the epsilon-filled surface's drainage: worldlib.flow.drainage_breach)."""
+    (epsilon-filled, or breached and epsilon-filled: worldlib.flow.drainage_breach)."""
     fstats: dict = {}
     with timings.lap("fill_s"):
         F = dev.fill(env, land.h, land.kind, eps=False, stats=fstats)
     with timings.lap("fill_epsilon_s"):
         R = dev.fill(env, land.h, land.kind, eps=True)
     if depression == "breach":
-        # carved along the epsilon-filled surface's drainage, so a tiled world carves the same cells
+        # paths a tiled world takes too: the depressions' floods, the epsilon-filled surface's drainage elsewhere
         with timings.lap("breach_s"):
             paths = drainage_breach.carve_codes(land.h, F, R, dev.d8(env, R, land.kind, land.dx))
             B = drainage_breach.breach(land.h, land.kind, paths)
