@@ -2,13 +2,13 @@
 Lindsay's over the whole map (device.breach, one serial work-item; the
 hydrology's breaching before), one run each (not part of `make test`).
 
-    python -m bench.breach                       # 1024^2 raw and eroded-like, tiles of 256 and 512
+    python -m bench.breach                       # 1024^2 raw and smoothed, tiles of 256 and 512
     python -m bench.breach --n 2048 --tiles 512 1024
 
 DEMs: the heightmap stage's raw terrain at the default world's settings and
 `--n` cells a side (rough: a third of its cells in depressions), and the
-same smoothed by 16 passes of a 3x3 mean (few, shallow depressions, like
-the eroded world). Per DEM: the depression cells; wall seconds of
+same smoothed by 16 passes of a 3x3 mean (as many depression cells, with
+smooth floors: fewer cells carved). Per DEM: the depression cells; wall seconds of
 Lindsay's kernel and of ours (the flood on the depression cells, the
 carves), their ratio; the carved volume and cells of each and the volume
 ratio; then per tile size the three tiled passes in one process (the tiles
