@@ -177,9 +177,8 @@ def carve_codes(h: np.ndarray, filled: np.ndarray, routing: np.ndarray, code: np
 def breach(h: np.ndarray, kind: np.ndarray, code: np.ndarray) -> np.ndarray:
     """The breached surface of canonical heights h (NaN on no-data; their
     reference.cell_kinds kind) along code, carve_codes' paths:
-    float32, NaN where h is."""
-    rl, _ = _local_receivers(np.ascontiguousarray(code, np.int8))
-    b, _ = carve(ordered(h).ravel(), rl.astype(np.int64), ref.pits(h, kind).ravel())
+    float32, NaN where h is. The world as one tile, nothing arriving."""
+    b = _carve_halo(np.pad(h, 1, constant_values=np.nan), kind, code)[0]
     return from_ordered(b).reshape(h.shape)
 
 
@@ -195,24 +194,25 @@ class CarvePerimeter:
     steps: np.ndarray  # int64
 
 
-def _inner(halo: np.ndarray, kind: np.ndarray) -> np.ndarray:
-    """The ordered heights inside a one-cell halo, no-data as NaN (breach's)."""
-    return ordered(np.where(kind == ref.NODATA, np.float32(np.nan), halo[1:-1, 1:-1])).ravel()
-
-
-def _tile_receivers(code: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _carve_halo(halo: np.ndarray, kind: np.ndarray, code: np.ndarray, inflow: np.ndarray | None = None):
+    """carve on a tile: its canonical heights with a one-cell halo (NaN
+    beyond the world; the halo only says which cells are pits), its kinds
+    and carve_codes' paths; inflow as carve's, at the tile's cells. Returns
+    B and carving, the heights (ordered, flat), the in-tile receivers and
+    the cells whose path leaves the tile."""
     rl, leaves = _local_receivers(np.ascontiguousarray(code, np.int8))
-    return rl.astype(np.int64), leaves
+    rl = rl.astype(np.int64)
+    z = ordered(np.where(kind == ref.NODATA, np.float32(np.nan), halo[1:-1, 1:-1])).ravel()
+    b, carving = carve(z, rl, _pits_of_halo(halo, kind).ravel(), inflow)
+    return b, carving, z, rl, leaves
 
 
 def carve_tile(halo: np.ndarray, kind: np.ndarray, code: np.ndarray, origin: tuple[int, int]) -> CarvePerimeter:
     """Pass 1 on one tile: its canonical heights with a one-cell halo (NaN
-    beyond the world), its kinds and codes (of the epsilon-filled surface),
-    where it lies. Thresholds and steps by pointer jumping over (min, +)
-    pairs: a cell's (T, d) over its path up to the cell nxt, then to nxt's."""
-    z = _inner(halo, kind)
-    rl, leaves = _tile_receivers(code)
-    b, carving = carve(z, rl, _pits_of_halo(halo, kind).ravel())
+    beyond the world), its kinds and carve_codes' paths, where it lies.
+    Thresholds and steps by pointer jumping over (min, +) pairs: a cell's
+    (T, d) over its path up to the cell nxt, then to nxt's."""
+    b, carving, z, rl, leaves = _carve_halo(halo, kind, code)
     ends = rl < 0
     nxt = np.where(ends, np.arange(rl.size), rl)
     thr, d = z.copy(), np.where(ends, 0, 1).astype(np.int64)
@@ -254,10 +254,9 @@ def solve_carves(tiles: list[list[CarvePerimeter]]) -> list[list[np.ndarray]]:
 def finish_tile(halo: np.ndarray, kind: np.ndarray, code: np.ndarray, inflow: np.ndarray) -> np.ndarray:
     """Pass 3 on one tile: its breached surface (float32), the carves
     arriving at its perimeter cells (pass 2) carving on in it."""
-    rl, _ = _tile_receivers(code)
-    arriving = np.full(rl.size, NONE, np.int64)
+    arriving = np.full(code.size, NONE, np.int64)
     arriving[perimeter_cells(*code.shape)] = inflow
-    b, _ = carve(_inner(halo, kind), rl, _pits_of_halo(halo, kind).ravel(), arriving)
+    b = _carve_halo(halo, kind, code, arriving)[0]
     return from_ordered(b).reshape(code.shape)
 
 
