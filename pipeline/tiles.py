@@ -30,6 +30,8 @@ it finished.
 """
 from __future__ import annotations
 
+import dataclasses
+import pickle
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -240,6 +242,27 @@ class _TileJob:
     keep: bool = True
 
 
+SHARED_FOLDER = "_shared"  # in a pass's work folder: the values its tasks read (TileRunner._dask)
+
+
+@dataclass(frozen=True)
+class _SharedFile:
+    """A tile task's `shared` value, pickled to a file of the run's work folder."""
+
+    path: str
+
+    @classmethod
+    def write(cls, path: Path, value: Any) -> "_SharedFile":
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_bytes(pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
+        tmp.replace(path)
+        return cls(str(path))
+
+    def read(self) -> Any:
+        return pickle.loads(Path(self.path).read_bytes())
+
+
 def _split_summary(summary: dict[str, Any]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     arrays = {k: v for k, v in summary.items() if isinstance(v, np.ndarray)}
     return arrays, {k: v for k, v in summary.items() if k not in arrays}
@@ -273,7 +296,8 @@ def _run_tile(job: _TileJob) -> tuple[dict[str, str], dict[str, Any], float]:
 
         cl = get_cl()
     tctx = TileContext(job.tile, job.seed, job.stage, Path(job.project_root), cl)
-    out = job.fn(tctx, job.inputs, job.params, job.shared)
+    shared = job.shared.read() if isinstance(job.shared, _SharedFile) else job.shared
+    out = job.fn(tctx, job.inputs, job.params, shared)
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     files = []
@@ -374,7 +398,7 @@ class TileRunner:
                          self.stage.uses_opencl, str(self.project_root), str(root) if root else None,
                          str(tmp) if tmp else None, str(self.work), code, self.run_key, keep) for t in tiles]
         t0 = time.perf_counter()
-        results = self._dask(jobs) if _in_dask_worker() else self._local(jobs, pass_name)
+        results = self._dask(jobs, per_tile is not None) if _in_dask_worker() else self._local(jobs, pass_name)
         for job in jobs:  # the unit keys the run used (its manifest keeps them from gc)
             if self.units is not None and keep:
                 unit = _tile_unit(self.units, job)
@@ -395,11 +419,27 @@ class TileRunner:
             results.append(_run_tile(job))
         return results
 
-    def _dask(self, jobs: list[_TileJob]) -> list:
+    def _dask(self, jobs: list[_TileJob], per_tile: bool) -> list:
         from distributed import worker_client
 
-        with worker_client() as client:  # this task leaves its slot to the tiles while it waits
-            # ahead of queued stage runs: a stage holding a world's state waits on these
-            futures = client.map(_run_tile, jobs, pure=False, priority=1,
-                                 key=[f"{self.stage.name}-{self.run_key}-{j.pass_name}-{j.tile.name}" for j in jobs])
-            return client.gather(futures)
+        # The tasks' `shared` values reach the workers as files in the work folder (which every worker reads,
+        # as it reads the tiles' grids), not inside the task graph: a value sent to every task would be in the
+        # graph once per tile (tens of MiB at 256 tiles, held by the scheduler, and Dask warns of it), and the
+        # tiles' own parts add up to the world's. Scattering them instead would lose them with a worker that
+        # dies; a file stays for the task's retry.
+        if not jobs:
+            return []
+        folder = self.work / jobs[0].pass_name / SHARED_FOLDER
+        if per_tile:
+            sent = [_SharedFile.write(folder / f"{job.tile.name}.pkl", job.shared) for job in jobs]
+        else:
+            sent = [_SharedFile.write(folder / "all.pkl", jobs[0].shared)] * len(jobs)
+        try:
+            with worker_client() as client:  # this task leaves its slot to the tiles while it waits
+                # ahead of queued stage runs: a stage holding a world's state waits on these
+                futures = client.map(_run_tile, [dataclasses.replace(job, shared=f) for job, f in zip(jobs, sent)],
+                                     pure=False, priority=1,
+                                     key=[f"{self.stage.name}-{self.run_key}-{j.pass_name}-{j.tile.name}" for j in jobs])
+                return client.gather(futures)
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)

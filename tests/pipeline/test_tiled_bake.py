@@ -97,6 +97,45 @@ def test_a_tiles_file_arrays_stay_in_files_until_discarded(tmp_path):
     assert not any(Path(p["state"]).exists() for p in parts)
 
 
+def _sum_of_shared(tctx, inputs, params, shared):
+    return TileOutput(summary={"sum": float(np.asarray(shared).sum()), "tile": tctx.tile.name})
+
+
+def _passes_on_a_worker(work: str) -> tuple[list, list, list[str], bool]:
+    """Two passes of a 16-tile world run from inside a Dask task: one with a
+    1 MiB value every tile reads, one with a 1 MiB part per tile; the Dask
+    warnings they raise and whether the values' files are left behind."""
+    import warnings
+    from types import SimpleNamespace
+
+    runner = TileRunner(256, stage=SimpleNamespace(name="toy", uses_opencl=False), run_key="k", seed=0,
+                        project_root=Path(work), units=None, work=Path(work) / "work")
+    shape = (1024, 1024)
+    big = np.arange(1 << 18, dtype=np.float32)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _, every = runner.map(_sum_of_shared, "every", shape, {}, None, big, keep=False)
+        own = {t.name: big + i for i, t in enumerate(runner.tiles(shape))}
+        _, parts = runner.map(_sum_of_shared, "own", shape, {}, None, per_tile=own, keep=False)
+    left = any((Path(work) / "work" / name / "_shared").exists() for name in ("every", "own"))
+    return every, parts, [str(w.message) for w in caught if "large graph" in str(w.message)], left
+
+
+def test_tile_tasks_on_dask_get_their_shared_values_outside_the_task_graph(tmp_path):
+    """A value every tile reads is sent once, and the tiles' own parts are
+    not gathered in the graph: 16 tiles of 1 MiB would make a 16 MiB graph,
+    which Dask warns of (its limit is 10 MB) and its scheduler would hold."""
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        every, parts, warned, left = client.submit(_passes_on_a_worker, str(tmp_path), pure=False).result()
+    total = float(np.arange(1 << 18, dtype=np.float32).sum())
+    assert [p["sum"] for p in every] == [total] * 16
+    assert [p["sum"] for p in parts] == [total + i * (1 << 18) for i in range(16)]
+    assert warned == [] and not left
+
+
 @pytest.mark.parametrize("resolution, tile_cells", [(512, 256), (640, 256)])
 def test_a_tiled_heightmap_is_the_untiled_one_byte_for_byte(project, resolution, tile_cells):
     """4 tiles, and 3 x 3 tiles whose last row and column are part tiles."""
