@@ -247,15 +247,18 @@ SHARED_FOLDER = "_shared"  # in a pass's work folder: the values its tasks read 
 
 @dataclass(frozen=True)
 class _SharedFile:
-    """A tile task's `shared` value, pickled to a file of the run's work folder."""
+    """A tile task's `shared` value, pickled to a file of the run's work folder
+    (by cloudpickle, as Dask would have pickled it into the task)."""
 
     path: str
 
     @classmethod
     def write(cls, path: Path, value: Any) -> "_SharedFile":
+        import cloudpickle
+
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")
-        tmp.write_bytes(pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
+        tmp.write_bytes(cloudpickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
         tmp.replace(path)
         return cls(str(path))
 

@@ -98,13 +98,16 @@ def test_a_tiles_file_arrays_stay_in_files_until_discarded(tmp_path):
 
 
 def _sum_of_shared(tctx, inputs, params, shared):
-    return TileOutput(summary={"sum": float(np.asarray(shared).sum()), "tile": tctx.tile.name})
+    values = shared["scale"](shared["values"]) if isinstance(shared, dict) else shared
+    return TileOutput(summary={"sum": float(np.asarray(values).sum()), "tile": tctx.tile.name})
 
 
 def _passes_on_a_worker(work: str) -> tuple[list, list, list[str], bool]:
     """Two passes of a 16-tile world run from inside a Dask task: one with a
-    1 MiB value every tile reads, one with a 1 MiB part per tile; the Dask
-    warnings they raise and whether the values' files are left behind."""
+    1 MiB value every tile reads (and a function made here, which Dask's
+    cloudpickle carries and plain pickle would not), one with a 1 MiB part
+    per tile; the Dask warnings they raise and whether the values' files are
+    left behind."""
     import warnings
     from types import SimpleNamespace
 
@@ -114,7 +117,8 @@ def _passes_on_a_worker(work: str) -> tuple[list, list, list[str], bool]:
     big = np.arange(1 << 18, dtype=np.float32)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        _, every = runner.map(_sum_of_shared, "every", shape, {}, None, big, keep=False)
+        _, every = runner.map(_sum_of_shared, "every", shape, {}, None, {"values": big, "scale": lambda v: 2 * v},
+                              keep=False)
         own = {t.name: big + i for i, t in enumerate(runner.tiles(shape))}
         _, parts = runner.map(_sum_of_shared, "own", shape, {}, None, per_tile=own, keep=False)
     left = any((Path(work) / "work" / name / "_shared").exists() for name in ("every", "own"))
@@ -131,7 +135,7 @@ def test_tile_tasks_on_dask_get_their_shared_values_outside_the_task_graph(tmp_p
             Client(cluster) as client:
         every, parts, warned, left = client.submit(_passes_on_a_worker, str(tmp_path), pure=False).result()
     total = float(np.arange(1 << 18, dtype=np.float32).sum())
-    assert [p["sum"] for p in every] == [total] * 16
+    assert [p["sum"] for p in every] == [2 * total] * 16
     assert [p["sum"] for p in parts] == [total + i * (1 << 18) for i in range(16)]
     assert warned == [] and not left
 
