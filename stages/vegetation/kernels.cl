@@ -104,6 +104,29 @@ __kernel void horizon(__global const float *h, WINDOW_ARGS, const int orow, cons
     const int r = row0 + orow + orr, c = col0 + ocol + oc;  /* world cell */
     const float h0 = world_at(h, WINDOW, r, c);
     float tmax = 0.0f;
+    /* Most rays stay inside the world and the window: their samples need no clamp and no end test (1.5x
+     * faster on a 1 m tile); the sum is world_bilinear's, operation by operation. */
+    const float smax = steps[nsteps - 1];
+    const float fc_end = (float)c + smax * ex, fr_end = (float)r - smax * ez;
+    const int c_lo = (int)floor(fmin((float)c, fc_end)), c_hi = (int)floor(fmax((float)c, fc_end)) + 1;
+    const int r_lo = (int)floor(fmin((float)r, fr_end)), r_hi = (int)floor(fmax((float)r, fr_end)) + 1;
+    if (c_lo >= max(col0, 0) && r_lo >= max(row0, 0) && c_hi < min(col0 + cols, wcols - 1)
+        && r_hi < min(row0 + rows, wrows - 1)) {
+        for (int m = 0; m < nsteps; ++m) {
+            const float s = steps[m];
+            const float fc = (float)c + s * ex;
+            const float fr = (float)r - s * ez;
+            const float r0f = floor(fr), c0f = floor(fc);
+            const float tr = fr - r0f, tc = fc - c0f;
+            __global const float *q = h + ((int)r0f - row0) * cols + ((int)c0f - col0);
+            const float top = q[0] + (q[1] - q[0]) * tc;
+            const float bot = q[cols] + (q[cols + 1] - q[cols]) * tc;
+            const float t = (top + (bot - top) * tr - h0) / (s * dx);
+            tmax = fmax(tmax, t);
+        }
+        out[d * orows * ocols + orr * ocols + oc] = tmax;
+        return;
+    }
     for (int m = 0; m < nsteps; ++m) {
         const float s = steps[m];
         const float fc = (float)c + s * ex;

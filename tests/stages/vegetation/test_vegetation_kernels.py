@@ -52,6 +52,26 @@ def test_attributes_match_reference(cl_env, terrain):
                 same(cl_env, g, w)
 
 
+def test_horizon_rays_inside_the_world_match_the_reference(cl_env):
+    """A scan short beside the world: most rays stay inside it and take the
+    kernel's path without clamps, the rest clamp at the edges; both give the
+    reference's bits, whole and in tiles (attr_args' 600 m scan leaves the
+    37 x 45 world from almost every cell)."""
+    sun0, sun1, inv = at.sun_table(46.0, 12)
+    h = synthetic_height(70, 61, DX, seed=11)
+    args = (DX, 3, 1.0 / (3 * DX) ** 2, at.directions(12), at.march_steps(DX, 80.0, 1.3), sun0, sun1, inv, 0.3)
+    want = ref.attributes(h, *args)
+    got = dev.attributes(cl_env, h, *args)
+    for name, g, w in zip(("slope", "aspect", "grad", "curvature", "sky", "sun"), got, want):
+        if name not in ("slope", "aspect"):
+            same(cl_env, g, w)
+    halo = int(np.ceil(at.march_steps(DX, 80.0, 1.3)[-1])) + 1
+    window = ref.Window(20, 17, 70, 61, halo, halo, 24, 20)  # a 24 x 20 tile inside the 70 x 61 world
+    part = dev.attributes(cl_env, h[20:20 + 24 + 2 * halo, 17:17 + 20 + 2 * halo], *args, window=window)
+    for g, w in zip(part[2:], want[2:]):
+        same(cl_env, g, w[20 + halo:20 + halo + 24, 17 + halo:17 + halo + 20])
+
+
 @pytest.mark.parametrize("tile_cells", [16, 23])
 def test_attributes_of_tiles_are_the_whole_worlds(cl_env, tile_cells):
     """A tile read with the attributes' halo computes the bits of the whole
