@@ -104,8 +104,8 @@ __kernel void horizon(__global const float *h, WINDOW_ARGS, const int orow, cons
     const int r = row0 + orow + orr, c = col0 + ocol + oc;  /* world cell */
     const float h0 = world_at(h, WINDOW, r, c);
     float tmax = 0.0f;
-    /* Most rays stay inside the world and the window: their samples need no clamp and no end test (1.5x
-     * faster on a 1 m tile); the sum is world_bilinear's, operation by operation. */
+    /* Most rays stay inside the world and the window: their samples need no clamp and no end test (the
+     * scan's inner loop on a fine tile); the sum is world_bilinear's, operation by operation. */
     const float smax = steps[nsteps - 1];
     const float fc_end = (float)c + smax * ex, fr_end = (float)r - smax * ez;
     const int c_lo = (int)floor(fmin((float)c, fc_end)), c_hi = (int)floor(fmax((float)c, fc_end)) + 1;
