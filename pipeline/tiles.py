@@ -401,7 +401,7 @@ class TileRunner:
                          self.stage.uses_opencl, str(self.project_root), str(root) if root else None,
                          str(tmp) if tmp else None, str(self.work), code, self.run_key, keep) for t in tiles]
         t0 = time.perf_counter()
-        results = self._dask(jobs, per_tile is not None) if _in_dask_worker() else self._local(jobs, pass_name)
+        results = self._dask(jobs) if _in_dask_worker() else self._local(jobs, pass_name)
         for job in jobs:  # the unit keys the run used (its manifest keeps them from gc)
             if self.units is not None and keep:
                 unit = _tile_unit(self.units, job)
@@ -422,21 +422,22 @@ class TileRunner:
             results.append(_run_tile(job))
         return results
 
-    def _dask(self, jobs: list[_TileJob], per_tile: bool) -> list:
+    def _dask(self, jobs: list[_TileJob]) -> list:
         from distributed import worker_client
 
         # The tasks' `shared` values reach the workers as files in the work folder (which every worker reads,
         # as it reads the tiles' grids), not inside the task graph: a value sent to every task would be in the
         # graph once per tile (tens of MiB at 256 tiles, held by the scheduler, and Dask warns of it), and the
         # tiles' own parts add up to the world's. Scattering them instead would lose them with a worker that
-        # dies; a file stays for the task's retry.
+        # dies; a file stays for the task's retry. One file per distinct value: a value all tiles read is one.
         if not jobs:
             return []
         folder = self.work / jobs[0].pass_name / SHARED_FOLDER
-        if per_tile:
-            sent = [_SharedFile.write(folder / f"{job.tile.name}.pkl", job.shared) for job in jobs]
-        else:
-            sent = [_SharedFile.write(folder / "all.pkl", jobs[0].shared)] * len(jobs)
+        files: dict[int, _SharedFile] = {}
+        for job in jobs:
+            if id(job.shared) not in files:
+                files[id(job.shared)] = _SharedFile.write(folder / f"{len(files)}.pkl", job.shared)
+        sent = [files[id(job.shared)] for job in jobs]
         try:
             with worker_client() as client:  # this task leaves its slot to the tiles while it waits
                 # ahead of queued stage runs: a stage holding a world's state waits on these

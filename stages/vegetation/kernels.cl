@@ -60,6 +60,14 @@ INLINE float world_at(__global const float *h, WINDOW_ARGS, int r, int c)
     return h[r * cols + c];
 }
 
+/* a b on the upper row, c d on the lower; tr, tc the fractions down and across */
+INLINE float bilinear(float a, float b, float c, float d, float tr, float tc)
+{
+    float top = a + (b - a) * tc;
+    float bot = c + (d - c) * tc;
+    return top + (bot - top) * tr;
+}
+
 /* bilinear at fractional world (row, col) indices, clamped to the world */
 INLINE float world_bilinear(__global const float *h, WINDOW_ARGS, float fr, float fc)
 {
@@ -70,9 +78,7 @@ INLINE float world_bilinear(__global const float *h, WINDOW_ARGS, float fr, floa
     float b = world_at(h, WINDOW, r0, c0 + 1);
     float c = world_at(h, WINDOW, r0 + 1, c0);
     float d = world_at(h, WINDOW, r0 + 1, c0 + 1);
-    float top = a + (b - a) * tc;
-    float bot = c + (d - c) * tc;
-    return top + (bot - top) * tr;
+    return bilinear(a, b, c, d, tr, tc);
 }
 
 /* ------------------------------------------------------------------ attributes
@@ -105,7 +111,7 @@ __kernel void horizon(__global const float *h, WINDOW_ARGS, const int orow, cons
     const float h0 = world_at(h, WINDOW, r, c);
     float tmax = 0.0f;
     /* Most rays stay inside the world and the window: their samples need no clamp and no end test (the
-     * scan's inner loop on a fine tile); the sum is world_bilinear's, operation by operation. */
+     * scan's inner loop on a fine tile); the same bilinear as world_bilinear's. */
     const float smax = steps[nsteps - 1];
     const float fc_end = (float)c + smax * ex, fr_end = (float)r - smax * ez;
     const int c_lo = (int)floor(fmin((float)c, fc_end)), c_hi = (int)floor(fmax((float)c, fc_end)) + 1;
@@ -119,9 +125,7 @@ __kernel void horizon(__global const float *h, WINDOW_ARGS, const int orow, cons
             const float r0f = floor(fr), c0f = floor(fc);
             const float tr = fr - r0f, tc = fc - c0f;
             __global const float *q = h + ((int)r0f - row0) * cols + ((int)c0f - col0);
-            const float top = q[0] + (q[1] - q[0]) * tc;
-            const float bot = q[cols] + (q[cols + 1] - q[cols]) * tc;
-            const float t = (top + (bot - top) * tr - h0) / (s * dx);
+            const float t = (bilinear(q[0], q[1], q[cols], q[cols + 1], tr, tc) - h0) / (s * dx);
             tmax = fmax(tmax, t);
         }
         out[d * orows * ocols + orr * ocols + oc] = tmax;
