@@ -87,6 +87,14 @@ class ErosionParams(Params):
         "conserving each block's volume, so geological time costs the same per fine cell at any resolution and a "
         "tiled world's geology is 1/f^2 of its cells. Valleys narrower than this are not resolved (the talus rule "
         "and the storm still shape the fine cells). 0: geological time runs on the terrain's cells", ge=0.0, le=1e4)
+    microrelief_rms_m: float = Param(
+        0.1, units="m", description="where geological time runs on blocks of several cells: RMS height of the "
+        "microrelief finer than the blocks (tree throw's pits and mounds, burrows), the steady state of random "
+        "disturbances that creep flattens as they age (stages/erosion/microrelief.py), between microrelief_size_m "
+        "and half the geology's cell. 0: the fine cells are the geology's smooth prolongation", ge=0.0, le=10.0)
+    microrelief_size_m: float = Param(
+        1.5, units="m", description="the microrelief's disturbances' size (the half-width of a fresh pit and mound; "
+        "at least one cell is used)", gt=0.0, le=1000.0)
     geological_step_years: float = Param(
         1.0e4, units="years", description="time step of the stream-power solve (stable at any size; smaller is more "
         "accurate)", ge=1.0, le=1e9)

@@ -80,7 +80,7 @@ def run(ctx: RunContext, inputs: dict[str, Any], params: ErosionParams) -> dict[
     progress = ctx.progress
     if params.geological_years > 0:
         share = 0.5  # of the progress bar
-        h, geology_stats = geology(ctx.cl, h, dx, params, lambda f, m: ctx.progress(share * f, m))
+        h, geology_stats = geology(ctx.cl, h, dx, params, lambda f, m: ctx.progress(share * f, m), ctx.seed)
         progress = lambda f, m: ctx.progress(share + (1 - share) * f, m)  # noqa: E731
     progress(0.0, f"erosion {h.shape[1]}x{h.shape[0]} cells of {dx:g} m: {plan.thermal_iterations} talus "
                   f"iterations, {params.storm_hours:g} h storm")
@@ -231,6 +231,6 @@ STAGE = Stage(
                       values=ValueRange(symmetric_percentile=99.0), note="clipped at the 99th percentile of |change|",
                       relief=Relief(hillshade, ("erosion.height",), "height"))),
     source_dir=Path(__file__).resolve().parent,
-    uses_seed=False,
+    uses_seed=True,
     uses_opencl=True,
 )

@@ -16,6 +16,7 @@ from pipeline.errors import InputError, StageError
 from pipeline.grid import Grid
 
 from . import simulate
+from .microrelief import MicroRelief
 from .params import ErosionParams, channel_threshold_m2, physics_for, plan_for, strata_for
 
 
@@ -86,11 +87,12 @@ def slope_excess_of(*counts: dict[str, float]) -> dict[str, float]:
 THERMAL_METRICS = ("thermal_iterations", "thermal_c", "thermal_seconds", "thermal_mass_residual_rel")
 
 
-def geology(cl, h: np.ndarray, dx: float, params: ErosionParams, progress) -> tuple[np.ndarray, dict]:
+def geology(cl, h: np.ndarray, dx: float, params: ErosionParams, progress, seed: int) -> tuple[np.ndarray, dict]:
     """Geological time on the terrain's cells, or on its own grid
     (geological_cell_m, coarse_grid.py): the heights after it (float32) and
     its metrics. On its own grid the solve runs on the f x f block means and
-    its result comes back to the fine cells (FineGeology)."""
+    its result comes back to the fine cells (FineGeology), with the
+    microrelief finer than its cells."""
     from worldlib.terrain.blocks import block_mean, coarse_factor
 
     fac = coarse_factor(h.shape[0], h.shape[1], dx, params.geological_cell_m)
@@ -98,9 +100,8 @@ def geology(cl, h: np.ndarray, dx: float, params: ErosionParams, progress) -> tu
     res = solve_geology(cl, coarse, dx * fac, params, progress)
     if fac == 1:
         return res.height.astype(np.float32), res.stats
-    fine = FineGeology.of(res.height, coarse, fac, params, dx)
-    return fine.heights(h, (0, 0) + h.shape), {**res.stats, "geological_cell_factor": fac,
-                                                "geological_detail_kept": fine.keep}
+    fine = FineGeology.of(res.height, coarse, fac, params, dx, seed, h.shape)
+    return fine.heights(h, (0, 0) + h.shape), {**res.stats, **fine.metrics}
 
 
 def solve_geology(cl, h: np.ndarray, dx: float, params: ErosionParams, progress):
@@ -146,32 +147,45 @@ class FineGeology:
     after: Any  # Prolongation of the solved heights (keep < 1)
     before: Any  # Prolongation of the block means (0 < keep < 1)
     keep: float
+    micro: MicroRelief | None = None  # the relief finer than the geology's cells, added on top
 
     @classmethod
     def of(cls, coarse_after: np.ndarray, coarse_before: np.ndarray, f: int, params: ErosionParams,
-           dx: float) -> "FineGeology":
+           dx: float, seed: int, shape: tuple[int, int]) -> "FineGeology":
+        """shape: the world's fine cells (the microrelief's noise wraps on it when the edges are periodic)."""
         from .coarse_grid import Prolongation
 
         D, t = params.hillslope_diffusivity_m2_per_year, params.geological_years
         keep = math.exp(-D * t * (math.pi / (f * dx)) ** 2)
+        micro = MicroRelief.of(seed, shape, dx, f * dx, params.microrelief_rms_m, params.microrelief_size_m,
+                               periodic=params.boundary == "periodic")
         after = np.asarray(coarse_after, np.float64)
         if keep == 1.0:
-            return cls(f, Prolongation.conserving(after - coarse_before, f), None, None, keep)
+            return cls(f, Prolongation.conserving(after - coarse_before, f), None, None, keep, micro)
         before = Prolongation.conserving(coarse_before, f) if keep > 0.0 else None
-        return cls(f, None, Prolongation.conserving(after, f), before, keep)
+        return cls(f, None, Prolongation.conserving(after, f), before, keep, micro)
+
+    @property
+    def metrics(self) -> dict[str, Any]:
+        return {"geological_cell_factor": self.f, "geological_detail_kept": self.keep,
+                "microrelief_rms_m": self.micro.rms_m if self.micro else 0.0,
+                "microrelief_classes": len(self.micro.sizes_m) if self.micro else 0}
 
     def part(self, row0: int, col0: int, rows: int, cols: int) -> "FineGeology":
         """The coarse data fine cells [row0, +rows) x [col0, +cols) read (what a tile is sent)."""
         cut = lambda p: None if p is None else p.part(row0, col0, rows, cols)  # noqa: E731
-        return FineGeology(self.f, cut(self.change), cut(self.after), cut(self.before), self.keep)
+        return FineGeology(self.f, cut(self.change), cut(self.after), cut(self.before), self.keep, self.micro)
 
     def heights(self, h: np.ndarray, window: tuple[int, int, int, int]) -> np.ndarray:
         """The fine heights after geological time of the window's cells (h their input), float32."""
         if self.change is not None:
-            return (h + self.change.window(*window)).astype(np.float32)
-        fine = self.after.window(*window)
-        if self.before is not None:
-            fine += self.keep * (h - self.before.window(*window))
+            fine = h + self.change.window(*window)
+        else:
+            fine = self.after.window(*window)
+            if self.before is not None:
+                fine += self.keep * (h - self.before.window(*window))
+        if self.micro is not None:
+            fine = fine + self.micro.field(window)
         return fine.astype(np.float32)
 
 

@@ -103,8 +103,8 @@ def _geology(ctx, src, params, progress, metrics: dict):
         return src
     coarse = _assemble(tiles.tiles(shape), parts, "block_mean", fg)
     res = st.solve_geology(ctx.cl, coarse, dx * fg, params, lambda f, m: progress(0.4 * f, m))
-    geology = st.FineGeology.of(res.height, coarse, fg, params, dx)
-    metrics.update(res.stats, geological_cell_factor=fg, geological_detail_kept=geology.keep)
+    geology = st.FineGeology.of(res.height, coarse, fg, params, dx, ctx.seed, shape)
+    metrics.update(res.stats, **geology.metrics)
     grids, _ = tiles.map(heights_tile, "heights", shape, {"height": src}, params,
                          per_tile={t.name: geology.part(*t.window()) for t in tiles.tiles(shape)},
                          grids={"heights": ("height",)}, cell_size_m=dx)

@@ -22,7 +22,7 @@ GRIDS = {
 
 
 def test_declaration():
-    assert isinstance(STAGE, Stage) and STAGE.name == "erosion" and STAGE.uses_opencl and not STAGE.uses_seed
+    assert isinstance(STAGE, Stage) and STAGE.name == "erosion" and STAGE.uses_opencl and STAGE.uses_seed  # the microrelief
     assert [i.one_of for i in STAGE.inputs] == [("heightmap.height",)]
     declared = {a.name: a for a in STAGE.outputs}
     assert set(declared) == set(GRIDS) | {"erosion.hillshade"}
