@@ -1,7 +1,8 @@
 """The erosion stage: optionally geological time first (stream-power river
 incision with uplift, Braun and Willett 2013, above a channel-initiation
 area; hillslope creep and threshold landsliding; river deposition after Yuan
-et al. 2019; optional hard strata: stream_power.py, hillslope.py), then thermal
+et al. 2019; optional hard strata: stream_power.py, hillslope.py; on its own
+coarser grid, the microrelief below that grid's cells: microrelief.py), then thermal
 weathering (talus slopes and scree, seed 003, Olsen's multi-neighbour rule)
 and a storm of hydraulic erosion on the virtual-pipe shallow-water model
 (seed 004; Mei et al. 2007, Stava et al. 2008) with sediment moved in flux
@@ -10,6 +11,7 @@ form so terrain + sediment is conserved.
 Every parameter is physical (mm/h, degrees, hours, years, s/m, 1/s) and means
 the same at any resolution. The whole state stays on the OpenCL device; only
 diagnostics every few steps and the final maps come back.
+The seed is the microrelief's (its noise per world cell).
 
 The parameters and what follows from them on a grid: params.py; the steps
 the whole run and the tiled run (tiled.py) share: steps.py.

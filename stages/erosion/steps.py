@@ -140,7 +140,9 @@ class FineGeology:
     it would in the fine solve: nothing there touches it), 0 for the default
     world's 5 Myr at 0.03 m^2/year, where the fine solve too would have
     flattened it (the raw heightmap's sub-8 m noise, 42 deg median slope at 1 m
-    cells, would otherwise come back on top of the eroded land)."""
+    cells, would otherwise come back on top of the eroded land). On top of
+    it the microrelief (microrelief.py): the relief finer than the blocks
+    that disturbances keep renewing while creep flattens it."""
 
     f: int
     change: Any  # Prolongation of the solved change (keep = 1)

@@ -183,7 +183,7 @@ def test_a_stopped_tiled_bake_resumes_from_its_tiles(project):
 
 
 # 2 m cells in 3 x 3 tiles of 256 (the last row and column part tiles): geological time and the storm on
-# 8 m blocks, the talus rule's 150 iterations in rounds of 32
+# 8 m blocks with the microrelief below them, the talus rule's 150 iterations in rounds of 32
 ERODED = ("heightmap.size_m=1280", "heightmap.resolution=640", "erosion.geological_cell_m=8", 'outputs=["erosion"]')
 
 
@@ -194,6 +194,7 @@ def test_a_tiled_erosion_is_the_untiled_one_byte_for_byte(project, executor):
     assert stage_files(project / "tiled", "erosion") == stage_files(project / "whole", "erosion")
     whole, tiled = manifest(project / "whole", "erosion")["metrics"], manifest(project / "tiled", "erosion")["metrics"]
     assert tiled["geological_cell_factor"] == tiled["storm_cell_factor"] == 4 and tiled["thermal_rounds"] == 5
+    assert tiled["microrelief_classes"] == whole["microrelief_classes"] == 4  # the relief finer than the geology's 8 m
     for key in ("steps", "thermal_iterations", "wear_volume_m3", "final_fraction_above_talus", "thermal_max_excess_deg"):
         assert tiled[key] == pytest.approx(whole[key], rel=1e-12), key
     passes = tiled["tiling"]["passes"]
