@@ -143,7 +143,7 @@ def maps_tile(tctx: TileContext, inputs: dict, params: VegetationParams, shared:
     layers, _ = results.species_maps_layers(plants, gname, suit, share, n_t, counts, dx,
                                             suit[len(plants)] if gname else None, grass_maps[..., 0])
     if layers:
-        grids["species_maps"] = np.stack(layers, -1).astype(F)
+        grids["species_maps"] = np.stack(layers, -1, dtype=F)
     h_halo, _ = tiled.heights(inputs["terrain"], t, 1, shared["lowest"])
     h = h_halo[t.inner(1)]
     grids["preview"] = _preview(h_halo, t, shared, f, read("splat"))
