@@ -59,7 +59,7 @@ def test_the_separable_filters_are_the_divergence_of_the_smoothed_noise():
             g = np.exp(-(dx ** 2 + dz ** 2) / (2 * s * s)) / (2 * math.pi * s * s)
             g *= (np.abs(dx) <= rad) & (np.abs(dz) <= rad)
             want[i, j] = np.sum(-dx / (s * s) * g * xi_x - dz / (s * s) * g * xi_y)
-    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * np.abs(want).max())  # float32 filters
 
 
 def test_a_cell_gets_the_same_bits_in_any_window():
@@ -89,4 +89,4 @@ def test_extreme_parameters_stay_finite_and_scale():
     assert 1.0 < fine.sizes_m[0] < 1.1  # the first class's middle: s0 = 1 cell
     big = MicroRelief.of(2, (64, 64), 1.0, 8.0, 10.0, 1e-6).field((0, 0, 64, 64))
     assert np.isfinite(big).all()
-    np.testing.assert_allclose(big, 100.0 * fine.field((0, 0, 64, 64)), rtol=1e-12)
+    np.testing.assert_allclose(big, 100.0 * fine.field((0, 0, 64, 64)), rtol=1e-5, atol=1e-5)  # float32: 1e-6 of the 10 m RMS
