@@ -333,15 +333,15 @@ def read_attributes(path: Path | str) -> dict[str, Any]:
         return {a.name: a.value for a in inp.spec().extra_attribs}
 
 
+PNG_COMPRESSION = 1  # zlib level of the previews: a third of the default 6's time for a tenth more bytes
+
+
 def write_png(path: Path | str, rgb: np.ndarray) -> None:
     """A uint8 RGB(A) preview picture."""
-    oiio = _oiio()
     rgb = np.ascontiguousarray(rgb)
     if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] not in (3, 4):
         raise ValueError(f"a preview must be uint8 (rows, cols, 3|4), got {rgb.dtype} {rgb.shape}")
-    buf = oiio.ImageBuf(rgb)
-    if not buf.write(str(path), oiio.UINT8):
-        raise OSError(f"cannot write {path}: {buf.geterror()}")
+    write_png_rows(path, rgb.shape[:2], [rgb])
 
 
 def write_png_rows(path: Path | str, shape: tuple[int, int], bands) -> None:
@@ -357,6 +357,7 @@ def write_png_rows(path: Path | str, shape: tuple[int, int], bands) -> None:
                 raise ValueError(f"a preview band must be uint8 (rows, {shape[1]}, 3|4), got {band.dtype} {band.shape}")
             if out is None:
                 spec = oiio.ImageSpec(int(shape[1]), int(shape[0]), band.shape[2], oiio.UINT8)
+                spec.attribute("png:compressionLevel", PNG_COMPRESSION)
                 out = oiio.ImageOutput.create(str(path))
                 if out is None or not out.open(str(path), spec):
                     raise OSError(f"cannot write {path}: {out.geterror() if out else oiio.geterror()}")
