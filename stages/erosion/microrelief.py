@@ -21,7 +21,7 @@ The field is the sum over CLASSES_PER_OCTAVE classes per octave of u of
 div(G_s * xi) for independent white vector noise xi (|FT(d/dx G_s)|^2 +
 |FT(d/dy G_s)|^2 = k^2 exp(-k^2 s^2)), each class weighted by its share of
 the integral; its RMS is exactly the asked one in the continuum. The noise
-is counter-based per world cell (worldlib.hashing.mix32), one uniform
+is counter-based per world cell (worldlib.hashing.uniform), one uniform
 scaled to unit variance (no transcendental function, so the same bits on
 every machine), and the separable Gaussian-derivative filters add their
 taps in a fixed order: a window's cells get the same bits whatever window
@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from worldlib.hashing import U32, mix32
+from worldlib.hashing import stream_key, uniform
 
 CLASSES_PER_OCTAVE = 2  # classes of the disturbances' squared size per doubling of it
 KERNEL_RADIUS_SIGMAS = 4.0  # each class's Gaussian cut 4 sigma out (its tail holds 3e-4 of its weight)
@@ -104,15 +104,11 @@ class MicroRelief:
         return (_along(_along(xi_x, dg, 1, cols), g, 0, rows) + _along(_along(xi_y, g, 1, cols), dg, 0, rows))
 
     def _noise(self, stream: int, rr: np.ndarray, cc: np.ndarray) -> np.ndarray:
-        """Unit-variance white noise (uniform, zero mean) at world rows rr x columns cc."""
+        """Unit-variance white noise (uniform, zero mean, float32) at world rows rr x columns cc."""
         if self.periodic:
             rr, cc = rr % self.shape[0], cc % self.shape[1]
-        key = mix32(U32((self.seed * 0x9E3779B1 + stream * 0x85EBCA77 + 0x4D1C3A5F) & 0xFFFFFFFF))
-        with np.errstate(over="ignore"):
-            hr = mix32(rr.astype(U32) * U32(0x8DA6B343) ^ key)
-            h = mix32(hr[:, None] ^ cc.astype(U32)[None, :] * U32(0xD8163841))
-        return ((h >> U32(8)).astype(np.float32) * np.float32(1.0 / (1 << 24)) - np.float32(0.5)) * np.float32(
-            math.sqrt(12.0))
+        u = uniform(stream_key(self.seed, "microrelief", str(stream)), rr[:, None], cc[None, :], 0)
+        return (u - np.float32(0.5)) * np.float32(math.sqrt(12.0))
 
 
 def _radius(s: float, dx: float) -> int:

@@ -9,12 +9,11 @@ placement.py, grass.py) runs on either.
 """
 from __future__ import annotations
 
-import zlib
 from typing import NamedTuple
 
 import numpy as np
 
-from worldlib.hashing import mix32
+from worldlib.hashing import hash4, mix32, stream_key, uniform, unit  # noqa: F401 (the stage's callers use ref.*)
 
 # Every function and class here has the signature of its twin in device.py,
 # so a caller picks either module and calls it the same way; `local` (the
@@ -22,38 +21,13 @@ from worldlib.hashing import mix32
 
 F = np.float32
 U = np.uint32
-INV24 = F(5.9604645e-08)
 RAD2DEG = F(57.29577951)
 SPW = 12  # floats per species in the simulation table
 NPREF = 5
 PN = 3  # Poisson neighbourhood (cells) and phase period PN + 1
 
 
-# --------------------------------------------------------------------------- hashing
-
-
-def hash4(k, a, b, c):
-    return mix32(mix32(mix32(U(k) ^ np.asarray(a).astype(U)) ^ np.asarray(b).astype(U)) ^ np.asarray(c).astype(U))
-
-
-def unit(h) -> np.ndarray:
-    return (np.asarray(h, dtype=U) >> U(8)).astype(F) * INV24
-
-
-def stream_key(seed: int, *labels: str) -> int:
-    """A uint32 key for one random stream: the seed and labels (e.g. a
-    purpose and a species name) hashed together. Keyed by name, not by
-    index, so adding or changing another species leaves this stream alone."""
-    h = int(mix32(U((seed & 0xFFFFFFFF) ^ 0x9E3779B9)))
-    h = int(mix32(U(h ^ ((seed >> 32) & 0xFFFFFFFF))))
-    for label in labels:
-        h = int(mix32(U(h ^ zlib.crc32(label.encode()))))
-    return h
-
-
-def uniform(key: int, a, b, c) -> np.ndarray:
-    """unit(hash4(key, a, b, c)) for host-side draws (the same numbers as a kernel)."""
-    return unit(hash4(key, a, b, c))
+# hashing (hash4, unit, stream_key, uniform): worldlib.hashing, the twins of the kernels' hash4 and unit
 
 
 # --------------------------------------------------------------------------- helpers
