@@ -29,7 +29,7 @@ BLENDER_PY = REPO / ".venv-blender" / "bin" / "python"
 SCRIPT = REPO / "tests" / "dcc" / "blender_scripts" / "render_view.py"
 SKY_RGB = (0.55, 0.68, 0.85)  # world_view's background
 SUN = (-0.45, 0.75, 0.5)  # world_view's sun
-TRANSPARENT_BOUNCES = 64  # as the README advises: Blender's default 8 ends paths inside a canopy of leaf cards
+TRANSPARENT_BOUNCES = 128  # as the README advises: Blender's default 8 ends paths inside a canopy of leaf cards
 
 
 def terrain_bounds(world: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -82,10 +82,28 @@ def _render_slab(prepared: Prepared, eye, forward, up, width: float, height: flo
 
     alpha = box(keep)
     albedo = box(img.albedo * keep[..., None])
-    normal = box(img.normal * keep[..., None]) / np.maximum(alpha, 1e-6)[..., None]
+    normal = _one_sample_normal(img.normal, keep, tile_px, samples)
     rgb = albedo / np.maximum(alpha, 1e-6)[..., None]
     depth = float(img.depth[keep > 0].mean()) if keep.any() else (0.5 * thickness if math.isfinite(thickness) else 0.0)
     return np.concatenate([rgb, alpha[..., None]], -1).astype(np.float32), normal.astype(np.float32), depth
+
+
+def _one_sample_normal(normal: np.ndarray, keep: np.ndarray, tile_px: int, samples: int) -> np.ndarray:
+    """Per texel the normal of its covered sample nearest the texel's centre
+    ((0, 0, 0) where none is): the texels' normals are then drawn from the
+    needles' and leaves' own, so the mean of their Lambert terms is the
+    mesh's. The texels' mean normals would shade as a smooth surface: a
+    crown's needles face every way, their mean faces the viewer, and that
+    lit by a sun in front is brighter than the needles are (the conifer's
+    slices by 8 % in Cycles, as much as one sample per texel to 3 x 3)."""
+    n = normal.reshape(tile_px, samples, tile_px, samples, 3).transpose(0, 2, 1, 3, 4).reshape(tile_px, tile_px, -1, 3)
+    k = keep.reshape(tile_px, samples, tile_px, samples).transpose(0, 2, 1, 3).reshape(tile_px, tile_px, -1)
+    centre = 0.5 * (samples - 1)
+    sy, sx = np.divmod(np.arange(samples * samples), samples)
+    order = np.argsort((sy - centre) ** 2 + (sx - centre) ** 2, kind="stable")  # a fixed order, centre first
+    first = order[np.argmax(k[..., order] > 0, axis=-1)]  # the first covered sample in that order
+    picked = np.take_along_axis(n, first[..., None, None], axis=2)[:, :, 0]
+    return np.where(k.any(-1)[..., None], picked, 0.0)
 
 
 def _pad(rgba: np.ndarray, normal: np.ndarray) -> None:

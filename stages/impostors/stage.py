@@ -106,16 +106,20 @@ class ImpostorsParams(Params):
     slice_slabs: int = Param(3, units="slabs", description="slabs per orientation of the tree slice billboards an "
                              "engine blends by view, the two slicings nearest it (seed 002: 1, 3 or 5; the sheet "
                              "blend_slices when it differs from drawn_slice_slabs)", ge=1, le=16)
-    drawn_slice_slabs: int = Param(8, units="slabs", description="slabs per orientation of the tree slice billboards "
+    drawn_slice_slabs: int = Param(16, units="slabs", description="slabs per orientation of the tree slice billboards "
                                    "the Impostor prim carries, which a USD viewer or DCC draws all at once (no "
                                    "blend by view): the nearest quad of any slicing shows, so each slab's content "
                                    "must lie near its quad seen from any side, which thin slabs keep; each slab is "
-                                   "two quads 1 mm apart, so a ray across the crown crosses up to 6 x this many "
-                                   "quads of one plant, 2 per slab of each vertical slicing (a DCC's transparent "
+                                   "two quads 1 mm apart, so a ray across the crown crosses up to about 5 x this "
+                                   "many quads of one plant (76 of the 16-slab conifer's 128; a DCC's transparent "
                                    "bounces must allow them)", ge=1, le=16)
     slice_px: int = Param(128, units="texels", description="largest side of a tree slice tile: a tile has half the side "
                           "of the plant's atlas frames (slices are the LOD beyond the atlas), at most this",
                           ge=8, le=2048)
+    drawn_slice_px: int = Param(128, units="texels", description="largest side of a tile of the sheet the Impostor "
+                                "prim carries (drawn_slice_slabs): a DCC renders it at film resolution and does not "
+                                "switch to the mesh as its camera comes nearer, so its tiles are not bound to the "
+                                "plant's frames as slice_px is", ge=8, le=2048)
     grass_slice_px: int = Param(256, units="texels", description="texels per side of a grass tuft slice (seed 001: 256)",
                                 ge=8, le=2048)
     card_px: int = Param(256, units="texels", description="largest side of a cards draw-mode texture: the power of two "
@@ -285,10 +289,11 @@ def _slices(ctx: RunContext, plant: _Plant, at: atlas.Atlas, params: ImpostorsPa
         return _Slices(sheets, sheets, {None: Prepared(ctx.cl, slices.sheet_scene(sheets))}, slice_px)
     # what a USD viewer draws: every slicing at once, and thick slabs put their content off their quads from
     # oblique views (any view sees two of the three vertical slicings 30 deg or more from face-on)
-    drawn = [slices.tree_slices(plant.prepared, params.drawn_slice_slabs, slice_px, params.samples)]
+    drawn = [slices.tree_slices(plant.prepared, params.drawn_slice_slabs, params.drawn_slice_px, params.samples)]
     # seed 002 / Jakulin: the two slicings nearest the view, blended (each seen within 30 deg of face-on), from a
     # sheet of its own when the slab counts differ
-    blend = drawn if params.slice_slabs == params.drawn_slice_slabs else \
+    same = params.slice_slabs == params.drawn_slice_slabs and slice_px == params.drawn_slice_px
+    blend = drawn if same else \
         [slices.tree_slices(plant.prepared, params.slice_slabs, slice_px, params.samples, name="blend_slices")]
     return _Slices(drawn, blend, {r: Prepared(ctx.cl, slices.sheet_scene(blend, rows=(r,))) for r in range(blend[0].rows)},
                    slice_px)

@@ -30,7 +30,8 @@ REPO = Path(__file__).resolve().parents[2]
 BLENDER_PY = REPO / ".venv-blender" / "bin" / "python"
 SCRIPTS = Path(__file__).resolve().parent / "blender_scripts"
 TREES = ("conifer", "broadleaf")
-IMPOSTORS_SMALL = [a for kv in ("frames=8", "atlas_px=256", "samples=1", "heldout_px=24", "heldout_samples=1",
+# the default samples per texel (3 x 3): the slices' alpha and colour are what a user gets
+IMPOSTORS_SMALL = [a for kv in ("frames=8", "atlas_px=256", "heldout_px=24", "heldout_samples=1",
                                 "heldout_stride=108", "card_px=16") for a in ("--set", f"impostors.{kv}")]
 SMALL = ["--set", "heightmap.resolution=96", "--set", "world.texture_size=64", "--set", "shared.mesh_max_vertices=49",
          *IMPOSTORS_SMALL, "--set", f"plants.build={json.dumps(list(TREES) + ['grass'])}",
@@ -102,7 +103,8 @@ def _once(tmp_path_factory, name: str, make) -> Path:
 def _bake_and_export(root: Path) -> None:
     build = Path(os.environ.get("WORLDBAKE_DCC_BUILD") or REPO / "build_dcc_tests")
     base = [sys.executable, "-m", "pipeline.cli", "--build", str(build)]
-    for args in (["bake", "configs/default.toml", *SMALL], ["export", "default", str(root / "export")],
+    # --replace: this folder is the tests' own cache, and a change of SMALL must not stop the bake
+    for args in (["bake", "configs/default.toml", *SMALL, "--replace"], ["export", "default", str(root / "export")],
                  ["export", "default", str(root / "packed" / "world.usdz")]):
         proc = subprocess.run(base + args, capture_output=True, text=True, cwd=REPO, timeout=900)
         assert proc.returncode == 0, f"worldbake {' '.join(args)}:\n{proc.stderr[-3000:]}"

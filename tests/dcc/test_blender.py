@@ -30,8 +30,9 @@ SIZE = 128
 SAMPLES = 16
 OURS_SS = 3  # our render's samples per pixel side, each shaded on its own
 # each alpha-cut foliage card a path or shadow ray crosses is a transparent bounce: Blender's default of 8
-# leaves a crown's inside in shadow, so a lighting artist raises it for foliage (as for hair)
-TRANSPARENT_BOUNCES = 64
+# leaves a crown's inside in shadow, so a lighting artist raises it for foliage (as for hair); a ray across a
+# tree's 16-slab impostor crosses up to 76 quads (the README advises 128)
+TRANSPARENT_BOUNCES = 128
 SUN = (0.4, 0.8, 0.45)  # bl_common.SUN: Image.shaded's default
 SKY = 0.45
 LUMA = np.array([0.2126, 0.7152, 0.0722])
@@ -195,19 +196,7 @@ def cl_env_module():
     return opencl.get_cl()
 
 
-# Known misses of issue 30, kept as strict expected failures so a fix shows (XPASS fails the run) and the
-# figures stay in front of whoever works on them.
-# The conifer's slices are bound by their texels here, not by their slabs: this bake's 16-texel tiles (32 px frames)
-# drawn 128 px tall; a 16 px picture of the conifer from this very camera, magnified so, scores IoU 0.78 against its
-# 128 px mesh (32 px: 0.82, 64 px: 0.87; the broadleaf's solid crown 0.87 at 16 px). More texels alone do not
-# reach 0.85 in Cycles here: tiles of 32 / 64 / 128 texels give 0.782 / 0.810 / 0.814 with 8 slabs; 16 slabs
-# and 128 texels 0.845, and 0.866 with the alpha cut at 0.7 (the union of the three slicings is too fat); that
-# is a sheet 16x the texels and 2x the quads of the default's, drawn at one texel per pixel.
-CONIFER_TEXELS = pytest.mark.xfail(strict=True, reason="the conifer's needles at 16-texel slice tiles drawn 128 px "
-                                   "tall: IoU 0.751 in Cycles (a 16 px picture of it from this camera scores 0.78)")
-
-
-@pytest.mark.parametrize("species", [pytest.param(s, marks=CONIFER_TEXELS) if s == "conifer" else s for s in TREES])
+@pytest.mark.parametrize("species", TREES)
 def test_impostor_and_lod0_agree_in_cycles(plant_renders, species):
     r = plant_renders[species]
     lod0, imp = r["LOD0"], r["impostor"]

@@ -28,7 +28,7 @@ TINY = ["heightmap.resolution=64", "world.texture_size=64", "shared.mesh_max_ver
         "volumes.voxels=32", "volumes.mip_levels=3", "volumes.error_view_pixels=32",
         "impostors.frames=4", "impostors.atlas_px=64", "impostors.min_frame_px=8", "impostors.small_plant_frame_px=8",
         "impostors.samples=1",
-        "impostors.ao_rays=1", "impostors.slice_px=16", "impostors.grass_slice_px=16", "impostors.card_px=16",
+        "impostors.ao_rays=1", "impostors.slice_px=16", "impostors.drawn_slice_px=16", "impostors.grass_slice_px=16", "impostors.card_px=16",
         "impostors.heldout_px=24", "impostors.heldout_samples=1", "impostors.heldout_stride=108"]
 
 

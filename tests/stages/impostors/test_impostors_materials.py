@@ -179,3 +179,38 @@ def test_slice_quads_are_cut_to_their_covered_texels(cl_env):
     cut, full = (render(cl_env, slices.sheet_scene([s]), cam, Settings(64, 64, samples=2)) for s in (sheet, whole))
     assert full.alpha.sum() > 0
     assert np.array_equal(cut.alpha, full.alpha) and np.allclose(cut.albedo, full.albedo)
+
+
+def test_a_slice_texel_keeps_one_of_its_samples_normals_so_a_crown_shades_as_its_needles():
+    """Needles facing every way into the viewer's hemisphere, 3 x 3 samples
+    per texel: each texel's normal is one of its covered samples' (the
+    centre one when covered), and the mean Lambert term of the texels under a
+    sun is the samples' own, where the texels' renormalized mean normals
+    shade brighter."""
+    from stages.impostors.slices import _one_sample_normal
+
+    rng = np.random.default_rng(5)
+    tile, s = 48, 3
+    n = rng.normal(size=(tile * s, tile * s, 3))
+    n[..., 2] = np.abs(n[..., 2])  # toward the viewer (+z), as a two-sided needle's shading normal faces it
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    keep = (rng.random((tile * s, tile * s)) < 0.4).astype(np.float32)
+    picked = _one_sample_normal(n, keep, tile, s)
+
+    blocks = n.reshape(tile, s, tile, s, 3).transpose(0, 2, 1, 3, 4).reshape(tile, tile, s * s, 3)
+    kept = keep.reshape(tile, s, tile, s).transpose(0, 2, 1, 3).reshape(tile, tile, s * s) > 0
+    covered = kept.any(-1)
+    assert not picked[~covered].any()
+    match = (np.abs(blocks - picked[:, :, None]).max(-1) == 0) & kept
+    assert match.any(-1)[covered].all()  # one of its own covered samples, bit for bit
+    centre = kept[..., s * s // 2]
+    assert (picked[centre] == blocks[..., s * s // 2, :][centre]).all()
+
+    sun = np.array([0.4, 0.8, 0.45]) / np.linalg.norm([0.4, 0.8, 0.45])
+    samples = float(np.clip(n[keep > 0] @ sun, 0, None).mean())
+    ones = float(np.clip(picked[covered] @ sun, 0, None).mean())
+    mean = (blocks * kept[..., None]).sum(2)[covered]
+    mean /= np.linalg.norm(mean, axis=-1, keepdims=True)
+    smooth = float(np.clip(mean @ sun, 0, None).mean())
+    assert abs(ones / samples - 1) < 0.03, (ones, samples)
+    assert smooth / samples - 1 > 0.08, (smooth, samples)  # what a mean normal did: a smooth, brighter crown

@@ -17,7 +17,7 @@ from .helpers import make_plants
 from pipeline.opencl import get_cl
 
 SMALL = {"frames": 6, "atlas_px": 256, "min_frame_px": 32, "small_plant_frame_px": 32, "samples": 1, "ao_rays": 1,
-         "slice_px": 32, "grass_slice_px": 32, "card_px": 32, "heldout_px": 48, "heldout_samples": 2, "heldout_stride": 54}
+         "slice_px": 32, "drawn_slice_px": 32, "grass_slice_px": 32, "card_px": 32, "heldout_px": 48, "heldout_samples": 2, "heldout_stride": 54}
 
 
 def _run(folder: Path, plants: Path, placed, params=SMALL, units=None):
