@@ -117,9 +117,11 @@ class ImpostorsParams(Params):
                           "of the plant's atlas frames (slices are the LOD beyond the atlas), at most this",
                           ge=8, le=2048)
     drawn_slice_px: int = Param(128, units="texels", description="largest side of a tile of the sheet the Impostor "
-                                "prim carries (drawn_slice_slabs): a DCC renders it at film resolution and does not "
-                                "switch to the mesh as its camera comes nearer, so its tiles are not bound to the "
-                                "plant's frames as slice_px is", ge=8, le=2048)
+                                "prim carries (drawn_slice_slabs): a tile has twice the side of the plant's atlas "
+                                "frames, at most this: a DCC renders at film resolution and does not switch to the "
+                                "mesh as its camera comes nearer, so the sheet keeps a texel per pixel at its "
+                                "switch distance on a screen 4 x the reference (8K), or at half that distance",
+                                ge=8, le=2048)
     grass_slice_px: int = Param(256, units="texels", description="texels per side of a grass tuft slice (seed 001: 256)",
                                 ge=8, le=2048)
     card_px: int = Param(256, units="texels", description="largest side of a cards draw-mode texture: the power of two "
@@ -289,10 +291,11 @@ def _slices(ctx: RunContext, plant: _Plant, at: atlas.Atlas, params: ImpostorsPa
         return _Slices(sheets, sheets, {None: Prepared(ctx.cl, slices.sheet_scene(sheets))}, slice_px)
     # what a USD viewer draws: every slicing at once, and thick slabs put their content off their quads from
     # oblique views (any view sees two of the three vertical slicings 30 deg or more from face-on)
-    drawn = [slices.tree_slices(plant.prepared, params.drawn_slice_slabs, params.drawn_slice_px, params.samples)]
+    drawn_px = min(params.drawn_slice_px, 2 * at.frame_px)
+    drawn = [slices.tree_slices(plant.prepared, params.drawn_slice_slabs, drawn_px, params.samples)]
     # seed 002 / Jakulin: the two slicings nearest the view, blended (each seen within 30 deg of face-on), from a
     # sheet of its own when the slab counts differ
-    same = params.slice_slabs == params.drawn_slice_slabs and slice_px == params.drawn_slice_px
+    same = params.slice_slabs == params.drawn_slice_slabs and slice_px == drawn_px
     blend = drawn if same else \
         [slices.tree_slices(plant.prepared, params.slice_slabs, slice_px, params.samples, name="blend_slices")]
     return _Slices(drawn, blend, {r: Prepared(ctx.cl, slices.sheet_scene(blend, rows=(r,))) for r in range(blend[0].rows)},

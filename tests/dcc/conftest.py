@@ -30,8 +30,9 @@ REPO = Path(__file__).resolve().parents[2]
 BLENDER_PY = REPO / ".venv-blender" / "bin" / "python"
 SCRIPTS = Path(__file__).resolve().parent / "blender_scripts"
 TREES = ("conifer", "broadleaf")
-# the default samples per texel (3 x 3): the slices' alpha and colour are what a user gets
-IMPOSTORS_SMALL = [a for kv in ("frames=8", "atlas_px=256", "heldout_px=24", "heldout_samples=1",
+# the default samples per texel (3 x 3): the slices' alpha and colour are what a user gets; frames of 64 px
+# (the default conifer's), so the Impostor prim's tiles have 128 texels, one per pixel of test_blender's views
+IMPOSTORS_SMALL = [a for kv in ("frames=8", "atlas_px=512", "heldout_px=24", "heldout_samples=1",
                                 "heldout_stride=108", "card_px=16") for a in ("--set", f"impostors.{kv}")]
 SMALL = ["--set", "heightmap.resolution=96", "--set", "world.texture_size=64", "--set", "shared.mesh_max_vertices=49",
          *IMPOSTORS_SMALL, "--set", f"plants.build={json.dumps(list(TREES) + ['grass'])}",
