@@ -74,7 +74,7 @@ def _render_slab(prepared: Prepared, eye, forward, up, width: float, height: flo
     kept or dropped on its own (the n x n supersampling of a tile render)."""
     n = tile_px * samples
     cam = Camera(tuple(eye), tuple(forward), tuple(up), ortho_height_m=height, ortho_width_m=width)
-    img = prepared.render(cam, Settings(n, n, samples=1))
+    img = prepared.render(cam, Settings(n, n, samples=1, max_depth_m=thickness))
     keep = ((img.alpha > 0) & (img.depth <= thickness)).astype(np.float32)
 
     def box(a):

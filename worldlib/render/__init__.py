@@ -134,7 +134,8 @@ class Prepared:
         k = _kernel(env)
         k(env.queue, global_size((W, H), local), local, np.int32(W), np.int32(H), np.int32(settings.samples),
           np.int32(settings.ao_rays), np.float32(settings.ao_radius_m), np.float32(settings.alpha_threshold),
-          np.uint32(settings.seed & 0xFFFFFFFF), np.int32(tw), np.int32(th), cam, *self.buffers, *dev)
+          np.uint32(settings.seed & 0xFFFFFFFF), np.float32(settings.max_depth_m), np.int32(tw), np.int32(th), cam,
+          *self.buffers, *dev)
         for a, b in zip(outs, dev):
             cl.enqueue_copy(env.queue, a, b)
         env.queue.finish()

@@ -133,7 +133,7 @@ inline int trace(float3 o, float3 d, float tmin, float tmax, int any_hit,
 }
 
 __kernel void render(int width, int height, int samples, int ao_rays, float ao_radius, float alpha_threshold,
-                     uint seed, int tw, int th,
+                     uint seed, float max_depth, int tw, int th,
                      __global const float *cam, __global const float4 *nodes, __global const float4 *tris,
                      __global const float *tri_nrm, __global const float *tri_uv, __global const float *tri_tint,
                      __global const float *tex_min_alpha, __global const float *tex,
@@ -158,7 +158,7 @@ __kernel void render(int width, int height, int samples, int ao_rays, float ao_r
             if (ortho) { o = eye + x * right + y * up; d = fwd; }
             else { o = eye; d = normalize(fwd + x * right + y * up); }
             float t, b1, b2;
-            const int tri = trace(o, d, 0.0f, INFINITY, 0, nodes, tris, tri_uv, tex_min_alpha, tex, tw, th,
+            const int tri = trace(o, d, 0.0f, max_depth, 0, nodes, tris, tri_uv, tex_min_alpha, tex, tw, th,
                                   alpha_threshold, &t, &b1, &b2);
             if (tri < 0) continue;
             const float b0 = 1.0f - b1 - b2;

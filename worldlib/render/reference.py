@@ -87,7 +87,7 @@ def render(scene: Scene, camera: Camera, settings: Settings) -> Image:
         d = fwd + x[:, None] * right + y[:, None] * up
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         o = np.broadcast_to(eye, d.shape).copy()
-    tri, t, b1, b2 = trace(scene, o, d, 0.0, np.inf, settings.alpha_threshold)
+    tri, t, b1, b2 = trace(scene, o, d, 0.0, settings.max_depth_m, settings.alpha_threshold)
     hit = tri >= 0
     n_s = len(tri)
     col = np.zeros((n_s, 3))

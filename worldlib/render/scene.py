@@ -66,7 +66,8 @@ class Settings:
     fixed stratified grid); ao_rays: ambient-occlusion rays per covered
     sample (0: no AO, the channel is 1); ao_radius_m: occluders farther than
     this do not count; alpha_threshold: the alpha test of textured cards;
-    seed: of the counter-based AO directions."""
+    seed: of the counter-based AO directions; max_depth_m: camera rays end
+    there (a slab's far face: nothing behind it is traversed)."""
 
     width: int = 256
     height: int = 256
@@ -75,6 +76,7 @@ class Settings:
     ao_radius_m: float = 1.0
     alpha_threshold: float = 0.5
     seed: int = 0
+    max_depth_m: float = math.inf
 
 
 @dataclass

@@ -70,6 +70,25 @@ def test_kernel_matches_reference(cl_env, view, ao_rays):
         assert a.ao[a.alpha > 0].min() < 1.0  # the card shadows the ground
 
 
+@pytest.mark.parametrize("view", sorted(CAMERAS))
+def test_camera_rays_end_at_max_depth_as_in_the_reference(cl_env, view):
+    """A far face between the card and the ground (2.9 m from the ortho eye,
+    whose card is 3 m away, the ground beyond): the kernel keeps what the
+    reference keeps, nothing whose depth is past it, and what lies nearer
+    exactly as an unclipped render has it."""
+    scene = tiny_scene()
+    s = Settings(24, 20, samples=2, max_depth_m=2.9 if view == "ortho" else 3.2)
+    a = render(cl_env, scene, CAMERAS[view], s)
+    _compare(a, render(None, scene, CAMERAS[view], s), 1.0)
+    assert (a.depth[np.isfinite(a.depth)] <= s.max_depth_m).all()
+    # one sample a pixel, so that a pixel is near or far as a whole
+    a = render(cl_env, scene, CAMERAS[view], Settings(24, 20, samples=1, max_depth_m=s.max_depth_m))
+    full = render(cl_env, scene, CAMERAS[view], Settings(24, 20, samples=1))
+    near = full.depth <= s.max_depth_m
+    assert 0 < near.sum() < (full.alpha > 0).sum()  # the clip keeps some of the scene and drops some
+    assert np.array_equal(a.depth[near], full.depth[near]) and np.array_equal(a.albedo[near], full.albedo[near])
+
+
 def test_alpha_test_cuts_the_card(cl_env):
     """Through the card's transparent corners the ground (or sky) shows."""
     full = tiny_scene()
