@@ -3,9 +3,12 @@ writers): the view atlas (EXR with its mips, sRGB PNG of the albedo), each
 slice sheet (layered EXR, PNG, the normal alone) and the six cards views.
 
 The layered EXRs (atlas, sheets) are an engine's data: their normal.XYZ hold
-signed unit normals. The sheet's `_normal.exr`, the one file a material's
+signed unit normals. The sheet's `_normal.png`, the one file a material's
 normal input reads, holds them 0.5 n + 0.5 as the UsdPreviewSurface spec's
-normal maps do (worldlib.materials.encode_normal)."""
+normal maps do (worldlib.materials.encode_normal), in 8 bits as the ground's
+detail normals are: a DCC holds a half-float EXR as 16 bytes a texel, and
+the conifer's 2048 x 1024 sheet so cost Blender 32 MB (8-bit steps tilt a
+normal by at most 0.5 degree)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -55,6 +58,5 @@ def _write_sheet(tex_dir: Path, name: str, provenance: dict, sheet) -> dict[str,
     worldlib_images.write_png(tex_dir / f"{stem}.png", sheet.rgba[..., :3], sheet.rgba[..., 3])
     # the material's normal input reads R, G, B: the normal alone, not the layered file's first channels, stored
     # 0..1 as the spec's normal maps are (its UsdUVTexture decodes with scale 2, bias -1)
-    images.write_exr(tex_dir / f"{stem}_normal.exr", [materials.encode_normal(sheet.normal)], ("R", "G", "B"),
-                     {**provenance, "species": name, "encoding": "0.5 n + 0.5"})
-    return {"albedo": f"{stem}.png", "exr": f"{stem}.exr", "normal": f"{stem}_normal.exr"}
+    worldlib_images.write_png(tex_dir / f"{stem}_normal.png", materials.encode_normal(sheet.normal), srgb=False)
+    return {"albedo": f"{stem}.png", "exr": f"{stem}.exr", "normal": f"{stem}_normal.png"}

@@ -19,7 +19,7 @@ over /Plants/<species> (GeomModelAPI)
     def Xform Impostor: the slice billboards (Mesh Slices, or Tuft and
       TuftTop for grass) with their UsdPreviewSurface (albedo PNG sRGB
       with the plant's foliage translucency gain, alpha-tested at 0.5,
-      tangent-space normal EXR stored 0..1 with scale 2 and bias -1);
+      tangent-space normal PNG stored 0..1 with scale 2 and bias -1);
     variantSet lod: every existing LODk variant sets Impostor's purpose to
       proxy (drawn in viewports beside the render-purpose mesh); the new
       variant `impostor` holds no mesh and draws Impostor as the model
@@ -78,7 +78,7 @@ def _material(stage, path: str, albedo: str, normal: str | None, gain: float = 1
     """Albedo PNG (sRGB) as diffuseColor, brightened by the plant's foliage
     translucency gain (materials.bake_translucency: the DCC look of LOD0's
     foliage), its alpha cut out at 0.5 through a second reader of the PNG,
-    and the tangent-space normal EXR (raw, 0..1, the spec's scale and bias)."""
+    and the tangent-space normal PNG (raw, 0..1, the spec's scale and bias)."""
     from pxr import Sdf
 
     mat, surf, texture_at = materials.textured_preview_surface(stage, path, roughness=0.8)

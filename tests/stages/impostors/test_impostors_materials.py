@@ -50,7 +50,7 @@ def spec_problems(stage) -> list[str]:
     """What in the stage's materials breaks the rules of the module docstring."""
     from pxr import Usd, UsdShade
 
-    problems = []
+    problems, normal_maps = [], set()
     for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
         shader = UsdShade.Shader(prim)
         if not shader or shader.GetIdAttr().Get() != "UsdPreviewSurface":
@@ -58,6 +58,7 @@ def spec_problems(stage) -> list[str]:
         where = prim.GetPath()
         normal = _connected(shader.GetInput("normal"))
         if normal is not None:
+            normal_maps.add(normal.GetPath())
             if _vec(normal, "scale") != materials.NORMAL_SCALE or _vec(normal, "bias") != materials.NORMAL_BIAS:
                 problems.append(f"{where}: normal map scale {_vec(normal, 'scale')} bias {_vec(normal, 'bias')}")
             texels = read_image(normal.GetInput("file").Get().resolvedPath, "raw")[..., :3]
@@ -81,7 +82,8 @@ def spec_problems(stage) -> list[str]:
             continue
         space = tex.GetInput("sourceColorSpace").Get() if tex.GetInput("sourceColorSpace") else None
         file = tex.GetInput("file").Get().path
-        want = "sRGB" if file.lower().endswith(".png") else "raw"
+        # 8-bit colour is sRGB; data (a normal map in any format, float images) raw
+        want = "sRGB" if file.lower().endswith(".png") and prim.GetPath() not in normal_maps else "raw"
         if space != want:
             problems.append(f"{prim.GetPath()}: sourceColorSpace {space} for {file} (want {want})")
         gain = prim.GetCustomDataByKey(materials.TRANSLUCENCY_GAIN)
