@@ -22,7 +22,8 @@ in a 4:1 strip of square tiles, and 1 horizontal quad at half height
 carrying the tuft seen from above, in a square sheet of its own.
 
 Tile texels: straight linear albedo padded into transparent texels, alpha
-(coverage), tangent-space normal of the tile's quad. Each quad is cut to
+(coverage), tangent-space normal of the tile's quad (one covered sample's,
+not their mean: _one_sample_normal). Each quad is cut to
 its tile's covered texels (and one more around them), with its uv.
 """
 from __future__ import annotations
@@ -95,7 +96,8 @@ def _one_sample_normal(normal: np.ndarray, keep: np.ndarray, tile_px: int, sampl
     mesh's. The texels' mean normals would shade as a smooth surface: a
     crown's needles face every way, their mean faces the viewer, and that
     lit by a sun in front is brighter than the needles are (the conifer's
-    slices by 8 % in Cycles, as much as one sample per texel to 3 x 3)."""
+    impostor in Cycles from the DCC test's camera: +15 % against its mesh
+    with mean normals, +8 % with these)."""
     n = normal.reshape(tile_px, samples, tile_px, samples, 3).transpose(0, 2, 1, 3, 4).reshape(tile_px, tile_px, -1, 3)
     k = keep.reshape(tile_px, samples, tile_px, samples).transpose(0, 2, 1, 3).reshape(tile_px, tile_px, -1)
     centre = 0.5 * (samples - 1)

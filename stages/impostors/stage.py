@@ -14,12 +14,15 @@ Per species, in the artifact's textures/:
                              vertical orientations and a horizontal one (the
                              views from above) x front/back x N slabs for trees
                              and shrubs, the sheet the Impostor prim draws
-                             (drawn_slice_slabs); for grass seed 001's 4
-                             vertical plates (<species>_tuft) and the top
-                             slice (<species>_tuft_top)
-  <species>_blend_slices.exr/.png  trees and shrubs, when slice_slabs differs
-                             from drawn_slice_slabs: the sheet of slice_slabs
-                             slabs for an engine's shader that blends the two
+                             (drawn_slice_slabs, tiles of twice the frame
+                             side, at most drawn_slice_px); for grass seed
+                             001's 4 vertical plates (<species>_tuft) and the
+                             top slice (<species>_tuft_top); _normal.png: the
+                             normals alone, 0..1, for a material
+  <species>_blend_slices.exr/.png  trees and shrubs, when slice_slabs or the
+                             tiles differ from the drawn sheet's: the sheet of
+                             slice_slabs slabs (tiles of half the frame side)
+                             for an engine's shader that blends the two
                              slicings nearest the view (seed 002)
   <species>_card_{x,y,z}{pos,neg}.png  the six axis views of USD's cards draw mode
 impostors.usda (usd_layer.py): overs on the plants layer's /Plants/<species>
