@@ -6,6 +6,7 @@ part of `make test`).
     python -m bench.impostors --agreement          # the bake's cheap held-out measure against the whole 5-degree set
     python -m bench.impostors --pictures bench/out/impostors   # mesh, impostor, slices side by side per species
     python -m bench.impostors --popping            # how much the impostor jumps between 1-degree steps, against the mesh
+    python -m bench.impostors --drawn              # the Impostor prim's sheet: bake time against IoU per tile size and slabs
 
 Sweep: for each species of a plants layer (the newest build/artifacts/plants
 run, or --plants PATH; --species to choose) and every combination of frames
@@ -22,6 +23,12 @@ still covers every species. It prints one row per species and setting
 (bake seconds wall and CPU: the machine may be shared, frame size, median and worst PSNR and IoU, median depth
 RMSE, worst view) and plots bake CPU seconds against median IoU and PSNR (PNG,
 --out, redrawn after every row).
+
+--drawn: per tree and shrub species, the sheet a DCC draws (every quad at
+once, alpha-tested at 0.5) for tiles of {0.5, 1, 2} x the frame side and
+{8, 16} slabs: its bake seconds (wall and CPU) and its held-out IoU (the
+lattice) at 2 x the frame side, one texel per pixel of the default tiles,
+against the mesh at the stage's reference samples.
 
 --agreement: per species, the stage's default atlas (its frame size,
 stages.impostors.stage.plant_frame_px) measured the way the bake does (the
@@ -138,6 +145,38 @@ def agreement(plants: list, args, defaults) -> None:
                   f"{time.perf_counter() - t0:7.1f}", flush=True)
 
 
+def drawn_sweep(plants: list, args, defaults) -> None:
+    """Bake time against held-out IoU of the drawn sheet per tile size and slab count."""
+    from pipeline.opencl import get_cl
+    from stages.impostors import heldout, measure, slices
+    from stages.impostors.stage import plant_frame_px
+    from worldlib.render import Prepared, Settings
+
+    cl_env = get_cl()
+    print(f"drawn sheet: held-out lattice 1/{args.stride}, views of 2 x the frame side, reference "
+          f"{defaults.heldout_samples}^2 samples, {defaults.samples}^2 samples per texel")
+    print(f"{'species':14s} {'tile':>5s} {'slabs':>5s} {'view':>5s} {'bake s':>7s} {'CPU s':>7s} {'IoU med':>7s} "
+          f"{'IoU min':>7s} {'PSNR med':>8s}")
+    for plant in plants:
+        if "Blades" in plant.ps.parts:
+            continue  # grass: seed 001's tuft, no slabs
+        frame_px = plant_frame_px(plant.ps.radius, plant.height, defaults)
+        view_px = 2 * frame_px
+        layout = defaults.layouts.get(plant.name, defaults.layout)
+        views = heldout.lattice(layout, args.stride)
+        refs = measure.References(plant.prepared, plant.ps, views, view_px, defaults.heldout_samples)
+        for tile, slabs in itertools.product((frame_px // 2, frame_px, 2 * frame_px), (8, 16)):
+            t0, c0 = time.perf_counter(), time.process_time()
+            sheet = slices.tree_slices(plant.prepared, slabs, tile, defaults.samples)
+            bake_s, bake_cpu_s = time.perf_counter() - t0, time.process_time() - c0
+            drawn = Prepared(cl_env, slices.sheet_scene([sheet]))
+            view = measure.drawn_view(drawn, plant.ps, Settings(view_px, view_px, samples=defaults.heldout_samples))
+            s = heldout.summarize(refs.measure(view), plant.height)
+            print(f"{plant.name:14s} {tile:5d} {slabs:5d} {view_px:5d} {bake_s:7.2f} {bake_cpu_s:7.2f} "
+                  f"{s['alpha_iou']['median']:7.3f} {s['alpha_iou']['min']:7.3f} {s['psnr_db']['median']:8.2f}",
+                  flush=True)
+
+
 PICTURE_VIEWS = ((35.0, 0.0), (35.0, 30.0), (215.0, 55.0), (125.0, 80.0))  # held-out (azimuth, elevation)
 BACKGROUND = np.array([0.78, 0.83, 0.9])
 
@@ -251,6 +290,7 @@ def main() -> None:
     ap.add_argument("--pictures", type=Path, default=None, help="write mesh / impostor / slices pictures here instead")
     ap.add_argument("--scale", type=int, default=3, help="--pictures: enlargement of the frame-sized views")
     ap.add_argument("--popping", action="store_true", help="measure seams and popping between frames instead")
+    ap.add_argument("--drawn", action="store_true", help="the drawn sheet's bake time against IoU instead")
     args = ap.parse_args()
     layer = args.plants or newest_plants_layer()
     from pxr import Sdf
@@ -265,6 +305,9 @@ def main() -> None:
         return
     if args.popping:
         popping(list(plants.values()), defaults)
+        return
+    if args.drawn:
+        drawn_sweep(list(plants.values()), args, defaults)
         return
     if args.pictures:
         pictures(list(plants.values()), args.pictures, defaults, args.scale)
