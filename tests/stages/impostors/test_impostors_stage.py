@@ -246,6 +246,9 @@ def test_the_impostor_prim_draws_thin_slabs_and_the_blend_sheet_lies_beside(bake
     assert len(mesh.GetFaceVertexCountsAttr().Get()) == 2 * 4 * 2 * params.drawn_slice_slabs
     info = json.loads(stage.GetPrimAtPath("/Plants/tree").GetCustomDataByKey("worldbake:impostor"))
     assert info["slices"]["slabs"] == params.slice_slabs and info["slices"]["drawn_slabs"] == params.drawn_slice_slabs
+    # the drawn sheet's tiles: twice the frame side, at most drawn_slice_px; the blended one's half the frame side
+    assert tiles["slices"]["tile_px"] == min(params.drawn_slice_px, 2 * info["frame_px"]) > info["slice_px"]
+    assert tiles["blend_slices"]["tile_px"] == info["slice_px"] == min(params.slice_px, info["frame_px"] // 2)
     assert info["slice_files"]["blend_slices"]["albedo"] == "./textures/tree_blend_slices.png"
     assert not (tex / "grass_blend_slices.png").exists()
 
