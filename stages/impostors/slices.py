@@ -95,9 +95,8 @@ def _one_sample_normal(normal: np.ndarray, keep: np.ndarray, tile_px: int, sampl
     needles' and leaves' own, so the mean of their Lambert terms is the
     mesh's. The texels' mean normals would shade as a smooth surface: a
     crown's needles face every way, their mean faces the viewer, and that
-    lit by a sun in front is brighter than the needles are (the conifer's
-    impostor in Cycles from the DCC test's camera: +15 % against its mesh
-    with mean normals, +8 % with these)."""
+    lit by a sun in front is brighter than the needles are (the luminance
+    check of tests/dcc/test_blender.py, impostor against mesh in Cycles)."""
     n = normal.reshape(tile_px, samples, tile_px, samples, 3).transpose(0, 2, 1, 3, 4).reshape(tile_px, tile_px, -1, 3)
     k = keep.reshape(tile_px, samples, tile_px, samples).transpose(0, 2, 1, 3).reshape(tile_px, tile_px, -1)
     centre = 0.5 * (samples - 1)
