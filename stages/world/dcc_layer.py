@@ -12,7 +12,7 @@ tile height). Farther, where a plant spans less than CROWN_PX pixels of that
 screen, a tile's instancer is deactivated and its plants are drawn as
 crowns: one mesh per species (/World/Vegetation/Crowns), a three-sided
 pyramid per plant around its bounding sphere's centre, of the area its
-slices cover, in the slices' mean albedo, thinned with distance (1 in k
+silhouette covers, in its mean albedo (both from its view atlas), thinned with distance (1 in k
 plants kept, k = (distance / crown distance)^2, each k times the area: the
 same cover). A renderer holds each instance as an object with its
 transform and a BVH instance (about a kilobyte in Cycles), a crown as three
@@ -156,25 +156,33 @@ def species_ladders(layer: Path, prims: dict[str, str]) -> dict[str, dict]:
 
 
 def crown_look(prim, info: dict) -> tuple[list[float], float]:
-    """(linear albedo, covered share) of the species' slices texture: the
-    mean colour of its covered texels and the share it covers."""
+    """(linear albedo, covered share) of the species seen whole: the mean
+    colour of the covered texels of its view atlas's frames, and the share
+    of its bounding sphere's disc their silhouettes cover (a frame is the
+    sphere's square, 2r a side: its covered share x 4 / pi), over every
+    frame. Not the slice sheet: a slab's tile holds a slab, so its cover is
+    a fraction of the plant's that shrinks as the slabs thin."""
     import OpenImageIO as oiio
 
     from pipeline.exr import linear_from_srgb
 
-    rel = info.get("slice_files", {}).get("slices", {}).get("albedo")
+    fallback = [0.05, 0.1, 0.04], 0.5
+    rel = info.get("files", {}).get("atlas_png")
+    frames, frame_px = info.get("frames"), info.get("frame_px")
     layer = next((s.layer for s in prim.GetPrimStack()
                   if "impostor" in s.GetInfo("customData").get("worldbake", {})), None)  # namespaced key
-    if not rel or layer is None:
-        return [0.05, 0.1, 0.04], 0.5
+    if not rel or not frames or not frame_px or layer is None:
+        return fallback
     px = np.asarray(oiio.ImageBuf(str(Path(layer.realPath).parent / rel)).get_pixels(oiio.FLOAT), np.float32)
-    if px.ndim != 3 or px.shape[2] < 4:
-        return [0.05, 0.1, 0.04], 0.5
+    side = int(frames) * int(frame_px)  # the frames fill the atlas from its corner; the rest is empty
+    if px.ndim != 3 or px.shape[2] < 4 or min(px.shape[:2]) < side:
+        return fallback
+    px = px[:side, :side]
     covered = px[..., 3] >= 0.5
     if not covered.any():
-        return [0.05, 0.1, 0.04], 0.5
+        return fallback
     colour = linear_from_srgb(px[..., :3][covered]).mean(0)
-    return [round(float(c), 4) for c in colour], float(covered.mean())
+    return [round(float(c), 4) for c in colour], min(float(covered.mean()) * 4.0 / math.pi, 1.0)
 
 
 def tile_distance(bounds: np.ndarray, eye: np.ndarray) -> float:
@@ -259,7 +267,7 @@ def crown_points(tiles, chosen: dict[str, str | None], ladders: dict[str, dict],
             (np.arange(len(pos)) * 0.6180339887) % 1.0
         keep = rnd < 1.0 / k
         centre = pos[keep] + np.asarray(lad["centre"]) * scale[keep]  # the crown's offset, scaled (turns about y ignored)
-        radius = lad["radius"] * np.sqrt(lad["look"][1] * k) * scale[keep].max(1)  # the area the slices cover, k times
+        radius = lad["radius"] * np.sqrt(lad["look"][1] * k) * scale[keep].max(1)  # the area the plant covers, k times
         parts.setdefault(species, []).append((centre, radius))
     return {s: (np.concatenate([c for c, _ in v]), np.concatenate([r for _, r in v])) for s, v in parts.items()}
 

@@ -41,6 +41,38 @@ def test_crown_pyramids_enclose_their_centres_and_face_outward():
         assert plan == pytest.approx(np.pi * radius[k] ** 2, rel=1e-5)
 
 
+def test_a_crown_covers_what_the_plant_s_view_atlas_covers(tmp_path):
+    """crown_look reads the species' view atlas: the frames in the atlas's
+    corner (the rest of a power-of-two atlas is empty), their covered
+    texels' mean colour, and their cover as a share of the bounding disc
+    (a frame is the disc's square): discs of half the frame's radius cover
+    a quarter, whatever slices the species has."""
+    import json
+
+    from pxr import Sdf, Usd
+
+    from worldlib import images
+
+    frames, frame_px = 2, 32
+    rgba = np.zeros((128, 128, 4), np.float32)  # a 128 atlas holding 2 x 2 frames of 32 texels
+    yy, xx = np.mgrid[0:frame_px, 0:frame_px] + 0.5
+    disc = (xx - 16) ** 2 + (yy - 16) ** 2 < 8 ** 2
+    for i in range(frames):
+        for j in range(frames):
+            rgba[j * frame_px:(j + 1) * frame_px, i * frame_px:(i + 1) * frame_px][disc] = (0.05, 0.2, 0.03, 1.0)
+    (tmp_path / "textures").mkdir()
+    images.write_png(tmp_path / "textures" / "tree_atlas_albedo.png", rgba[..., :3], rgba[..., 3])
+    info = {"files": {"atlas_png": "./textures/tree_atlas_albedo.png"}, "frames": frames, "frame_px": frame_px,
+            "slice_files": {"slices": {"albedo": "./textures/none.png"}}}
+    layer = Sdf.Layer.CreateNew(str(tmp_path / "impostors.usda"))
+    stage = Usd.Stage.Open(layer)
+    prim = stage.DefinePrim("/Plants/tree")
+    prim.SetCustomDataByKey("worldbake:impostor", json.dumps(info))
+    colour, share = dcc_layer.crown_look(prim, info)
+    assert share == pytest.approx(disc.mean() * 4 / np.pi, rel=1e-6) and share == pytest.approx(0.25, abs=0.01)
+    assert colour == pytest.approx([0.05, 0.2, 0.03], abs=0.004)  # through the 8-bit sRGB PNG
+
+
 def test_terrain_lod_is_the_coarsest_within_the_error_on_screen():
     errors = {"full": 0.0, "half": 4.0, "quarter": 12.0}
     tiles = [(f"/T{k}", np.array([x, 0.0, x + 100.0, 100.0, 0.0, 10.0]), errors)
