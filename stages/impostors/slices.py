@@ -76,6 +76,7 @@ def _render_slab(prepared: Prepared, eye, forward, up, width: float, height: flo
     n = tile_px * samples
     cam = Camera(tuple(eye), tuple(forward), tuple(up), ortho_height_m=height, ortho_width_m=width)
     img = prepared.render(cam, Settings(n, n, samples=1, max_depth_m=thickness))
+    # the kernel ends rays at the float32 nearest the far face: the face itself is this float64 test's
     keep = ((img.alpha > 0) & (img.depth <= thickness)).astype(np.float32)
 
     def box(a):

@@ -108,14 +108,14 @@ class ImpostorsParams(Params):
                              ge=0, le=16)
     slice_slabs: int = Param(3, units="slabs", description="slabs per orientation of the tree slice billboards an "
                              "engine blends by view, the two slicings nearest it (seed 002: 1, 3 or 5; the sheet "
-                             "blend_slices when it differs from drawn_slice_slabs)", ge=1, le=16)
+                             "blend_slices when it or its tiles differ from the drawn sheet's)", ge=1, le=16)
     drawn_slice_slabs: int = Param(16, units="slabs", description="slabs per orientation of the tree slice billboards "
                                    "the Impostor prim carries, which a USD viewer or DCC draws all at once (no "
                                    "blend by view): the nearest quad of any slicing shows, so each slab's content "
                                    "must lie near its quad seen from any side, which thin slabs keep; each slab is "
-                                   "two quads 1 mm apart, so a ray across the crown crosses up to about 5 x this "
-                                   "many quads of one plant (76 of the 16-slab conifer's 128; a DCC's transparent "
-                                   "bounces must allow them)", ge=1, le=16)
+                                   "two quads 1 mm apart, so a ray across the crown crosses several times this "
+                                   "many quads of one plant (a DCC's transparent bounces must allow them: the "
+                                   "README's advice)", ge=1, le=16)
     slice_px: int = Param(128, units="texels", description="largest side of a tree slice tile: a tile has half the side "
                           "of the plant's atlas frames (slices are the LOD beyond the atlas), at most this",
                           ge=8, le=2048)
@@ -297,7 +297,7 @@ def _slices(ctx: RunContext, plant: _Plant, at: atlas.Atlas, params: ImpostorsPa
     drawn_px = min(params.drawn_slice_px, 2 * at.frame_px)
     drawn = [slices.tree_slices(plant.prepared, params.drawn_slice_slabs, drawn_px, params.samples)]
     # seed 002 / Jakulin: the two slicings nearest the view, blended (each seen within 30 deg of face-on), from a
-    # sheet of its own when the slab counts differ
+    # sheet of its own when its slabs or tiles differ from the drawn sheet's
     same = params.slice_slabs == params.drawn_slice_slabs and slice_px == drawn_px
     blend = drawn if same else \
         [slices.tree_slices(plant.prepared, params.slice_slabs, slice_px, params.samples, name="blend_slices")]

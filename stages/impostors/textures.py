@@ -6,9 +6,8 @@ The layered EXRs (atlas, sheets) are an engine's data: their normal.XYZ hold
 signed unit normals. The sheet's `_normal.png`, the one file a material's
 normal input reads, holds them 0.5 n + 0.5 as the UsdPreviewSurface spec's
 normal maps do (worldlib.materials.encode_normal), in 8 bits as the ground's
-detail normals are: a DCC holds a half-float EXR as 16 bytes a texel, and
-the conifer's 2048 x 1024 sheet so cost Blender 32 MB (8-bit steps tilt a
-normal by at most 0.5 degree)."""
+detail normals are: a DCC holds a half-float EXR as 16 bytes a texel, an
+8-bit PNG as 4 (whose steps tilt a normal by at most half a degree)."""
 from __future__ import annotations
 
 from dataclasses import dataclass

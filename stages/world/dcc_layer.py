@@ -12,9 +12,9 @@ tile height). Farther, where a plant spans less than CROWN_PX pixels of that
 screen, a tile's instancer is deactivated and its plants are drawn as
 crowns: one mesh per species (/World/Vegetation/Crowns), a three-sided
 pyramid per plant around its bounding sphere's centre, of the area its
-silhouette covers, in its mean albedo (both from its view atlas), thinned with distance (1 in k
-plants kept, k = (distance / crown distance)^2, each k times the area: the
-same cover). A renderer holds each instance as an object with its
+silhouette covers, in its mean albedo (both from its view atlas), thinned
+with distance (1 in k plants kept, k = (distance / crown distance)^2, each
+k times the area: the same cover). A renderer holds each instance as an object with its
 transform and a BVH instance (about a kilobyte in Cycles), a crown as three
 triangles. Where a plant spans less than MIN_PX pixels it is left out
 (grass at a few hundred metres: the ground's splat albedo carries its
